@@ -1,0 +1,380 @@
+//! The cascade layout: which brightness band each cascade covers, and how one sample is split
+//! between the two cascades around its brightness.
+//!
+//! The layout is fixed for a frame once samples arrive and must be identical on every node that
+//! accumulates the frame; otherwise partial states cannot be merged. It is therefore a value type
+//! that compares equal field by field, and [`CascadeLayout::new`] is the only way to build one.
+
+use std::fmt;
+
+/// Fractional bits of every fixed-point quantity in a frame state.
+///
+/// A cascade's RGB sums are stored as integers in units of `c_j * 2^-FRAC_BITS`, its sample count
+/// in units of `2^-FRAC_BITS`. Integer sums are associative, so the state, and every image
+/// resolved from it, is bit-identical whatever order samples arrive in or however they are split
+/// across nodes. 32 bits keep a relative resolution of 2^-32 of the cascade's scale, finer than
+/// an `f32` sample carries, and leave 2^32 units of headroom for the count (4 billion samples in
+/// one pixel) and about `2^32 / (b * max_channel_factor)` full-scale samples for the sums.
+pub const FRAC_BITS: u32 = 32;
+
+/// One sample count in fixed point.
+pub const COUNT_ONE: u64 = 1 << FRAC_BITS;
+
+/// Largest cascade count accepted; 16 cascades of base 8 span 8^15 ≈ 3.5e13 in brightness.
+pub const MAX_CASCADES: u32 = 16;
+
+/// Rec.709 / sRGB relative luminance weights, the default brightness function.
+pub const REC709_LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
+
+/// A parameter that makes no sense, with the reason.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("invalid parameter `{name}`: {reason}")]
+pub struct ParamError {
+    /// The parameter's name as it appears in the API.
+    pub name: &'static str,
+    /// What is wrong with it.
+    pub reason: String,
+}
+
+impl ParamError {
+    pub(crate) fn new(name: &'static str, reason: impl Into<String>) -> Self {
+        Self {
+            name,
+            reason: reason.into(),
+        }
+    }
+}
+
+/// The brightness bands of a frame: cascade `j` has scale `c_j = lowest_scale * base^j`.
+///
+/// Brightness `L(s) = luminance · s` is linear in the sample, so `L` of a sum is the sum of `L`s;
+/// the count identity of the split relies on that.
+#[derive(Clone, PartialEq)]
+pub struct CascadeLayout {
+    base: f64,
+    cascades: u32,
+    lowest_scale: f64,
+    luminance: [f64; 3],
+    /// `c_j` for every cascade.
+    scales: Vec<f64>,
+    /// `2^FRAC_BITS / c_j`: multiplies a value to get fixed-point units of cascade `j`.
+    to_units: Vec<f64>,
+    /// `c_j / 2^FRAC_BITS`: multiplies fixed-point units of cascade `j` back to a value.
+    from_units: Vec<f64>,
+}
+
+impl fmt::Debug for CascadeLayout {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("CascadeLayout")
+            .field("base", &self.base)
+            .field("cascades", &self.cascades)
+            .field("lowest_scale", &self.lowest_scale)
+            .field("luminance", &self.luminance)
+            .finish()
+    }
+}
+
+/// Where one sample goes: `lo` receives `w_lo * s` and `count_lo` count units, `lo + 1` (if
+/// `hi_share` is true) receives `(1 - w_lo) * s` and the rest of one count.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Split {
+    /// The lower cascade.
+    pub lo: usize,
+    /// Fraction of the sample's value that goes to `lo`; the rest goes to `lo + 1`.
+    pub w_lo: f64,
+    /// Fixed-point count units for `lo`; `COUNT_ONE - count_lo` go to `lo + 1`.
+    pub count_lo: u64,
+}
+
+impl CascadeLayout {
+    /// Builds and validates a layout.
+    ///
+    /// * `base` (`b`): ratio between neighbouring cascades, `1 < b <= 1024`. Paper default 8.
+    /// * `cascades` (`K`): `2..=16`. Paper default 6.
+    /// * `lowest_scale` (`c0`): scale of cascade 0, `> 0`; every `c_j` must stay a normal `f64`.
+    /// * `luminance`: brightness weights, each finite and `> 0` (a zero weight would let a
+    ///   channel grow without bound in cascade 0, where its brightness says it belongs).
+    pub fn new(
+        base: f64,
+        cascades: u32,
+        lowest_scale: f64,
+        luminance: [f64; 3],
+    ) -> Result<Self, ParamError> {
+        if !(base.is_finite() && base > 1.0 && base <= 1024.0) {
+            return Err(ParamError::new(
+                "base",
+                format!("must be a number in (1, 1024], got {base}"),
+            ));
+        }
+        if !(2..=MAX_CASCADES).contains(&cascades) {
+            return Err(ParamError::new(
+                "cascades",
+                format!("must be between 2 and {MAX_CASCADES}, got {cascades}"),
+            ));
+        }
+        if !(lowest_scale.is_finite() && lowest_scale > 0.0) {
+            return Err(ParamError::new(
+                "lowest_scale",
+                format!("must be a positive number, got {lowest_scale}"),
+            ));
+        }
+        if let Some(w) = luminance.iter().find(|w| !(w.is_finite() && **w > 0.0)) {
+            return Err(ParamError::new(
+                "luminance",
+                format!("every weight must be a positive number, got {w} in {luminance:?}"),
+            ));
+        }
+        let scales: Vec<f64> = (0..cascades)
+            .map(|j| lowest_scale * base.powi(j as i32))
+            .collect();
+        let (lowest, highest) = (scales[0], scales[scales.len() - 1]);
+        if lowest < 1e-30 || highest > 1e30 {
+            return Err(ParamError::new(
+                "lowest_scale",
+                format!(
+                    "cascade scales must stay within [1e-30, 1e30], got {lowest:e} .. {highest:e}"
+                ),
+            ));
+        }
+        let one = COUNT_ONE as f64;
+        Ok(Self {
+            base,
+            cascades,
+            lowest_scale,
+            luminance,
+            to_units: scales.iter().map(|c| one / c).collect(),
+            from_units: scales.iter().map(|c| c / one).collect(),
+            scales,
+        })
+    }
+
+    /// The paper's defaults (`b = 8`, `K = 6`) with splatd's default `c0` and Rec.709 weights.
+    pub fn with_defaults() -> Self {
+        Self::new(8.0, 6, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE).expect("default layout is valid")
+    }
+
+    /// `b`.
+    pub fn base(&self) -> f64 {
+        self.base
+    }
+
+    /// `K`.
+    pub fn cascades(&self) -> usize {
+        self.cascades as usize
+    }
+
+    /// `c0`.
+    pub fn lowest_scale(&self) -> f64 {
+        self.lowest_scale
+    }
+
+    /// The brightness weights.
+    pub fn luminance_weights(&self) -> [f64; 3] {
+        self.luminance
+    }
+
+    /// `c_j` for every cascade.
+    pub fn scales(&self) -> &[f64] {
+        &self.scales
+    }
+
+    /// Brightness of an RGB value.
+    #[inline]
+    pub fn luminance(&self, rgb: [f64; 3]) -> f64 {
+        self.luminance[0] * rgb[0] + self.luminance[1] * rgb[1] + self.luminance[2] * rgb[2]
+    }
+
+    #[inline]
+    pub(crate) fn to_units(&self, j: usize) -> f64 {
+        self.to_units[j]
+    }
+
+    #[inline]
+    pub(crate) fn from_units(&self, j: usize) -> f64 {
+        self.from_units[j]
+    }
+
+    /// How a sample of brightness `l >= 0` is split (the authors' `split.cpp`, with the energy of
+    /// out-of-range samples kept):
+    ///
+    /// * `l <= c0`: all of it to cascade 0, with one full count (the luminance-derived count
+    ///   would be `l / c0 < 1`; splatd keeps explicit counts, exact everywhere);
+    /// * `c_j < l < c_{j+1}`: `w_lo = (c_{j+1}/l - 1) / (b - 1)` of the value to `j`, the rest
+    ///   to `j + 1`; counts `w_lo * l / c_j = (b - l/c_j) / (b - 1)` and its complement, so
+    ///   `L(B_j) / c_j` still counts samples;
+    /// * `l >= c_{K-1}`: all of it to the top cascade with weight 1 (the authors clamp it to
+    ///   `c_{K-1}/l`, losing energy even in the plain mean; splatd keeps it so that the mean
+    ///   layer is the true Monte Carlo mean).
+    #[inline]
+    pub fn split(&self, l: f64) -> Split {
+        let k = self.scales.len();
+        if l <= self.scales[0] {
+            return Split {
+                lo: 0,
+                w_lo: 1.0,
+                count_lo: COUNT_ONE,
+            };
+        }
+        if l >= self.scales[k - 1] {
+            return Split {
+                lo: k - 1,
+                w_lo: 1.0,
+                count_lo: COUNT_ONE,
+            };
+        }
+        // Largest j in 0..=K-2 with c_j <= l; l < c_{K-1} guarantees l < c_{j+1}.
+        let mut j = 0;
+        while j + 2 < k && self.scales[j + 1] <= l {
+            j += 1;
+        }
+        let w_lo = (self.scales[j + 1] / l - 1.0) / (self.base - 1.0);
+        let count = (self.base - l / self.scales[j]) / (self.base - 1.0);
+        Split {
+            lo: j,
+            w_lo,
+            count_lo: to_fixed(count.clamp(0.0, 1.0), COUNT_ONE as f64),
+        }
+    }
+}
+
+/// splatd's default scale of the lowest cascade, chosen by the quality benchmark.
+pub const DEFAULT_LOWEST_SCALE: f64 = 0.125;
+
+/// Rounds `value * units` (non-negative) to the nearest integer, saturating at `u64::MAX`.
+///
+/// `as u64` saturates and maps NaN to 0, so the result is defined for every input; callers pass
+/// only finite non-negative values.
+#[inline]
+pub(crate) fn to_fixed(value: f64, units: f64) -> u64 {
+    (value * units + 0.5) as u64
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn layout() -> CascadeLayout {
+        CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap()
+    }
+
+    #[test]
+    fn energy_and_count_identities_hold_inside_the_range() {
+        let layout = layout();
+        let b = layout.base();
+        for &l in &[
+            1.0001, 1.5, 7.99, 8.0, 8.5, 63.0, 100.0, 511.0, 4000.0, 32767.0,
+        ] {
+            let s = layout.split(l);
+            let c = layout.scales();
+            assert!(
+                s.lo + 1 < layout.cascades(),
+                "l={l} must split inside the range"
+            );
+            assert!((0.0..=1.0).contains(&s.w_lo), "w_lo={} at l={l}", s.w_lo);
+            // The value shares sum to the sample by construction (w and 1 - w); the counts they
+            // carry, read back from brightness, must sum to one sample.
+            let count_from_luminance = s.w_lo * l / c[s.lo] + (1.0 - s.w_lo) * l / c[s.lo + 1];
+            assert!(
+                (count_from_luminance - 1.0).abs() < 1e-12,
+                "count identity broken at l={l}: {count_from_luminance}"
+            );
+            let explicit = s.count_lo as f64 / COUNT_ONE as f64;
+            assert!(
+                (explicit - s.w_lo * l / c[s.lo]).abs() < 1e-9,
+                "explicit count {explicit} disagrees with luminance count at l={l}"
+            );
+            // The same weight as the notes' form (b^j/L - 1/b) / (1 - 1/b), scaled by c_j.
+            let notes = (c[s.lo] / l - 1.0 / b) / (1.0 - 1.0 / b);
+            assert!(
+                (notes - s.w_lo).abs() < 1e-12,
+                "l={l}: {notes} vs {}",
+                s.w_lo
+            );
+        }
+    }
+
+    #[test]
+    fn split_is_continuous_at_cascade_boundaries() {
+        let layout = layout();
+        for j in 1..layout.cascades() - 1 {
+            let c = layout.scales()[j];
+            let below = layout.split(c * (1.0 - 1e-12));
+            let at = layout.split(c);
+            // Just below c_j everything goes to j (upper share of the pair j-1, j); at c_j
+            // everything goes to j (lower share of the pair j, j+1).
+            assert_eq!(below.lo, j - 1);
+            assert!(below.w_lo < 1e-9);
+            assert_eq!(at.lo, j);
+            assert!((at.w_lo - 1.0).abs() < 1e-12);
+            assert_eq!(at.count_lo, COUNT_ONE);
+        }
+    }
+
+    #[test]
+    fn out_of_range_samples_keep_their_energy_and_one_count() {
+        let layout = layout();
+        for l in [0.0, 1e-30, 0.5, 1.0] {
+            assert_eq!(
+                layout.split(l),
+                Split {
+                    lo: 0,
+                    w_lo: 1.0,
+                    count_lo: COUNT_ONE
+                }
+            );
+        }
+        for l in [32768.0, 1e9, 1e30, f64::MAX] {
+            assert_eq!(
+                layout.split(l),
+                Split {
+                    lo: 5,
+                    w_lo: 1.0,
+                    count_lo: COUNT_ONE
+                }
+            );
+        }
+    }
+
+    #[test]
+    fn nonsense_parameters_are_refused_by_name() {
+        let bad = [
+            (CascadeLayout::new(1.0, 6, 1.0, REC709_LUMINANCE), "base"),
+            (
+                CascadeLayout::new(f64::NAN, 6, 1.0, REC709_LUMINANCE),
+                "base",
+            ),
+            (
+                CascadeLayout::new(8.0, 1, 1.0, REC709_LUMINANCE),
+                "cascades",
+            ),
+            (
+                CascadeLayout::new(8.0, 17, 1.0, REC709_LUMINANCE),
+                "cascades",
+            ),
+            (
+                CascadeLayout::new(8.0, 6, 0.0, REC709_LUMINANCE),
+                "lowest_scale",
+            ),
+            (
+                CascadeLayout::new(8.0, 6, -1.0, REC709_LUMINANCE),
+                "lowest_scale",
+            ),
+            (
+                CascadeLayout::new(8.0, 16, 1e20, REC709_LUMINANCE),
+                "lowest_scale",
+            ),
+            (
+                CascadeLayout::new(8.0, 6, 1.0, [0.3, 0.0, 0.1]),
+                "luminance",
+            ),
+            (
+                CascadeLayout::new(8.0, 6, 1.0, [0.3, f64::INFINITY, 0.1]),
+                "luminance",
+            ),
+        ];
+        for (result, name) in bad {
+            let err = result.expect_err(name);
+            assert_eq!(err.name, name, "{err}");
+        }
+    }
+}

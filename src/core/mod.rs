@@ -1,0 +1,29 @@
+//! The estimator: cascaded firefly reweighting (Zirr, Hanika & Dachsbacher, "Re-weighting
+//! Firefly Samples for Improved Finite-Sample Monte Carlo Estimates", CGF 37(6), 2018).
+//!
+//! Three verbs, as in a film of a renderer:
+//! * **splat** ([`FrameState::splat`]): a sample is split by brightness between the two cascades
+//!   around it ([`CascadeLayout::split`]) and counted in its pixel;
+//! * **merge** ([`FrameState::merge`]): two partial states of the same frame add up exactly;
+//! * **resolve** ([`FrameState::resolve`], [`resolve_bands`]): cascades in, the reweighted image,
+//!   the plain mean and the removed energy out.
+//!
+//! The core is pure: no I/O, no threads, no async. All accumulated quantities are fixed-point
+//! integers (see [`FRAC_BITS`]), so a state, and every image resolved from it, is bit-identical
+//! whatever the order samples arrived in and however they were split across partial states.
+
+mod layout;
+mod resolve;
+mod state;
+
+pub use layout::{
+    CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES,
+    REC709_LUMINANCE,
+};
+pub use resolve::{
+    resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
+    DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, SHADER_E_MIN_FLOOR,
+};
+pub use state::{
+    cell_len, check_sample, FrameState, MergeError, SampleError, ShapeError, SplatReport,
+};
