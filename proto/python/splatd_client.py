@@ -1,0 +1,394 @@
+"""Python client of splatd: encode sample batches and send them to a server.
+
+Dependencies: the standard library and numpy. Copy this single file into a
+renderer's plug-in directory; nothing else is needed.
+
+A batch is one worker's bundle of Monte Carlo samples for one frame: every
+record is ONE sample (pixel x, pixel y, linear RGB radiance), and the server
+counts samples per pixel, so never pre-average several samples into one
+record. The byte layout is documented in ``proto/PROTOCOL.md`` and matches the
+Rust crate ``splatd-proto`` byte for byte (a Rust test checks this)::
+
+    b"SPLB" | u16 version=1 | u64 len | frame id (len bytes, UTF-8)
+    | u64 worker | u64 seq | u64 n | n x (u32 x, u32 y, f32 r, f32 g, f32 b)
+
+all little-endian. The records are built with one numpy structured array, no
+Python loop, so encoding millions of samples is cheap.
+
+Retries: ``(worker, seq)`` identifies a batch. ``Client.post_batch`` encodes
+once and resends exactly the same bytes on connection errors, timeouts, 5xx,
+408 and 429, so that the server can drop a duplicate if an earlier attempt
+did arrive. Choose a worker id unique per process (e.g. ``random.getrandbits(64)``)
+and never reuse a (worker, seq) pair for different samples.
+
+Example::
+
+    import numpy as np
+    from splatd_client import Client
+
+    c = Client("http://render-head:7878", token="...")
+    c.create_frame("shot010", 1920, 1080)
+    xs = np.array([10, 11], dtype=np.uint32)
+    ys = np.array([20, 20], dtype=np.uint32)
+    rgb = np.array([[0.5, 0.4, 0.3], [9.0, 8.0, 7.0]], dtype=np.float32)
+    print(c.post_batch("shot010", worker=1234, seq=0, xs=xs, ys=ys, rgb=rgb))
+
+Command line: ``--selftest-emit PATH`` writes a fixed batch (used by the Rust
+compatibility test), ``--selftest-check PATH`` decodes PATH and checks that it
+is that batch.
+"""
+
+from __future__ import annotations
+
+import http.client
+import json
+import random
+import re
+import struct
+import sys
+import time
+import urllib.error
+import urllib.request
+from typing import Any, NamedTuple, Optional
+
+try:
+    import numpy as np
+except ImportError:  # pragma: no cover - depends on the environment
+    sys.stderr.write(
+        "splatd_client needs numpy: install it with `python3 -m pip install numpy`\n"
+    )
+    raise
+
+MAGIC = b"SPLB"
+VERSION = 1
+RECORD_SIZE = 20
+MAX_FRAME_ID_LEN = 128
+DEFAULT_MAX_RECORDS = 4 * 1024 * 1024
+BATCH_CONTENT_TYPE = "application/x-splatd-batch"
+
+#: One record on the wire: '<u4,<u4,<f4,<f4,<f4' with names, 20 bytes, packed.
+RECORD_DTYPE = np.dtype(
+    {"names": ["x", "y", "r", "g", "b"], "formats": ["<u4", "<u4", "<f4", "<f4", "<f4"]}
+)
+assert RECORD_DTYPE.itemsize == RECORD_SIZE
+
+_PREAMBLE = struct.Struct("<4sHQ")  # magic, version, frame id length
+_TAIL = struct.Struct("<QQQ")  # worker, seq, record count
+_FRAME_ID_RE = re.compile(r"[A-Za-z0-9._-]+")
+_U64_MAX = (1 << 64) - 1
+_U32_MAX = (1 << 32) - 1
+
+
+class WireError(ValueError):
+    """A batch or frame id was refused; ``code`` matches the Rust crate's
+    ``WireError::code()`` (e.g. ``"truncated_batch"``)."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(message)
+        self.code = code
+
+
+class SplatdError(Exception):
+    """The server refused a request (4xx other than 408/429), or gave up."""
+
+    def __init__(self, status: Optional[int], error: str, message: str):
+        super().__init__(f"HTTP {status}: {error}: {message}" if status else f"{error}: {message}")
+        self.status = status
+        self.error = error
+        self.message = message
+
+
+class Batch(NamedTuple):
+    """A decoded batch; arrays are fresh, writable copies."""
+
+    frame: str
+    worker: int
+    seq: int
+    xs: np.ndarray  # uint32, shape (n,)
+    ys: np.ndarray  # uint32, shape (n,)
+    rgb: np.ndarray  # float32, shape (n, 3)
+
+
+def validate_frame_id(frame: str) -> None:
+    """1..128 characters of [A-Za-z0-9._-], not "." or ".." (same rules as Rust)."""
+    if not isinstance(frame, str):
+        raise WireError("invalid_frame_id", f"invalid frame id: expected str, got {type(frame).__name__}")
+    if not frame:
+        raise WireError("invalid_frame_id", "invalid frame id: frame id is empty")
+    m = _FRAME_ID_RE.match(frame)
+    end = m.end() if m else 0
+    if end != len(frame):
+        raise WireError(
+            "invalid_frame_id",
+            f"invalid frame id: character {frame[end]!r} at position {end} is not allowed; "
+            "use only A-Z, a-z, 0-9, '.', '_' and '-'",
+        )
+    if len(frame) > MAX_FRAME_ID_LEN:
+        raise WireError(
+            "invalid_frame_id",
+            f"invalid frame id: frame id is {len(frame)} characters long; "
+            f"at most {MAX_FRAME_ID_LEN} are allowed",
+        )
+    if frame in (".", ".."):
+        raise WireError("invalid_frame_id", f"invalid frame id: {frame!r} is reserved as a path segment")
+
+
+def _check_u64(name: str, value: int) -> int:
+    value = int(value)
+    if not 0 <= value <= _U64_MAX:
+        raise ValueError(f"{name} {value} does not fit in an unsigned 64-bit integer")
+    return value
+
+
+def _pixel_column(name: str, values: Any) -> np.ndarray:
+    a = np.asarray(values)
+    if a.ndim != 1:
+        raise ValueError(f"{name} must be one-dimensional, got shape {a.shape}")
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"{name} must hold integers, got dtype {a.dtype}")
+    if a.size and (int(a.min()) < 0 or int(a.max()) > _U32_MAX):
+        raise ValueError(f"{name} has values outside 0..{_U32_MAX}")
+    return a
+
+
+def encode_batch(frame: str, worker: int, seq: int, xs: Any, ys: Any, rgb: Any) -> bytes:
+    """Encodes one batch; ``xs``, ``ys``: n pixel coordinates, ``rgb``: n x 3 radiance."""
+    validate_frame_id(frame)
+    worker = _check_u64("worker", worker)
+    seq = _check_u64("seq", seq)
+    xs = _pixel_column("xs", xs)
+    ys = _pixel_column("ys", ys)
+    rgb = np.asarray(rgb, dtype="<f4")
+    n = xs.shape[0]
+    if ys.shape != (n,) or rgb.shape != (n, 3):
+        raise ValueError(
+            f"shape mismatch: xs {xs.shape}, ys {ys.shape}, rgb {rgb.shape}; expected (n,), (n,), (n, 3)"
+        )
+    records = np.empty(n, dtype=RECORD_DTYPE)
+    records["x"] = xs
+    records["y"] = ys
+    records["r"] = rgb[:, 0]
+    records["g"] = rgb[:, 1]
+    records["b"] = rgb[:, 2]
+    fid = frame.encode("ascii")
+    return b"".join(
+        (_PREAMBLE.pack(MAGIC, VERSION, len(fid)), fid, _TAIL.pack(worker, seq, n), records.tobytes())
+    )
+
+
+def decode_batch(
+    data: bytes,
+    max_records: int = DEFAULT_MAX_RECORDS,
+    max_frame_id_len: int = MAX_FRAME_ID_LEN,
+) -> Batch:
+    """Decodes and checks a batch, with the same checks in the same order as Rust."""
+    data = memoryview(data).cast("B")
+    available = len(data)
+
+    def truncated(needed: int) -> WireError:
+        return WireError(
+            "truncated_batch",
+            f"batch is truncated: its header declares at least {needed} bytes, the body has {available}",
+        )
+
+    head = bytes(data[: len(MAGIC)])
+    if head != MAGIC[: len(head)]:
+        raise WireError("bad_magic", f'not a splatd batch: expected magic "SPLB", found {head!r}')
+    if available < len(MAGIC) + 2:
+        raise truncated(len(MAGIC) + 2)
+    (version,) = struct.unpack_from("<H", data, len(MAGIC))
+    if version != VERSION:
+        raise WireError(
+            "unsupported_version",
+            f"unsupported batch format version {version}; this build reads version {VERSION}",
+        )
+    if available < _PREAMBLE.size:
+        raise truncated(_PREAMBLE.size)
+    _, _, id_len = _PREAMBLE.unpack_from(data, 0)
+    max_id = min(max_frame_id_len, MAX_FRAME_ID_LEN)
+    if id_len > max_id:
+        raise WireError(
+            "invalid_frame_id",
+            f"invalid frame id: frame id is {id_len} bytes long; at most {max_id} are allowed",
+        )
+    pos = _PREAMBLE.size
+    if available < pos + id_len:
+        raise truncated(pos + id_len)
+    try:
+        frame = bytes(data[pos : pos + id_len]).decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise WireError("malformed_batch", f"malformed batch: frame id is not valid UTF-8: {e}") from None
+    pos += id_len
+    if available < pos + _TAIL.size:
+        # bincode reads field by field: report the end of the first missing one.
+        missing = (available - pos) // 8
+        raise truncated(pos + 8 * (missing + 1))
+    validate_frame_id(frame)
+    worker, seq, count = _TAIL.unpack_from(data, pos)
+    pos += _TAIL.size
+    needed = min(pos + count * RECORD_SIZE, _U64_MAX)
+    if available < needed:
+        raise truncated(needed)
+    if count > max_records:
+        raise WireError(
+            "too_many_records", f"batch declares {count} records; at most {max_records} are accepted per batch"
+        )
+    if available > needed:
+        raise WireError("trailing_bytes", f"batch has {available - needed} unexpected bytes after its last record")
+    records = np.frombuffer(data, dtype=RECORD_DTYPE, count=count, offset=pos)
+    rgb = np.column_stack((records["r"], records["g"], records["b"])).astype(np.float32, copy=False)
+    return Batch(frame, worker, seq, records["x"].copy(), records["y"].copy(), rgb.reshape(count, 3))
+
+
+def _is_transient(status: int) -> bool:
+    return status >= 500 or status in (408, 429)
+
+
+class Client:
+    """A blocking client of one splatd server (plain HTTP, urllib)."""
+
+    def __init__(
+        self,
+        base_url: str,
+        token: Optional[str] = None,
+        *,
+        timeout: float = 120.0,
+        max_attempts: int = 10,
+        initial_backoff: float = 0.1,
+        max_backoff: float = 10.0,
+        opener: Optional[urllib.request.OpenerDirector] = None,
+    ):
+        if not base_url.startswith("http://"):
+            raise ValueError(f"invalid server URL {base_url!r}: only http:// is supported")
+        self.base_url = base_url.rstrip("/")
+        self.token = token
+        self.timeout = timeout
+        self.max_attempts = max(1, int(max_attempts))
+        self.initial_backoff = initial_backoff
+        self.max_backoff = max_backoff
+        self._open = (opener or urllib.request.build_opener()).open
+
+    def create_frame(
+        self,
+        id: str,
+        width: int,
+        height: int,
+        cascades: Optional[dict] = None,
+        resolve: Optional[dict] = None,
+    ) -> dict:
+        """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults."""
+        validate_frame_id(id)
+        req: dict = {"id": id, "width": int(width), "height": int(height)}
+        if cascades is not None:
+            req["cascades"] = cascades
+        if resolve is not None:
+            req["resolve"] = resolve
+        return self._request("POST", "/v1/frames", json.dumps(req).encode(), "application/json")
+
+    def frame_info(self, id: str) -> dict:
+        """``GET /v1/frames/{id}``."""
+        validate_frame_id(id)
+        return self._request("GET", f"/v1/frames/{id}")
+
+    def post_batch(self, frame: str, worker: int, seq: int, xs: Any, ys: Any, rgb: Any) -> dict:
+        """Encodes once and sends (retrying with the same bytes); returns the BatchAck."""
+        return self.post_encoded(frame, encode_batch(frame, worker, seq, xs, ys, rgb))
+
+    def post_encoded(self, frame: str, body: bytes) -> dict:
+        """Sends an encoded batch for ``frame``; returns the BatchAck."""
+        validate_frame_id(frame)
+        return self._request("POST", f"/v1/frames/{frame}/samples", bytes(body), BATCH_CONTENT_TYPE)
+
+    def _delay(self, retry: int, retry_after: Optional[float]) -> float:
+        base = min(self.initial_backoff * (2 ** min(retry, 62)), self.max_backoff)
+        delay = base / 2 + random.uniform(0, base / 2)  # "equal jitter"
+        return min(max(delay, retry_after or 0.0), self.max_backoff)
+
+    def _request(self, method: str, path: str, body: Optional[bytes] = None, content_type: Optional[str] = None) -> Any:
+        operation = f"{method} {path}"
+        last = "none"
+        retry_after: Optional[float] = None
+        for attempt in range(self.max_attempts):
+            if attempt:
+                time.sleep(self._delay(attempt - 1, retry_after))
+            retry_after = None
+            req = urllib.request.Request(self.base_url + path, data=body, method=method)
+            if content_type:
+                req.add_header("Content-Type", content_type)
+            if self.token:
+                req.add_header("Authorization", f"Bearer {self.token}")
+            try:
+                with self._open(req, timeout=self.timeout) as resp:
+                    raw = resp.read()
+                    status = resp.status
+            except urllib.error.HTTPError as e:
+                raw = e.read()
+                if _is_transient(e.code):
+                    last = f"HTTP {e.code}: {raw[:512]!r}"
+                    header = e.headers.get("Retry-After") if e.headers else None
+                    if header and header.strip().isdigit():
+                        retry_after = float(header.strip())
+                    continue
+                try:
+                    err = json.loads(raw)
+                    raise SplatdError(e.code, str(err["error"]), str(err["message"])) from None
+                except (ValueError, KeyError, TypeError):
+                    raise SplatdError(
+                        e.code, f"http_{e.code}", f"HTTP {e.code} without a JSON error body: {raw[:512]!r}"
+                    ) from None
+            except (urllib.error.URLError, http.client.HTTPException, OSError) as e:
+                last = f"{type(e).__name__}: {e}"
+                continue
+            try:
+                return json.loads(raw)
+            except ValueError as e:
+                raise SplatdError(status, "unexpected_response", f"{operation}: body is not JSON ({e})") from None
+        raise SplatdError(None, "gave_up", f"{operation} failed after {self.max_attempts} attempts; last failure: {last}")
+
+
+def selftest_batch() -> tuple:
+    """The fixed batch of ``--selftest-emit`` (mirrored in proto/tests/python_compat.rs)."""
+    xs = np.array([0, 1919, _U32_MAX, 7], dtype=np.uint32)
+    ys = np.array([0, 1079, _U32_MAX, 3], dtype=np.uint32)
+    rgb = np.array(
+        [
+            [0.0, 0.5, 1.0],
+            [0.1, 1e-3, 65504.0],
+            [2.0**-149, 3.4028234663852886e38, 2.0**-20],  # f32 min subnormal, f32 max
+            [123.456, 0.0, 1.0 / 3.0],
+        ],
+        dtype=np.float64,
+    ).astype("<f4")
+    return ("selftest.frame-01", 0x0102030405060708, (1 << 63) + 5, xs, ys, rgb)
+
+
+def _main(argv: list) -> int:
+    if len(argv) == 2 and argv[0] == "--selftest-emit":
+        with open(argv[1], "wb") as f:
+            f.write(encode_batch(*selftest_batch()))
+        return 0
+    if len(argv) == 2 and argv[0] == "--selftest-check":
+        with open(argv[1], "rb") as f:
+            got = decode_batch(f.read())
+        frame, worker, seq, xs, ys, rgb = selftest_batch()
+        ok = (
+            got.frame == frame
+            and got.worker == worker
+            and got.seq == seq
+            and np.array_equal(got.xs, xs)
+            and np.array_equal(got.ys, ys)
+            and got.rgb.tobytes() == rgb.tobytes()
+        )
+        if not ok:
+            sys.stderr.write(f"decoded batch differs from the self-test batch: {got!r}\n")
+            return 1
+        return 0
+    sys.stderr.write(
+        "usage: splatd_client.py --selftest-emit PATH | --selftest-check PATH\n"
+        "(import this file as a module to use the client)\n"
+    )
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(_main(sys.argv[1:]))

@@ -1,0 +1,217 @@
+"""Tests of splatd_client.py: `python3 -m pytest` or `python3 test_splatd_client.py`.
+
+Plain asserts only; the retry tests run a tiny HTTP server on 127.0.0.1 that
+answers a bounded, scripted list of responses.
+"""
+
+import http.server
+import json
+import os
+import struct
+import sys
+import threading
+import urllib.request
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import splatd_client as sc  # noqa: E402
+
+
+def _random_batch(rng, n):
+    xs = rng.integers(0, 2**32, size=n, dtype=np.uint64).astype(np.uint32)
+    ys = rng.integers(0, 2**32, size=n, dtype=np.uint64).astype(np.uint32)
+    rgb = rng.standard_normal((n, 3)).astype(np.float32) * 100
+    return xs, ys, rgb
+
+
+def _expect_wire_error(code, data, **limits):
+    try:
+        sc.decode_batch(data, **limits)
+    except sc.WireError as e:
+        assert e.code == code, (e.code, str(e))
+        return str(e)
+    raise AssertionError(f"expected WireError {code}")
+
+
+def test_round_trip_random():
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 2, 17, 1000):
+        xs, ys, rgb = _random_batch(rng, n)
+        data = sc.encode_batch("frame.a_b-1", 2**64 - 1, n, xs, ys, rgb)
+        assert len(data) == 4 + 2 + 8 + 11 + 8 + 8 + 8 + 20 * n
+        b = sc.decode_batch(data)
+        assert b.frame == "frame.a_b-1" and b.worker == 2**64 - 1 and b.seq == n
+        assert b.xs.dtype == np.uint32 and np.array_equal(b.xs, xs)
+        assert np.array_equal(b.ys, ys)
+        assert b.rgb.dtype == np.float32 and b.rgb.shape == (n, 3)
+        assert b.rgb.tobytes() == rgb.tobytes()
+        assert sc.encode_batch(*b) == data
+
+
+def test_layout():
+    data = sc.encode_batch("f1", 7, 3, [1, 4294967295], [2, 0], [[0.5, 1.0, 2.0], [0.0, -0.0, 65504.0]])
+    assert data[0:4] == b"SPLB"
+    assert data[4:6] == struct.pack("<H", 1)
+    assert data[6:14] == struct.pack("<Q", 2)
+    assert data[14:16] == b"f1"
+    assert data[16:40] == struct.pack("<QQQ", 7, 3, 2)
+    assert data[40:60] == struct.pack("<IIfff", 1, 2, 0.5, 1.0, 2.0)
+    assert data[60:80] == struct.pack("<IIfff", 4294967295, 0, 0.0, -0.0, 65504.0)
+    assert len(data) == 80
+
+
+def test_decode_errors():
+    good = sc.encode_batch("f", 1, 1, [1, 2], [3, 4], np.ones((2, 3)))
+    assert "XPLB" in _expect_wire_error("bad_magic", b"X" + good[1:])
+    _expect_wire_error("unsupported_version", good[:4] + struct.pack("<H", 2) + good[6:])
+    for cut in range(len(good)):
+        _expect_wire_error("truncated_batch", good[:cut])
+    _expect_wire_error("trailing_bytes", good + b"\0")
+    _expect_wire_error("too_many_records", good, max_records=1)
+    huge = good[: len(good) - 40 - 8] + struct.pack("<Q", 1 << 60)
+    _expect_wire_error("truncated_batch", huge)
+    _expect_wire_error("invalid_frame_id", good[:6] + struct.pack("<Q", 2**64 - 1) + good[14:])
+    _expect_wire_error("malformed_batch", good[:14] + b"\xff" + good[15:])
+    bad_id = good[:14] + b"/" + good[15:]
+    _expect_wire_error("invalid_frame_id", bad_id)
+
+
+def test_frame_id_rules():
+    for ok in ("a", "shot_010.v2-final", "x" * 128, "..."):
+        sc.validate_frame_id(ok)
+    for bad in ("", ".", "..", "a/b", "a b", "\u00e9", "x" * 129):
+        try:
+            sc.validate_frame_id(bad)
+        except sc.WireError as e:
+            assert e.code == "invalid_frame_id"
+        else:
+            raise AssertionError(f"{bad!r} accepted")
+
+
+def test_encode_argument_checks():
+    for args in (
+        ("f", 0, 0, [1, 2], [1], np.zeros((2, 3))),
+        ("f", 0, 0, [1], [1], np.zeros((1, 2))),
+        ("f", 0, 0, [-1], [1], np.zeros((1, 3))),
+        ("f", 0, 0, [1.5], [1], np.zeros((1, 3))),
+        ("f", -1, 0, [1], [1], np.zeros((1, 3))),
+        ("f", 0, 2**64, [1], [1], np.zeros((1, 3))),
+    ):
+        try:
+            sc.encode_batch(*args)
+        except ValueError:
+            pass
+        else:
+            raise AssertionError(f"accepted {args!r}")
+
+
+def test_selftest_batch_round_trips():
+    data = sc.encode_batch(*sc.selftest_batch())
+    b = sc.decode_batch(data)
+    assert b.frame == "selftest.frame-01" and b.seq == (1 << 63) + 5
+
+
+class _Scripted(http.server.BaseHTTPRequestHandler):
+    responses = []  # (status, body) popped in order
+    seen = []  # (method, path, headers, body)
+
+    def _serve(self):
+        n = int(self.headers.get("Content-Length") or 0)
+        body = self.rfile.read(n)
+        self.seen.append((self.command, self.path, dict(self.headers), body))
+        status, payload = self.responses.pop(0)
+        raw = json.dumps(payload).encode()
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(raw)))
+        self.end_headers()
+        self.wfile.write(raw)
+
+    do_GET = do_POST = _serve
+
+    def log_message(self, *args):
+        pass
+
+
+def _serve(responses):
+    _Scripted.responses = list(responses)
+    _Scripted.seen = []
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Scripted)
+    thread = threading.Thread(target=server.serve_forever, kwargs={"poll_interval": 0.05}, daemon=True)
+    thread.start()
+    return server, f"http://127.0.0.1:{server.server_address[1]}"
+
+
+def _client(base, **kw):
+    # No proxies: the test server is on loopback.
+    opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
+    return sc.Client(base, opener=opener, timeout=5, initial_backoff=0.005, max_backoff=0.02, **kw)
+
+
+def test_post_batch_retries_with_same_bytes():
+    ack = {"frame": "f", "worker": 5, "seq": 9, "accepted": 2, "duplicate": False}
+    unavailable = {"error": "unavailable", "message": "restarting"}
+    server, base = _serve([(503, unavailable), (503, unavailable), (200, ack)])
+    try:
+        xs, ys, rgb = [1, 2], [3, 4], np.ones((2, 3), dtype=np.float32)
+        got = _client(base, token="tok").post_batch("f", 5, 9, xs, ys, rgb)
+        assert got == ack
+        expected = sc.encode_batch("f", 5, 9, xs, ys, rgb)
+        assert len(_Scripted.seen) == 3
+        for method, path, headers, body in _Scripted.seen:
+            assert (method, path) == ("POST", "/v1/frames/f/samples")
+            assert headers["Content-Type"] == sc.BATCH_CONTENT_TYPE
+            assert headers["Authorization"] == "Bearer tok"
+            assert body == expected
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_4xx_is_final_and_carries_error_body():
+    err = {"error": "pixel_out_of_range", "message": "x 9 >= width 4"}
+    server, base = _serve([(422, err)])
+    try:
+        try:
+            _client(base).post_batch("f", 1, 1, [9], [0], [[1, 1, 1]])
+        except sc.SplatdError as e:
+            assert (e.status, e.error, e.message) == (422, "pixel_out_of_range", "x 9 >= width 4")
+        else:
+            raise AssertionError("422 not raised")
+        assert len(_Scripted.seen) == 1
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_create_frame_and_gave_up():
+    info = {"id": "f", "width": 4, "height": 2}
+    server, base = _serve([(201, info), (500, {}), (500, {})])
+    try:
+        c = _client(base, max_attempts=2)
+        assert c.create_frame("f", 4, 2, resolve={"variant": "off"}) == info
+        assert json.loads(_Scripted.seen[0][3]) == {"id": "f", "width": 4, "height": 2, "resolve": {"variant": "off"}}
+        try:
+            c.frame_info("f")
+        except sc.SplatdError as e:
+            assert e.error == "gave_up" and "2 attempts" in e.message, e
+        else:
+            raise AssertionError("expected gave_up")
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+if __name__ == "__main__":
+    tests = [(name, fn) for name, fn in sorted(globals().items()) if name.startswith("test_") and callable(fn)]
+    failed = 0
+    for name, fn in tests:
+        try:
+            fn()
+            print(f"{name} ... ok")
+        except Exception as e:  # noqa: BLE001 - report every failure
+            failed += 1
+            print(f"{name} ... FAILED: {type(e).__name__}: {e}")
+    print(f"{len(tests) - failed} passed, {failed} failed")
+    sys.exit(1 if failed else 0)

@@ -1,0 +1,493 @@
+//! JSON types of the HTTP API (everything except the sample batches).
+//!
+//! Requests are small and rare (creating a frame, asking for its state), so
+//! they are JSON for readability and easy scripting with `curl`. Request
+//! types use `deny_unknown_fields`: a typo such as `"kapa"` is an error
+//! (HTTP 400) instead of a silently ignored setting. Response types accept
+//! unknown fields, so a newer server can add fields without breaking older
+//! workers.
+//!
+//! Every tunable default lives in the `DEFAULT_*` constants below and
+//! nowhere else.
+
+use std::fmt;
+use std::str::FromStr;
+
+use serde::{Deserialize, Serialize};
+
+/// Default ratio between the brightness ranges of adjacent cascades.
+pub const DEFAULT_CASCADE_BASE: f64 = 8.0;
+/// Default number of cascades.
+pub const DEFAULT_CASCADE_COUNT: u32 = 6;
+/// Default upper luminance bound of the lowest cascade.
+pub const DEFAULT_LOWEST_SCALE: f64 = 0.125;
+/// Default luminance weights of linear RGB (Rec. 709).
+pub const DEFAULT_LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
+/// Default resolve variant.
+pub const DEFAULT_VARIANT: Variant = Variant::Paper;
+/// Default firefly rejection threshold `kappa`.
+pub const DEFAULT_KAPPA: f64 = 4.0;
+/// Default lower bound of `kappa` when it adapts to the sample count.
+pub const DEFAULT_KAPPA_MIN: f64 = 1.0;
+/// Default exponent of the sample-count adaptation of `kappa` (0 = fixed).
+pub const DEFAULT_KAPPA_EXPONENT: f64 = 0.0;
+
+// serde's `default = "..."` wants functions; they only forward the constants.
+fn default_cascade_base() -> f64 {
+    DEFAULT_CASCADE_BASE
+}
+fn default_cascade_count() -> u32 {
+    DEFAULT_CASCADE_COUNT
+}
+fn default_lowest_scale() -> f64 {
+    DEFAULT_LOWEST_SCALE
+}
+fn default_luminance() -> [f64; 3] {
+    DEFAULT_LUMINANCE
+}
+fn default_variant() -> Variant {
+    DEFAULT_VARIANT
+}
+fn default_kappa() -> f64 {
+    DEFAULT_KAPPA
+}
+fn default_kappa_min() -> f64 {
+    DEFAULT_KAPPA_MIN
+}
+fn default_kappa_exponent() -> f64 {
+    DEFAULT_KAPPA_EXPONENT
+}
+
+/// How samples are split into brightness cascades (fixed when a frame is created).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CascadeParams {
+    /// Ratio between the luminance ranges of adjacent cascades.
+    #[serde(default = "default_cascade_base")]
+    pub base: f64,
+    /// Number of cascades.
+    #[serde(default = "default_cascade_count")]
+    pub cascades: u32,
+    /// Upper luminance bound of the lowest cascade.
+    #[serde(default = "default_lowest_scale")]
+    pub lowest_scale: f64,
+    /// Weights turning linear RGB into the luminance that picks a cascade.
+    #[serde(default = "default_luminance")]
+    pub luminance: [f64; 3],
+}
+
+impl Default for CascadeParams {
+    fn default() -> Self {
+        CascadeParams {
+            base: DEFAULT_CASCADE_BASE,
+            cascades: DEFAULT_CASCADE_COUNT,
+            lowest_scale: DEFAULT_LOWEST_SCALE,
+            luminance: DEFAULT_LUMINANCE,
+        }
+    }
+}
+
+/// Which resolve (cascade recombination) to run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Variant {
+    /// The reweighting of Zirr et al. 2018 as published.
+    #[default]
+    Paper,
+    /// The simplified, shader-friendly variant.
+    Shader,
+    /// No firefly removal: the plain mean of all samples.
+    Off,
+}
+
+impl Variant {
+    /// All variants, in documentation order.
+    pub const ALL: [Variant; 3] = [Variant::Paper, Variant::Shader, Variant::Off];
+
+    /// The name used in JSON and query strings.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Variant::Paper => "paper",
+            Variant::Shader => "shader",
+            Variant::Off => "off",
+        }
+    }
+}
+
+impl fmt::Display for Variant {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// A string that names no [`Variant`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown resolve variant {0:?}; expected \"paper\", \"shader\" or \"off\"")]
+pub struct UnknownVariant(pub String);
+
+impl FromStr for Variant {
+    type Err = UnknownVariant;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        Variant::ALL
+            .into_iter()
+            .find(|v| v.as_str() == s)
+            .ok_or_else(|| UnknownVariant(s.to_owned()))
+    }
+}
+
+/// How a frame is resolved into an image (defaults stored with the frame,
+/// overridable per image request).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ResolveParams {
+    /// Which recombination to run.
+    #[serde(default = "default_variant")]
+    pub variant: Variant,
+    /// Firefly rejection threshold.
+    #[serde(default = "default_kappa")]
+    pub kappa: f64,
+    /// Lower bound of `kappa` when it adapts to the sample count.
+    #[serde(default = "default_kappa_min")]
+    pub kappa_min: f64,
+    /// Exponent of the sample-count adaptation of `kappa`.
+    #[serde(default = "default_kappa_exponent")]
+    pub kappa_exponent: f64,
+}
+
+impl Default for ResolveParams {
+    fn default() -> Self {
+        ResolveParams {
+            variant: DEFAULT_VARIANT,
+            kappa: DEFAULT_KAPPA,
+            kappa_min: DEFAULT_KAPPA_MIN,
+            kappa_exponent: DEFAULT_KAPPA_EXPONENT,
+        }
+    }
+}
+
+/// Body of `POST /v1/frames`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreateFrame {
+    /// Frame id, see [`crate::validate_frame_id`].
+    pub id: String,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Cascade layout; defaults when omitted.
+    #[serde(default)]
+    pub cascades: CascadeParams,
+    /// Default resolve settings; defaults when omitted.
+    #[serde(default)]
+    pub resolve: ResolveParams,
+}
+
+impl CreateFrame {
+    /// A request for a `width`×`height` frame with default parameters.
+    pub fn new(id: impl Into<String>, width: u32, height: u32) -> CreateFrame {
+        CreateFrame {
+            id: id.into(),
+            width,
+            height,
+            cascades: CascadeParams::default(),
+            resolve: ResolveParams::default(),
+        }
+    }
+}
+
+/// State of a frame: response of `POST /v1/frames` and `GET /v1/frames/{id}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameInfo {
+    /// Frame id.
+    pub id: String,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Cascade layout.
+    pub cascades: CascadeParams,
+    /// Default resolve settings.
+    pub resolve: ResolveParams,
+    /// Accepted samples (records), duplicates not counted.
+    pub samples: u64,
+    /// Accepted batches, duplicates not counted.
+    pub batches: u64,
+    /// Fewest samples of any pixel.
+    pub spp_min: u64,
+    /// Mean samples per pixel.
+    pub spp_mean: f64,
+    /// Most samples of any pixel.
+    pub spp_max: u64,
+    /// Samples in rejected batches.
+    pub rejected_samples: u64,
+    /// Rejected batches.
+    pub rejected_batches: u64,
+    /// Memory the frame's accumulation buffers use.
+    pub memory_bytes: u64,
+}
+
+/// Response of `GET /v1/frames`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameList {
+    /// All frames, in no particular order.
+    pub frames: Vec<FrameInfo>,
+}
+
+/// Response of `POST /v1/frames/{id}/samples`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct BatchAck {
+    /// Frame id.
+    pub frame: String,
+    /// Worker id of the batch.
+    pub worker: u64,
+    /// Sequence number of the batch.
+    pub seq: u64,
+    /// Samples applied by this request (0 for a duplicate).
+    pub accepted: u64,
+    /// True when `(worker, seq)` had already been applied and this request
+    /// changed nothing.
+    pub duplicate: bool,
+}
+
+/// Body of every error response (4xx and 5xx).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorBody {
+    /// Machine-readable code, e.g. `"pixel_out_of_range"`.
+    pub error: String,
+    /// A sentence for humans naming the problem.
+    pub message: String,
+}
+
+impl ErrorBody {
+    /// An error body with code `error` and message `message`.
+    pub fn new(error: impl Into<String>, message: impl Into<String>) -> ErrorBody {
+        ErrorBody {
+            error: error.into(),
+            message: message.into(),
+        }
+    }
+}
+
+impl fmt::Display for ErrorBody {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}: {}", self.error, self.message)
+    }
+}
+
+impl From<&crate::WireError> for ErrorBody {
+    fn from(e: &crate::WireError) -> Self {
+        ErrorBody::new(e.code(), e.to_string())
+    }
+}
+
+/// Query of `GET /v1/frames/{id}/image.exr`: overrides of the frame's
+/// [`ResolveParams`], plus `cascades=1` to add the raw cascade layers.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ImageQuery {
+    /// Overrides [`ResolveParams::variant`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub variant: Option<Variant>,
+    /// Overrides [`ResolveParams::kappa`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kappa: Option<f64>,
+    /// Overrides [`ResolveParams::kappa_min`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kappa_min: Option<f64>,
+    /// Overrides [`ResolveParams::kappa_exponent`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kappa_exponent: Option<f64>,
+    /// Add one layer per cascade to the EXR (`cascades=1`).
+    #[serde(default, with = "flag")]
+    pub cascades: bool,
+}
+
+impl ImageQuery {
+    /// `base` with this query's overrides applied.
+    pub fn apply(&self, base: &ResolveParams) -> ResolveParams {
+        ResolveParams {
+            variant: self.variant.unwrap_or(base.variant),
+            kappa: self.kappa.unwrap_or(base.kappa),
+            kappa_min: self.kappa_min.unwrap_or(base.kappa_min),
+            kappa_exponent: self.kappa_exponent.unwrap_or(base.kappa_exponent),
+        }
+    }
+}
+
+/// A boolean query flag written `1`/`0` (or `true`/`false`): query-string
+/// deserialisers hand every value over as a string.
+mod flag {
+    use serde::de::{self, Visitor};
+    use serde::{Deserializer, Serializer};
+    use std::fmt;
+
+    pub fn serialize<S: Serializer>(v: &bool, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_u8(u8::from(*v))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<bool, D::Error> {
+        struct Flag;
+        impl Visitor<'_> for Flag {
+            type Value = bool;
+            fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                f.write_str("1, 0, true or false")
+            }
+            fn visit_bool<E: de::Error>(self, v: bool) -> Result<bool, E> {
+                Ok(v)
+            }
+            fn visit_u64<E: de::Error>(self, v: u64) -> Result<bool, E> {
+                match v {
+                    0 => Ok(false),
+                    1 => Ok(true),
+                    _ => Err(E::invalid_value(de::Unexpected::Unsigned(v), &self)),
+                }
+            }
+            fn visit_i64<E: de::Error>(self, v: i64) -> Result<bool, E> {
+                match v {
+                    0 => Ok(false),
+                    1 => Ok(true),
+                    _ => Err(E::invalid_value(de::Unexpected::Signed(v), &self)),
+                }
+            }
+            fn visit_str<E: de::Error>(self, v: &str) -> Result<bool, E> {
+                match v {
+                    "1" | "true" => Ok(true),
+                    "0" | "false" => Ok(false),
+                    _ => Err(E::invalid_value(de::Unexpected::Str(v), &self)),
+                }
+            }
+        }
+        d.deserialize_any(Flag)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn create_frame_defaults() {
+        let c: CreateFrame =
+            serde_json::from_value(json!({"id": "f", "width": 4, "height": 2})).expect("valid");
+        assert_eq!(c, CreateFrame::new("f", 4, 2));
+        assert_eq!(c.cascades.base, 8.0);
+        assert_eq!(c.cascades.cascades, 6);
+        assert_eq!(c.cascades.lowest_scale, 0.125);
+        assert_eq!(c.cascades.luminance, [0.2126, 0.7152, 0.0722]);
+        assert_eq!(c.resolve.variant, Variant::Paper);
+        assert_eq!(c.resolve.kappa, 4.0);
+        assert_eq!(c.resolve.kappa_min, 1.0);
+        assert_eq!(c.resolve.kappa_exponent, 0.0);
+    }
+
+    #[test]
+    fn partial_params_fill_in_per_field() {
+        let c: CreateFrame = serde_json::from_value(json!({
+            "id": "f", "width": 4, "height": 2,
+            "cascades": {"base": 4.0},
+            "resolve": {"variant": "shader", "kappa": 2.5}
+        }))
+        .expect("valid");
+        assert_eq!(c.cascades.base, 4.0);
+        assert_eq!(c.cascades.cascades, DEFAULT_CASCADE_COUNT);
+        assert_eq!(c.resolve.variant, Variant::Shader);
+        assert_eq!(c.resolve.kappa, 2.5);
+        assert_eq!(c.resolve.kappa_min, DEFAULT_KAPPA_MIN);
+    }
+
+    #[test]
+    fn unknown_fields_are_refused_in_requests() {
+        for bad in [
+            json!({"id": "f", "width": 4, "height": 2, "widht": 3}),
+            json!({"id": "f", "width": 4, "height": 2, "resolve": {"kapa": 1.0}}),
+            json!({"id": "f", "width": 4, "height": 2, "cascades": {"count": 3}}),
+        ] {
+            let err = serde_json::from_value::<CreateFrame>(bad).unwrap_err();
+            assert!(err.to_string().contains("unknown field"), "{err}");
+        }
+    }
+
+    #[test]
+    fn variant_names() {
+        assert_eq!(json!(Variant::Paper), json!("paper"));
+        assert_eq!(json!(Variant::Shader), json!("shader"));
+        assert_eq!(json!(Variant::Off), json!("off"));
+        for v in Variant::ALL {
+            assert_eq!(v.as_str().parse::<Variant>(), Ok(v));
+            assert_eq!(
+                serde_json::from_value::<Variant>(json!(v.as_str())).ok(),
+                Some(v)
+            );
+        }
+        assert!("Paper".parse::<Variant>().is_err());
+        assert!(serde_json::from_value::<Variant>(json!("median")).is_err());
+    }
+
+    #[test]
+    fn responses_round_trip_and_tolerate_new_fields() {
+        let info = FrameInfo {
+            id: "f".into(),
+            width: 4,
+            height: 2,
+            cascades: CascadeParams::default(),
+            resolve: ResolveParams::default(),
+            samples: 10,
+            batches: 2,
+            spp_min: 1,
+            spp_mean: 1.25,
+            spp_max: 2,
+            rejected_samples: 3,
+            rejected_batches: 1,
+            memory_bytes: 4096,
+        };
+        let mut v = serde_json::to_value(&info).expect("serialises");
+        assert_eq!(
+            serde_json::from_value::<FrameInfo>(v.clone()).ok(),
+            Some(info.clone())
+        );
+        v["added_later"] = json!(1);
+        assert_eq!(serde_json::from_value::<FrameInfo>(v).ok(), Some(info));
+
+        let ack = BatchAck {
+            frame: "f".into(),
+            worker: 1,
+            seq: 2,
+            accepted: 3,
+            duplicate: false,
+        };
+        let v = serde_json::to_value(&ack).expect("serialises");
+        assert_eq!(
+            v,
+            json!({"frame": "f", "worker": 1, "seq": 2, "accepted": 3, "duplicate": false})
+        );
+    }
+
+    #[test]
+    fn error_body_from_wire_error() {
+        let e = crate::WireError::TrailingBytes { count: 3 };
+        let body = ErrorBody::from(&e);
+        assert_eq!(body.error, "trailing_bytes");
+        assert_eq!(
+            serde_json::to_value(&body).expect("serialises"),
+            json!({"error": "trailing_bytes", "message": e.to_string()})
+        );
+    }
+
+    #[test]
+    fn image_query() {
+        let q: ImageQuery =
+            serde_json::from_value(json!({"variant": "off", "cascades": "1"})).expect("valid");
+        assert_eq!(q.variant, Some(Variant::Off));
+        assert!(q.cascades);
+        let r = q.apply(&ResolveParams::default());
+        assert_eq!(r.variant, Variant::Off);
+        assert_eq!(r.kappa, DEFAULT_KAPPA);
+        let q: ImageQuery = serde_json::from_value(json!({"cascades": 0})).expect("valid");
+        assert!(!q.cascades);
+        assert!(serde_json::from_value::<ImageQuery>(json!({"cascades": "yes"})).is_err());
+        assert!(serde_json::from_value::<ImageQuery>(json!({"kapa": 1})).is_err());
+    }
+}

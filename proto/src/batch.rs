@@ -1,0 +1,788 @@
+//! The binary sample batch a render worker POSTs to `/v1/frames/{id}/samples`.
+//!
+//! # Why a binary format
+//!
+//! A batch is mostly a long run of fixed-size records (one Monte Carlo sample
+//! each), and the server ingests millions of them per second. JSON would
+//! triple the bytes on the wire and spend most of the server's time parsing
+//! floats, so the body is a fixed little-endian layout that a worker in any
+//! language can produce with one array copy (see `proto/python/` for numpy).
+//!
+//! # Byte layout (version 1)
+//!
+//! All integers and floats are little-endian; `n` is the record count and
+//! `len` the byte length of the frame id.
+//!
+//! | offset          | size   | field                                    |
+//! |-----------------|--------|------------------------------------------|
+//! | 0               | 4      | magic `b"SPLB"`                          |
+//! | 4               | 2      | format version, `u16` = 1                |
+//! | 6               | 8      | `len`: frame id length in bytes, `u64`   |
+//! | 14              | len    | frame id, UTF-8 (see [`validate_frame_id`]) |
+//! | 14+len          | 8      | worker id, `u64`                         |
+//! | 22+len          | 8      | sequence number, `u64`                   |
+//! | 30+len          | 8      | `n`: record count, `u64`                 |
+//! | 38+len + 20·i   | 4      | record i: pixel `x`, `u32`               |
+//! | 42+len + 20·i   | 4      | record i: pixel `y`, `u32`               |
+//! | 46+len + 20·i   | 4      | record i: red, `f32`                     |
+//! | 50+len + 20·i   | 4      | record i: green, `f32`                   |
+//! | 54+len + 20·i   | 4      | record i: blue, `f32`                    |
+//!
+//! Total size: `4 + 2 + 8 + len + 8 + 8 + 8 + 20·n` bytes; nothing may follow
+//! the last record. Everything after the 6-byte preamble is exactly
+//! `bincode` 2 with [`bincode::config::legacy()`] (little-endian, fixed-width
+//! integers, `u64` length prefixes) applied to the struct
+//! `(frame: String, worker: u64, seq: u64, records: Vec<Record>)`. The
+//! preamble exists so that a server can refuse a body that is not a batch, or
+//! is a batch of a future version, before interpreting any length field.
+//!
+//! # Decoding untrusted bodies
+//!
+//! [`Batch::decode`] never trusts a length prefix: the frame id length is
+//! checked against [`DecodeLimits::max_frame_id_len`] and the record count
+//! against the bytes actually present *before* anything is allocated, so a
+//! 40-byte body that declares 2⁴⁰ records fails with [`WireError::Truncated`]
+//! without touching the allocator. The header goes through bincode; the
+//! records are decoded by a hand-written loop over the 20-byte records
+//! because it is several times faster than bincode's serde path (numbers in
+//! `PROTOCOL.md`). [`Batch::decode_reference`] keeps the all-bincode decoder
+//! so tests can prove the two agree.
+
+use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
+use serde::{Deserialize, Serialize};
+
+/// The four bytes every batch starts with.
+pub const MAGIC: [u8; 4] = *b"SPLB";
+
+/// The only batch format version this crate reads and writes.
+pub const VERSION: u16 = 1;
+
+/// Size of one encoded [`Record`] in bytes.
+pub const RECORD_SIZE: usize = 20;
+
+/// Size of the magic and version that precede the bincode body.
+pub const PREAMBLE_SIZE: usize = MAGIC.len() + 2;
+
+/// Size of a batch with an empty frame id and no records:
+/// magic, version, frame id length, worker, seq and record count.
+pub const FIXED_OVERHEAD: usize = PREAMBLE_SIZE + 8 + 8 + 8 + 8;
+
+/// Longest frame id [`validate_frame_id`] accepts, in characters (= bytes).
+pub const MAX_FRAME_ID_LEN: usize = 128;
+
+/// Default for [`DecodeLimits::max_records`]: 4 Mi records (80 MiB of records).
+pub const DEFAULT_MAX_RECORDS: usize = 4 * 1024 * 1024;
+
+/// Upper bound on the bytes any single bincode decode call may consume.
+///
+/// This is a backstop inside bincode itself, not the policy knob: the policy
+/// is [`DecodeLimits`], and [`Batch::decode`] checks every length prefix
+/// before bincode sees it. Because this bound is a compile-time constant,
+/// [`DecodeLimits::max_records`] is clamped to [`HARD_MAX_RECORDS`] so that
+/// both decoders always accept exactly the same inputs.
+pub const BINCODE_DECODE_LIMIT: usize = 1 << 30;
+
+/// The largest record count any [`DecodeLimits`] can allow (about 53 Mi).
+pub const HARD_MAX_RECORDS: usize =
+    (BINCODE_DECODE_LIMIT - (FIXED_OVERHEAD + MAX_FRAME_ID_LEN)) / RECORD_SIZE;
+
+/// The bincode configuration of the wire format: the one place it is pinned.
+///
+/// `legacy()` is bincode 1's layout (little-endian, fixed-width integers,
+/// `u64` lengths), which is trivial to reproduce in other languages; the
+/// varint encoding of `standard()` is not.
+type WireConfig = Configuration<LittleEndian, Fixint, Limit<BINCODE_DECODE_LIMIT>>;
+
+const WIRE_CONFIG: WireConfig = bincode::config::legacy().with_limit::<BINCODE_DECODE_LIMIT>();
+
+/// One Monte Carlo sample: the radiance a path contributed to pixel `(x, y)`.
+///
+/// The server counts every record as one sample of its pixel; workers must
+/// not pre-average several samples into one record.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Record {
+    /// Column, `0..width`, left to right.
+    pub x: u32,
+    /// Row, `0..height`, top to bottom.
+    pub y: u32,
+    /// Linear RGB radiance; the server rejects NaN, infinities and negatives.
+    pub rgb: [f32; 3],
+}
+
+impl Record {
+    /// A sample of pixel `(x, y)` with radiance `rgb`.
+    pub const fn new(x: u32, y: u32, rgb: [f32; 3]) -> Record {
+        Record { x, y, rgb }
+    }
+
+    /// Decodes one record from its 20 wire bytes.
+    #[inline(always)]
+    fn from_wire(b: &[u8; RECORD_SIZE]) -> Record {
+        let [x0, x1, x2, x3, y0, y1, y2, y3, r0, r1, r2, r3, g0, g1, g2, g3, b0, b1, b2, b3] = *b;
+        Record {
+            x: u32::from_le_bytes([x0, x1, x2, x3]),
+            y: u32::from_le_bytes([y0, y1, y2, y3]),
+            rgb: [
+                f32::from_le_bytes([r0, r1, r2, r3]),
+                f32::from_le_bytes([g0, g1, g2, g3]),
+                f32::from_le_bytes([b0, b1, b2, b3]),
+            ],
+        }
+    }
+}
+
+/// A batch of samples for one frame from one worker.
+///
+/// `(worker, seq)` identifies the batch: a worker that retries must resend
+/// the same bytes with the same `seq`, so that the server can recognise and
+/// drop the duplicate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Batch {
+    /// Frame id, see [`validate_frame_id`].
+    pub frame: String,
+    /// Id of the sending worker, chosen by the worker (e.g. random at start-up).
+    pub worker: u64,
+    /// Per-worker sequence number of this batch.
+    pub seq: u64,
+    /// The samples.
+    pub records: Vec<Record>,
+}
+
+/// Limits [`Batch::decode`] enforces on untrusted input.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DecodeLimits {
+    /// Most records one batch may carry (clamped to [`HARD_MAX_RECORDS`]).
+    pub max_records: usize,
+    /// Longest frame id in bytes (ids are also capped at [`MAX_FRAME_ID_LEN`]
+    /// by [`validate_frame_id`]).
+    pub max_frame_id_len: usize,
+}
+
+impl Default for DecodeLimits {
+    fn default() -> Self {
+        DecodeLimits {
+            max_records: DEFAULT_MAX_RECORDS,
+            max_frame_id_len: MAX_FRAME_ID_LEN,
+        }
+    }
+}
+
+impl DecodeLimits {
+    /// The record limit actually applied.
+    pub fn effective_max_records(&self) -> usize {
+        self.max_records.min(HARD_MAX_RECORDS)
+    }
+
+    /// The largest body these limits can accept, in bytes: a server can
+    /// refuse longer bodies (HTTP 413) before reading them.
+    pub fn max_body_len(&self) -> usize {
+        let id_len = self.max_frame_id_len.min(MAX_FRAME_ID_LEN);
+        FIXED_OVERHEAD + id_len + self.effective_max_records() * RECORD_SIZE
+    }
+}
+
+/// Why a batch (or a frame id) was refused.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum WireError {
+    /// The body does not start with [`MAGIC`].
+    #[error("not a splatd batch: expected magic \"SPLB\", found \"{}\"", found.escape_ascii())]
+    BadMagic {
+        /// The first (up to) four bytes of the body.
+        found: Vec<u8>,
+    },
+    /// The body is a batch of a format version this build cannot read.
+    #[error("unsupported batch format version {found}; this build reads version {supported}")]
+    UnsupportedVersion {
+        /// Version in the body.
+        found: u16,
+        /// Version this build supports.
+        supported: u16,
+    },
+    /// The body ends before the data its header declares.
+    #[error(
+        "batch is truncated: its header declares at least {needed} bytes, the body has {available}"
+    )]
+    Truncated {
+        /// Bytes the body would need (saturating at `u64::MAX`).
+        needed: u64,
+        /// Bytes the body has.
+        available: u64,
+    },
+    /// The batch declares more records than the limits allow.
+    #[error("batch declares {count} records; at most {max} are accepted per batch")]
+    TooManyRecords {
+        /// Declared record count.
+        count: u64,
+        /// The applied limit.
+        max: usize,
+    },
+    /// Bytes follow the last declared record.
+    #[error("batch has {count} unexpected bytes after its last record")]
+    TrailingBytes {
+        /// Number of extra bytes.
+        count: usize,
+    },
+    /// The frame id breaks the rules of [`validate_frame_id`].
+    #[error("invalid frame id: {reason}")]
+    InvalidFrameId {
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// Anything else the decoder rejects, e.g. a frame id that is not UTF-8.
+    #[error("malformed batch: {0}")]
+    Malformed(String),
+}
+
+impl WireError {
+    /// Machine-readable code for [`crate::ErrorBody::error`].
+    pub fn code(&self) -> &'static str {
+        match self {
+            WireError::BadMagic { .. } => "bad_magic",
+            WireError::UnsupportedVersion { .. } => "unsupported_version",
+            WireError::Truncated { .. } => "truncated_batch",
+            WireError::TooManyRecords { .. } => "too_many_records",
+            WireError::TrailingBytes { .. } => "trailing_bytes",
+            WireError::InvalidFrameId { .. } => "invalid_frame_id",
+            WireError::Malformed(_) => "malformed_batch",
+        }
+    }
+}
+
+/// Checks a frame id: 1 to [`MAX_FRAME_ID_LEN`] characters from
+/// `[A-Za-z0-9._-]`, and not `.` or `..`.
+///
+/// The ids end up in URL paths and possibly file names, so they are kept to
+/// characters that need no escaping anywhere; `.` and `..` are refused
+/// because URL libraries collapse them as path segments.
+pub fn validate_frame_id(id: &str) -> Result<(), WireError> {
+    let invalid = |reason: String| Err(WireError::InvalidFrameId { reason });
+    if id.is_empty() {
+        return invalid("frame id is empty".into());
+    }
+    if let Some((pos, c)) = id
+        .chars()
+        .enumerate()
+        .find(|&(_, c)| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-')))
+    {
+        return invalid(format!(
+            "character {c:?} at position {pos} is not allowed; use only A-Z, a-z, 0-9, '.', '_' and '-'"
+        ));
+    }
+    // All characters are ASCII now, so bytes = characters.
+    if id.len() > MAX_FRAME_ID_LEN {
+        return invalid(format!(
+            "frame id is {} characters long; at most {MAX_FRAME_ID_LEN} are allowed",
+            id.len()
+        ));
+    }
+    if id == "." || id == ".." {
+        return invalid(format!("{id:?} is reserved as a path segment"));
+    }
+    Ok(())
+}
+
+/// The bincode body of a batch, borrowed for encoding.
+#[derive(Serialize)]
+struct BodyRef<'a> {
+    frame: &'a str,
+    worker: u64,
+    seq: u64,
+    records: &'a [Record],
+}
+
+/// The bincode body of a batch, owned; used by [`Batch::decode_reference`].
+#[derive(Deserialize)]
+struct BodyOwned {
+    frame: String,
+    worker: u64,
+    seq: u64,
+    records: Vec<Record>,
+}
+
+/// The bincode body up to and including the record count.
+#[derive(Deserialize)]
+struct Header {
+    frame: String,
+    worker: u64,
+    seq: u64,
+    count: u64,
+}
+
+/// A checked header and the bytes of exactly `count` records.
+struct Parsed<'a> {
+    header: Header,
+    records: &'a [u8],
+}
+
+impl Batch {
+    /// A batch whose frame id has been checked with [`validate_frame_id`].
+    pub fn new(
+        frame: impl Into<String>,
+        worker: u64,
+        seq: u64,
+        records: Vec<Record>,
+    ) -> Result<Batch, WireError> {
+        let frame = frame.into();
+        validate_frame_id(&frame)?;
+        Ok(Batch {
+            frame,
+            worker,
+            seq,
+            records,
+        })
+    }
+
+    /// Size of [`Batch::encode`]'s output in bytes.
+    pub fn encoded_len(&self) -> usize {
+        FIXED_OVERHEAD + self.frame.len() + RECORD_SIZE * self.records.len()
+    }
+
+    /// Checks what [`Batch::decode`] would check about the batch itself,
+    /// i.e. the frame id (the record count is a receiver's policy).
+    pub fn validate(&self) -> Result<(), WireError> {
+        validate_frame_id(&self.frame)
+    }
+
+    /// Encodes the batch in the layout described in the module docs.
+    ///
+    /// Encoding does not validate: call [`Batch::validate`] (or build with
+    /// [`Batch::new`]) to catch a bad frame id before the server does.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.encoded_len());
+        out.extend_from_slice(&MAGIC);
+        out.extend_from_slice(&VERSION.to_le_bytes());
+        let body = BodyRef {
+            frame: &self.frame,
+            worker: self.worker,
+            seq: self.seq,
+            records: &self.records,
+        };
+        // Writing into a Vec cannot fail, and these types serialise without
+        // custom errors (the slice reports its length), so an error here is
+        // a bug in this crate, not bad input.
+        bincode::serde::encode_into_std_write(&body, &mut out, WIRE_CONFIG)
+            .expect("bincode encoding of a batch into a Vec<u8> is infallible");
+        debug_assert_eq!(out.len(), self.encoded_len());
+        out
+    }
+
+    /// Decodes and checks an untrusted batch body.
+    ///
+    /// Checks, in order: magic, version, frame id length, header, frame id,
+    /// record count against the bytes present, record count against
+    /// `limits`, trailing bytes. Record values are not checked here (NaN or
+    /// out-of-range pixels are the server's business).
+    pub fn decode(bytes: &[u8], limits: &DecodeLimits) -> Result<Batch, WireError> {
+        let Parsed { header, records } = parse(bytes, limits)?;
+        let mut out = Vec::with_capacity(records.len() / RECORD_SIZE);
+        decode_records(records, &mut out);
+        Ok(Batch {
+            frame: header.frame,
+            worker: header.worker,
+            seq: header.seq,
+            records: out,
+        })
+    }
+
+    /// Same as [`Batch::decode`], but decodes the whole body, records
+    /// included, with bincode's serde path.
+    ///
+    /// Slower; kept as the reference the fast decoder is tested and
+    /// benchmarked against.
+    pub fn decode_reference(bytes: &[u8], limits: &DecodeLimits) -> Result<Batch, WireError> {
+        // Run every check of the fast path first, so both accept exactly the
+        // same inputs and bincode never sees an unchecked length.
+        parse(bytes, limits)?;
+        let (body, _): (BodyOwned, usize) =
+            bincode::serde::decode_from_slice(&bytes[PREAMBLE_SIZE..], WIRE_CONFIG)
+                .map_err(|e| bincode_error(e, bytes.len()))?;
+        Ok(Batch {
+            frame: body.frame,
+            worker: body.worker,
+            seq: body.seq,
+            records: body.records,
+        })
+    }
+}
+
+/// Appends the records in `bytes` (a multiple of [`RECORD_SIZE`] long) to `out`.
+fn decode_records(mut bytes: &[u8], out: &mut Vec<Record>) {
+    while let Some((record, rest)) = bytes.split_first_chunk::<RECORD_SIZE>() {
+        out.push(Record::from_wire(record));
+        bytes = rest;
+    }
+    debug_assert!(bytes.is_empty(), "caller passes whole records only");
+}
+
+/// Every structural check of a batch body; allocates only the frame id,
+/// after its length has been checked.
+fn parse<'a>(bytes: &'a [u8], limits: &DecodeLimits) -> Result<Parsed<'a>, WireError> {
+    let available = bytes.len() as u64;
+    let truncated = |needed: u64| WireError::Truncated { needed, available };
+
+    let magic_len = bytes.len().min(MAGIC.len());
+    if bytes[..magic_len] != MAGIC[..magic_len] {
+        return Err(WireError::BadMagic {
+            found: bytes[..magic_len].to_vec(),
+        });
+    }
+    let Some((&[_, _, _, _, v0, v1], _)) = bytes.split_first_chunk::<PREAMBLE_SIZE>() else {
+        return Err(truncated(PREAMBLE_SIZE as u64));
+    };
+    let version = u16::from_le_bytes([v0, v1]);
+    if version != VERSION {
+        return Err(WireError::UnsupportedVersion {
+            found: version,
+            supported: VERSION,
+        });
+    }
+
+    // Look at the frame id length before bincode allocates a String for it.
+    let body = &bytes[PREAMBLE_SIZE..];
+    let Some((id_len, _)) = body.split_first_chunk::<8>() else {
+        return Err(truncated((PREAMBLE_SIZE + 8) as u64));
+    };
+    let id_len = u64::from_le_bytes(*id_len);
+    let max_id_len = limits.max_frame_id_len.min(MAX_FRAME_ID_LEN);
+    if id_len > max_id_len as u64 {
+        return Err(WireError::InvalidFrameId {
+            reason: format!("frame id is {id_len} bytes long; at most {max_id_len} are allowed"),
+        });
+    }
+
+    let (header, header_len): (Header, usize) =
+        bincode::serde::decode_from_slice(body, WIRE_CONFIG)
+            .map_err(|e| bincode_error(e, bytes.len()))?;
+    validate_frame_id(&header.frame)?;
+
+    let records = &body[header_len..];
+    let records_start = (PREAMBLE_SIZE + header_len) as u64;
+    let records_len = header.count.saturating_mul(RECORD_SIZE as u64);
+    if (records.len() as u64) < records_len {
+        return Err(truncated(records_start.saturating_add(records_len)));
+    }
+    let max = limits.effective_max_records();
+    if header.count > max as u64 {
+        return Err(WireError::TooManyRecords {
+            count: header.count,
+            max,
+        });
+    }
+    // count <= max, so this fits in usize and does not overflow.
+    let records_len = header.count as usize * RECORD_SIZE;
+    if records.len() > records_len {
+        return Err(WireError::TrailingBytes {
+            count: records.len() - records_len,
+        });
+    }
+    Ok(Parsed { header, records })
+}
+
+/// Translates a bincode decode error into a [`WireError`].
+fn bincode_error(e: bincode::error::DecodeError, available: usize) -> WireError {
+    use bincode::error::DecodeError;
+    match e {
+        DecodeError::UnexpectedEnd { additional } => WireError::Truncated {
+            needed: (available as u64).saturating_add(additional as u64),
+            available: available as u64,
+        },
+        DecodeError::Utf8 { inner } => {
+            WireError::Malformed(format!("frame id is not valid UTF-8: {inner}"))
+        }
+        other => WireError::Malformed(other.to_string()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample() -> Batch {
+        Batch::new(
+            "f1",
+            7,
+            3,
+            vec![
+                Record::new(1, 2, [0.5, 1.0, 2.0]),
+                Record::new(u32::MAX, 0, [0.0, -0.0, 65504.0]),
+            ],
+        )
+        .expect("valid frame id")
+    }
+
+    fn limits() -> DecodeLimits {
+        DecodeLimits::default()
+    }
+
+    /// Deterministic pseudo-random numbers without a dependency.
+    struct SplitMix64(u64);
+    impl SplitMix64 {
+        fn next(&mut self) -> u64 {
+            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+            let mut z = self.0;
+            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+            z ^ (z >> 31)
+        }
+    }
+
+    #[test]
+    fn layout_is_as_documented() {
+        let b = sample();
+        let bytes = b.encode();
+        assert_eq!(bytes.len(), 4 + 2 + 8 + 2 + 8 + 8 + 8 + 20 * 2);
+        assert_eq!(bytes.len(), b.encoded_len());
+        assert_eq!(&bytes[0..4], b"SPLB");
+        assert_eq!(&bytes[4..6], &1u16.to_le_bytes());
+        assert_eq!(&bytes[6..14], &2u64.to_le_bytes());
+        assert_eq!(&bytes[14..16], b"f1");
+        assert_eq!(&bytes[16..24], &7u64.to_le_bytes());
+        assert_eq!(&bytes[24..32], &3u64.to_le_bytes());
+        assert_eq!(&bytes[32..40], &2u64.to_le_bytes());
+        let r1 = &bytes[40 + 20..];
+        assert_eq!(&r1[0..4], &u32::MAX.to_le_bytes());
+        assert_eq!(&r1[4..8], &0u32.to_le_bytes());
+        assert_eq!(&r1[8..12], &0.0f32.to_le_bytes());
+        assert_eq!(&r1[12..16], &(-0.0f32).to_le_bytes());
+        assert_eq!(&r1[16..20], &65504.0f32.to_le_bytes());
+    }
+
+    #[test]
+    fn round_trip() {
+        let b = sample();
+        let bytes = b.encode();
+        assert_eq!(Batch::decode(&bytes, &limits()), Ok(b.clone()));
+        assert_eq!(Batch::decode_reference(&bytes, &limits()), Ok(b));
+    }
+
+    #[test]
+    fn empty_batch_round_trips() {
+        let b = Batch::new("x", 0, 0, vec![]).expect("valid");
+        let bytes = b.encode();
+        assert_eq!(bytes.len(), FIXED_OVERHEAD + 1);
+        assert_eq!(Batch::decode(&bytes, &limits()), Ok(b));
+    }
+
+    #[test]
+    fn fast_and_reference_decoders_agree_on_random_batches() {
+        let mut rng = SplitMix64(0x5EED);
+        for round in 0..200 {
+            let n = (rng.next() % 300) as usize;
+            let records = (0..n)
+                .map(|_| {
+                    let v = rng.next();
+                    let w = rng.next();
+                    // Arbitrary bit patterns: NaNs, infinities, subnormals.
+                    Record::new(
+                        v as u32,
+                        (v >> 32) as u32,
+                        [
+                            f32::from_bits(w as u32),
+                            f32::from_bits((w >> 32) as u32),
+                            f32::from_bits(rng.next() as u32),
+                        ],
+                    )
+                })
+                .collect();
+            let frame = format!("frame-{round}.{}", rng.next() % 1000);
+            let b = Batch::new(frame, rng.next(), rng.next(), records).expect("valid");
+            let bytes = b.encode();
+            let fast = Batch::decode(&bytes, &limits()).expect("fast decode");
+            let slow = Batch::decode_reference(&bytes, &limits()).expect("reference decode");
+            // Compare through the encoding: NaN != NaN, but bits must agree.
+            assert_eq!(fast.encode(), bytes, "fast decoder, round {round}");
+            assert_eq!(slow.encode(), bytes, "reference decoder, round {round}");
+            // Every corruption must be judged identically, too.
+            let cut = (rng.next() as usize) % bytes.len();
+            assert_eq!(
+                Batch::decode(&bytes[..cut], &limits()),
+                Batch::decode_reference(&bytes[..cut], &limits()),
+                "truncated at {cut}, round {round}"
+            );
+        }
+    }
+
+    #[test]
+    fn bad_magic() {
+        let mut bytes = sample().encode();
+        bytes[0] = b'X';
+        let err = Batch::decode(&bytes, &limits()).unwrap_err();
+        assert_eq!(
+            err,
+            WireError::BadMagic {
+                found: b"XPLB".to_vec()
+            }
+        );
+        assert!(err.to_string().contains("XPLB"), "{err}");
+        assert!(matches!(
+            Batch::decode(b"{\"", &limits()),
+            Err(WireError::BadMagic { .. })
+        ));
+    }
+
+    #[test]
+    fn short_prefix_of_magic_is_truncated() {
+        assert_eq!(
+            Batch::decode(b"SP", &limits()),
+            Err(WireError::Truncated {
+                needed: 6,
+                available: 2
+            })
+        );
+        assert!(matches!(
+            Batch::decode(b"", &limits()),
+            Err(WireError::Truncated { .. })
+        ));
+    }
+
+    #[test]
+    fn unsupported_version() {
+        let mut bytes = sample().encode();
+        bytes[4..6].copy_from_slice(&2u16.to_le_bytes());
+        let err = Batch::decode(&bytes, &limits()).unwrap_err();
+        assert_eq!(
+            err,
+            WireError::UnsupportedVersion {
+                found: 2,
+                supported: 1
+            }
+        );
+        assert!(err.to_string().contains("version 2"), "{err}");
+    }
+
+    #[test]
+    fn every_truncation_is_refused() {
+        let bytes = sample().encode();
+        for cut in 0..bytes.len() {
+            match Batch::decode(&bytes[..cut], &limits()) {
+                Err(WireError::Truncated { needed, available }) => {
+                    assert_eq!(available, cut as u64);
+                    assert!(needed > available, "cut {cut}: needed {needed}");
+                }
+                other => panic!("cut at {cut}: expected Truncated, got {other:?}"),
+            }
+        }
+    }
+
+    #[test]
+    fn huge_record_count_in_tiny_body_is_refused_before_allocating() {
+        let mut bytes = Batch::new("f", 1, 1, vec![]).expect("valid").encode();
+        let count_at = bytes.len() - 8;
+        bytes[count_at..].copy_from_slice(&(1u64 << 40).to_le_bytes());
+        let err = Batch::decode(&bytes, &limits()).unwrap_err();
+        assert_eq!(
+            err,
+            WireError::Truncated {
+                needed: bytes.len() as u64 + (1u64 << 40) * 20,
+                available: bytes.len() as u64
+            }
+        );
+        bytes[count_at..].copy_from_slice(&u64::MAX.to_le_bytes());
+        assert!(matches!(
+            Batch::decode(&bytes, &limits()),
+            Err(WireError::Truncated {
+                needed: u64::MAX,
+                ..
+            })
+        ));
+        assert!(matches!(
+            Batch::decode_reference(&bytes, &limits()),
+            Err(WireError::Truncated { .. })
+        ));
+    }
+
+    #[test]
+    fn huge_frame_id_length_is_refused_before_allocating() {
+        let mut bytes = sample().encode();
+        bytes[6..14].copy_from_slice(&u64::MAX.to_le_bytes());
+        let err = Batch::decode(&bytes, &limits()).unwrap_err();
+        assert!(matches!(err, WireError::InvalidFrameId { .. }), "{err:?}");
+        assert!(err.to_string().contains("at most 128"), "{err}");
+    }
+
+    #[test]
+    fn too_many_records() {
+        let b = sample();
+        let small = DecodeLimits {
+            max_records: 1,
+            ..limits()
+        };
+        assert_eq!(
+            Batch::decode(&b.encode(), &small),
+            Err(WireError::TooManyRecords { count: 2, max: 1 })
+        );
+        let huge = DecodeLimits {
+            max_records: usize::MAX,
+            ..limits()
+        };
+        assert_eq!(huge.effective_max_records(), HARD_MAX_RECORDS);
+        assert_eq!(Batch::decode(&b.encode(), &huge), Ok(b));
+    }
+
+    #[test]
+    fn trailing_bytes() {
+        let mut bytes = sample().encode();
+        bytes.extend_from_slice(&[0, 0, 0]);
+        assert_eq!(
+            Batch::decode(&bytes, &limits()),
+            Err(WireError::TrailingBytes { count: 3 })
+        );
+        assert_eq!(
+            Batch::decode_reference(&bytes, &limits()),
+            Err(WireError::TrailingBytes { count: 3 })
+        );
+    }
+
+    #[test]
+    fn invalid_utf8_frame_id_is_malformed() {
+        let mut bytes = sample().encode();
+        bytes[14] = 0xFF;
+        let err = Batch::decode(&bytes, &limits()).unwrap_err();
+        assert!(matches!(err, WireError::Malformed(_)), "{err:?}");
+        assert!(err.to_string().contains("UTF-8"), "{err}");
+    }
+
+    #[test]
+    fn invalid_frame_id_in_body() {
+        let b = Batch {
+            frame: "a/b".into(),
+            worker: 1,
+            seq: 1,
+            records: vec![],
+        };
+        assert!(matches!(
+            Batch::decode(&b.encode(), &limits()),
+            Err(WireError::InvalidFrameId { .. })
+        ));
+        let tight = DecodeLimits {
+            max_frame_id_len: 1,
+            ..limits()
+        };
+        assert!(matches!(
+            Batch::decode(&sample().encode(), &tight),
+            Err(WireError::InvalidFrameId { .. })
+        ));
+    }
+
+    #[test]
+    fn frame_id_rules() {
+        for ok in ["a", "shot_010.v2-final", "0", &"x".repeat(128), "..."] {
+            assert_eq!(validate_frame_id(ok), Ok(()), "{ok:?}");
+        }
+        for bad in ["", ".", "..", "a/b", "a b", "é", "a%2F", &"x".repeat(129)] {
+            let err = validate_frame_id(bad).expect_err(bad);
+            assert!(matches!(err, WireError::InvalidFrameId { .. }));
+            assert!(!err.to_string().is_empty());
+        }
+        let err = validate_frame_id("ab/c").unwrap_err();
+        assert!(err.to_string().contains("'/' at position 2"), "{err}");
+        assert!(Batch::new("a/b", 0, 0, vec![]).is_err());
+    }
+
+    #[test]
+    fn limits_helpers() {
+        let l = DecodeLimits::default();
+        assert_eq!(l.max_records, 4 * 1024 * 1024);
+        assert_eq!(l.max_body_len(), 38 + 128 + 20 * 4 * 1024 * 1024);
+    }
+}

@@ -1,0 +1,675 @@
+//! Async HTTP client for render workers (feature `client`).
+//!
+//! Workers run for hours on farms where servers restart and networks hiccup,
+//! so every request is retried on transient failures (connection errors,
+//! timeouts, HTTP 5xx, 408 and 429) with capped exponential backoff and
+//! jitter, honouring `Retry-After`. A retried batch is resent byte for byte,
+//! with the same worker id and sequence number: when the first attempt did
+//! reach the server and only the response was lost, the server recognises
+//! `(worker, seq)` and answers with `duplicate: true` instead of counting the
+//! samples twice. Any other 4xx is final and surfaces as
+//! [`ClientError::Rejected`] with the server's [`ErrorBody`].
+//!
+//! [`BatchWriter`] turns a stream of records into numbered batches and keeps
+//! a batch that could not be delivered, so that the next call resends it
+//! under its original sequence number.
+//!
+//! The client speaks plain HTTP/1.1 (reqwest without TLS or HTTP/2): farm
+//! traffic stays on the internal network, and the dependency tree stays small.
+
+use std::hash::{BuildHasher, RandomState};
+use std::time::Duration;
+
+use bytes::Bytes;
+use reqwest::header::{CONTENT_TYPE, RETRY_AFTER};
+use reqwest::{Method, StatusCode};
+use serde::de::DeserializeOwned;
+
+use crate::api::{BatchAck, CreateFrame, ErrorBody, FrameInfo};
+use crate::batch::{validate_frame_id, Batch, Record, WireError, DEFAULT_MAX_RECORDS};
+use crate::BATCH_CONTENT_TYPE;
+
+/// Longest piece of a non-JSON error body kept in an error.
+const MAX_BODY_EXCERPT: usize = 512;
+
+/// Why a request failed.
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    /// The base URL given to [`Client::new`] is unusable.
+    #[error("invalid server URL {url:?}: {reason}")]
+    InvalidUrl {
+        /// The URL as given.
+        url: String,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// An argument was refused before anything was sent.
+    #[error("invalid argument: {0}")]
+    InvalidArgument(String),
+    /// A batch or frame id was refused before anything was sent.
+    #[error("refused locally before sending: {0}")]
+    Wire(#[from] WireError),
+    /// The server refused the request (a 4xx other than 408 and 429).
+    /// Resending the same request will fail the same way.
+    #[error("server refused the request with HTTP {status}: {body}")]
+    Rejected {
+        /// HTTP status code.
+        status: u16,
+        /// The server's error body; synthesised (`error` = `"http_<status>"`)
+        /// when the response did not carry one.
+        body: ErrorBody,
+    },
+    /// Every attempt failed transiently.
+    #[error("{operation} failed after {attempts} attempts; last failure: {last}")]
+    GaveUp {
+        /// Method and path, e.g. `POST /v1/frames/f/samples`.
+        operation: String,
+        /// Attempts made.
+        attempts: u32,
+        /// The last transient failure.
+        last: String,
+    },
+    /// The server answered in a way the protocol does not allow
+    /// (unexpected status, or a success body that is not the expected JSON).
+    #[error("unexpected response to {operation} (HTTP {status}): {reason}")]
+    UnexpectedResponse {
+        /// Method and path.
+        operation: String,
+        /// HTTP status code.
+        status: u16,
+        /// What was wrong with it.
+        reason: String,
+    },
+    /// The request could not be built (not retried).
+    #[error("could not send {operation}: {source}")]
+    Http {
+        /// Method and path.
+        operation: String,
+        /// The underlying error.
+        #[source]
+        source: reqwest::Error,
+    },
+}
+
+/// When and how often to retry transient failures.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct RetryPolicy {
+    /// Total attempts per request, the first included (at least 1).
+    pub max_attempts: u32,
+    /// Wait after the first failure; doubled after each further failure.
+    pub initial_backoff: Duration,
+    /// Cap of the wait between attempts (also caps `Retry-After`).
+    pub max_backoff: Duration,
+}
+
+impl Default for RetryPolicy {
+    /// 10 attempts, 100 ms doubling up to 10 s: about a minute of retrying.
+    fn default() -> Self {
+        RetryPolicy {
+            max_attempts: 10,
+            initial_backoff: Duration::from_millis(100),
+            max_backoff: Duration::from_secs(10),
+        }
+    }
+}
+
+impl RetryPolicy {
+    /// The wait before retry number `retry` (0 = after the first failure),
+    /// without jitter: `initial_backoff · 2^retry`, capped at `max_backoff`.
+    pub fn backoff(&self, retry: u32) -> Duration {
+        let factor = 1u32.checked_shl(retry).unwrap_or(u32::MAX);
+        self.initial_backoff
+            .saturating_mul(factor)
+            .min(self.max_backoff)
+    }
+
+    /// The actual wait: [`RetryPolicy::backoff`] with "equal jitter" (a
+    /// random point in its upper half, so that workers that failed together
+    /// do not retry together), or the server's `Retry-After`, whichever is
+    /// longer, capped at `max_backoff`.
+    fn delay(&self, retry: u32, retry_after: Option<Duration>) -> Duration {
+        let base = self.backoff(retry);
+        let half = base / 2;
+        let nanos = u64::try_from(half.as_nanos()).unwrap_or(u64::MAX);
+        let jitter = match nanos {
+            0 => Duration::ZERO,
+            n => Duration::from_nanos(RandomState::new().hash_one(retry) % n),
+        };
+        (half + jitter)
+            .max(retry_after.unwrap_or(Duration::ZERO))
+            .min(self.max_backoff)
+    }
+}
+
+/// A transient failure, kept for the [`ClientError::GaveUp`] message.
+struct Transient {
+    message: String,
+    retry_after: Option<Duration>,
+}
+
+/// An async client of one splatd server. Cheap to clone (clones share the
+/// connection pool).
+#[derive(Debug, Clone)]
+pub struct Client {
+    http: reqwest::Client,
+    base: String,
+    token: Option<String>,
+    retry: RetryPolicy,
+}
+
+impl Client {
+    /// A client of the server at `base_url` (e.g. `http://render-head:7878`),
+    /// with a 10 s connect timeout, a 120 s request timeout, no redirects and
+    /// the default [`RetryPolicy`].
+    pub fn new(base_url: impl Into<String>) -> Result<Client, ClientError> {
+        let base_url = base_url.into();
+        let http = reqwest::Client::builder()
+            .connect_timeout(Duration::from_secs(10))
+            .timeout(Duration::from_secs(120))
+            .redirect(reqwest::redirect::Policy::none())
+            .build()
+            .map_err(|e| ClientError::InvalidUrl {
+                url: base_url.clone(),
+                reason: format!("could not set up the HTTP client: {e}"),
+            })?;
+        Client::with_http_client(base_url, http)
+    }
+
+    /// Like [`Client::new`] with a preconfigured reqwest client (timeouts,
+    /// proxies, ...).
+    pub fn with_http_client(
+        base_url: impl Into<String>,
+        http: reqwest::Client,
+    ) -> Result<Client, ClientError> {
+        let url = base_url.into();
+        let invalid = |reason: &str| ClientError::InvalidUrl {
+            url: url.clone(),
+            reason: reason.to_owned(),
+        };
+        let parsed = reqwest::Url::parse(&url).map_err(|e| invalid(&e.to_string()))?;
+        if parsed.scheme() != "http" {
+            return Err(invalid(
+                "only http:// is supported (this client is built without TLS)",
+            ));
+        }
+        if parsed.query().is_some() || parsed.fragment().is_some() {
+            return Err(invalid("the base URL must not have a query or fragment"));
+        }
+        let base = url.trim_end_matches('/').to_owned();
+        Ok(Client {
+            http,
+            base,
+            token: None,
+            retry: RetryPolicy::default(),
+        })
+    }
+
+    /// Sends `Authorization: Bearer <token>` with every request.
+    pub fn with_token(mut self, token: impl Into<String>) -> Client {
+        self.token = Some(token.into());
+        self
+    }
+
+    /// Replaces the retry policy.
+    pub fn with_retry_policy(mut self, retry: RetryPolicy) -> Client {
+        self.retry = retry;
+        self
+    }
+
+    /// The retry policy in use.
+    pub fn retry_policy(&self) -> RetryPolicy {
+        self.retry
+    }
+
+    /// `POST /v1/frames`: creates a frame (HTTP 201).
+    ///
+    /// If an attempt reached the server but its response was lost, the retry
+    /// may be refused with 409 because the frame now exists; check with
+    /// [`Client::frame_info`].
+    pub async fn create_frame(&self, req: &CreateFrame) -> Result<FrameInfo, ClientError> {
+        validate_frame_id(&req.id)?;
+        let body = serde_json::to_vec(req).map_err(|e| {
+            ClientError::InvalidArgument(format!("could not serialise the frame request: {e}"))
+        })?;
+        let (status, bytes) = self
+            .send(
+                Method::POST,
+                "/v1/frames",
+                Some((Bytes::from(body), "application/json")),
+            )
+            .await?;
+        parse_json("POST /v1/frames", status, &bytes)
+    }
+
+    /// `GET /v1/frames/{id}`: the state of a frame.
+    pub async fn frame_info(&self, id: &str) -> Result<FrameInfo, ClientError> {
+        validate_frame_id(id)?;
+        let path = format!("/v1/frames/{id}");
+        let (status, bytes) = self.send(Method::GET, &path, None).await?;
+        parse_json(&format!("GET {path}"), status, &bytes)
+    }
+
+    /// `POST /v1/frames/{frame}/samples`: sends one batch.
+    ///
+    /// The batch is encoded once and the same bytes are resent on retries.
+    pub async fn post_batch(&self, batch: &Batch) -> Result<BatchAck, ClientError> {
+        batch.validate()?;
+        self.post_encoded(&batch.frame, Bytes::from(batch.encode()))
+            .await
+    }
+
+    /// Sends an already encoded batch for `frame` (see [`Batch::encode`]).
+    pub async fn post_encoded(&self, frame: &str, body: Bytes) -> Result<BatchAck, ClientError> {
+        validate_frame_id(frame)?;
+        let path = format!("/v1/frames/{frame}/samples");
+        let (status, bytes) = self
+            .send(Method::POST, &path, Some((body, BATCH_CONTENT_TYPE)))
+            .await?;
+        parse_json(&format!("POST {path}"), status, &bytes)
+    }
+
+    /// A [`BatchWriter`] for `frame` that numbers its batches from `first_seq`.
+    pub fn batch_writer(
+        &self,
+        frame: impl Into<String>,
+        worker: u64,
+        first_seq: u64,
+        batch_size: usize,
+    ) -> Result<BatchWriter, ClientError> {
+        BatchWriter::new(self.clone(), frame, worker, first_seq, batch_size)
+    }
+
+    /// Sends a request, retrying transient failures; returns a 2xx status and
+    /// its body.
+    async fn send(
+        &self,
+        method: Method,
+        path: &str,
+        body: Option<(Bytes, &'static str)>,
+    ) -> Result<(StatusCode, Bytes), ClientError> {
+        let operation = format!("{method} {path}");
+        let url = format!("{}{path}", self.base);
+        let attempts = self.retry.max_attempts.max(1);
+        let mut last = None;
+        for attempt in 0..attempts {
+            if let Some(Transient { retry_after, .. }) = &last {
+                tokio::time::sleep(self.retry.delay(attempt - 1, *retry_after)).await;
+            }
+            let mut req = self.http.request(method.clone(), &url);
+            if let Some(token) = &self.token {
+                req = req.bearer_auth(token);
+            }
+            if let Some((bytes, content_type)) = &body {
+                // Bytes clones share the buffer: every attempt sends the same bytes.
+                req = req.header(CONTENT_TYPE, *content_type).body(bytes.clone());
+            }
+            let response = match req.send().await {
+                Ok(r) => r,
+                Err(e) if e.is_builder() => {
+                    return Err(ClientError::Http {
+                        operation,
+                        source: e,
+                    })
+                }
+                Err(e) => {
+                    last = Some(Transient {
+                        message: error_chain(&e),
+                        retry_after: None,
+                    });
+                    continue;
+                }
+            };
+            let status = response.status();
+            let retry_after = response
+                .headers()
+                .get(RETRY_AFTER)
+                .and_then(|v| v.to_str().ok())
+                .and_then(|v| v.trim().parse::<u64>().ok())
+                .map(Duration::from_secs);
+            let bytes = match response.bytes().await {
+                Ok(b) => b,
+                Err(e) => {
+                    last = Some(Transient {
+                        message: format!("reading the HTTP {status} response: {}", error_chain(&e)),
+                        retry_after: None,
+                    });
+                    continue;
+                }
+            };
+            if status.is_success() {
+                return Ok((status, bytes));
+            }
+            if is_transient(status) {
+                last = Some(Transient {
+                    message: format!("HTTP {status}: {}", excerpt(&bytes)),
+                    retry_after,
+                });
+                continue;
+            }
+            if status.is_client_error() {
+                return Err(ClientError::Rejected {
+                    status: status.as_u16(),
+                    body: error_body(status, &bytes),
+                });
+            }
+            return Err(ClientError::UnexpectedResponse {
+                operation,
+                status: status.as_u16(),
+                reason: excerpt(&bytes),
+            });
+        }
+        Err(ClientError::GaveUp {
+            operation,
+            attempts,
+            last: last.map_or_else(|| "none".to_owned(), |t| t.message),
+        })
+    }
+}
+
+/// Statuses worth retrying: the server or something in front of it is
+/// overloaded or restarting, or the request timed out.
+fn is_transient(status: StatusCode) -> bool {
+    status.is_server_error()
+        || status == StatusCode::REQUEST_TIMEOUT
+        || status == StatusCode::TOO_MANY_REQUESTS
+}
+
+/// The server's [`ErrorBody`], or one made up from the status and raw body.
+fn error_body(status: StatusCode, bytes: &[u8]) -> ErrorBody {
+    serde_json::from_slice(bytes).unwrap_or_else(|_| {
+        ErrorBody::new(
+            format!("http_{}", status.as_u16()),
+            format!(
+                "HTTP {status} without a JSON error body: {}",
+                excerpt(bytes)
+            ),
+        )
+    })
+}
+
+/// Decodes a success body.
+fn parse_json<T: DeserializeOwned>(
+    operation: &str,
+    status: StatusCode,
+    bytes: &[u8],
+) -> Result<T, ClientError> {
+    serde_json::from_slice(bytes).map_err(|e| ClientError::UnexpectedResponse {
+        operation: operation.to_owned(),
+        status: status.as_u16(),
+        reason: format!("body is not the expected JSON ({e}): {}", excerpt(bytes)),
+    })
+}
+
+/// The start of a body, lossily decoded, for error messages.
+fn excerpt(bytes: &[u8]) -> String {
+    let text = String::from_utf8_lossy(&bytes[..bytes.len().min(MAX_BODY_EXCERPT)]);
+    let more = if bytes.len() > MAX_BODY_EXCERPT {
+        "..."
+    } else {
+        ""
+    };
+    format!("{:?}{more}", text.trim())
+}
+
+/// An error and its sources on one line (reqwest's own Display hides the cause).
+fn error_chain(e: &(dyn std::error::Error + 'static)) -> String {
+    let mut out = e.to_string();
+    let mut source = e.source();
+    while let Some(s) = source {
+        out.push_str(": ");
+        out.push_str(&s.to_string());
+        source = s.source();
+    }
+    out
+}
+
+/// A batch that has a sequence number and its final bytes but is not yet
+/// acknowledged.
+#[derive(Debug)]
+struct Pending {
+    seq: u64,
+    body: Bytes,
+}
+
+/// Buffers the records of one `(frame, worker)` and sends them in batches of
+/// `batch_size` with sequence numbers `first_seq`, `first_seq + 1`, ...
+///
+/// Once a batch has been given a sequence number its bytes never change: if
+/// sending fails (even after all retries), the batch stays pending and the
+/// next [`push`](BatchWriter::push) or [`flush`](BatchWriter::flush) resends
+/// it before anything else, so the server sees each sequence number with one
+/// content only. Call `flush` at the end: records still buffered when the
+/// writer is dropped are lost.
+#[derive(Debug)]
+pub struct BatchWriter {
+    client: Client,
+    frame: String,
+    worker: u64,
+    next_seq: u64,
+    batch_size: usize,
+    buffer: Vec<Record>,
+    pending: Option<Pending>,
+}
+
+impl BatchWriter {
+    /// A writer for `frame` as `worker`, numbering batches from `first_seq`.
+    /// `batch_size` must be in `1..=DEFAULT_MAX_RECORDS` (4 Mi), the default
+    /// server limit.
+    pub fn new(
+        client: Client,
+        frame: impl Into<String>,
+        worker: u64,
+        first_seq: u64,
+        batch_size: usize,
+    ) -> Result<BatchWriter, ClientError> {
+        let frame = frame.into();
+        validate_frame_id(&frame)?;
+        if !(1..=DEFAULT_MAX_RECORDS).contains(&batch_size) {
+            return Err(ClientError::InvalidArgument(format!(
+                "batch size {batch_size} is outside 1..={DEFAULT_MAX_RECORDS}"
+            )));
+        }
+        Ok(BatchWriter {
+            client,
+            frame,
+            worker,
+            next_seq: first_seq,
+            batch_size,
+            buffer: Vec::with_capacity(batch_size),
+            pending: None,
+        })
+    }
+
+    /// Adds one record; sends a batch when `batch_size` records are buffered
+    /// and returns the acknowledgements of the batches sent by this call.
+    pub async fn push(&mut self, record: Record) -> Result<Vec<BatchAck>, ClientError> {
+        self.buffer.push(record);
+        self.send_full().await
+    }
+
+    /// Adds many records, sending full batches as they fill up.
+    pub async fn extend(
+        &mut self,
+        records: impl IntoIterator<Item = Record>,
+    ) -> Result<Vec<BatchAck>, ClientError> {
+        let mut acks = Vec::new();
+        for record in records {
+            self.buffer.push(record);
+            acks.extend(self.send_full().await?);
+        }
+        Ok(acks)
+    }
+
+    /// Sends the pending batch, if any, and everything buffered (the last
+    /// batch may be short). Returns the acknowledgements.
+    pub async fn flush(&mut self) -> Result<Vec<BatchAck>, ClientError> {
+        let mut acks = Vec::new();
+        if let Some(ack) = self.send_pending().await? {
+            acks.push(ack);
+        }
+        while !self.buffer.is_empty() {
+            self.seal()?;
+            if let Some(ack) = self.send_pending().await? {
+                acks.push(ack);
+            }
+        }
+        Ok(acks)
+    }
+
+    /// The sequence number the next sealed batch gets (persist it to resume
+    /// a worker without reusing numbers).
+    pub fn next_seq(&self) -> u64 {
+        self.next_seq
+    }
+
+    /// Records buffered and not yet part of a batch.
+    pub fn buffered(&self) -> usize {
+        self.buffer.len()
+    }
+
+    /// Sequence number of the batch that failed to send and will be resent
+    /// first, if any.
+    pub fn pending_seq(&self) -> Option<u64> {
+        self.pending.as_ref().map(|p| p.seq)
+    }
+
+    /// Gives up on the pending batch (e.g. after [`ClientError::Rejected`],
+    /// which resending cannot fix); returns its sequence number. Its number
+    /// is not reused.
+    pub fn discard_pending(&mut self) -> Option<u64> {
+        self.pending.take().map(|p| p.seq)
+    }
+
+    /// Sends the pending batch and then every full batch in the buffer.
+    async fn send_full(&mut self) -> Result<Vec<BatchAck>, ClientError> {
+        let mut acks = Vec::new();
+        if self.buffer.len() < self.batch_size {
+            return Ok(acks);
+        }
+        if let Some(ack) = self.send_pending().await? {
+            acks.push(ack);
+        }
+        while self.buffer.len() >= self.batch_size {
+            self.seal()?;
+            if let Some(ack) = self.send_pending().await? {
+                acks.push(ack);
+            }
+        }
+        Ok(acks)
+    }
+
+    /// Turns up to `batch_size` buffered records into the pending batch.
+    fn seal(&mut self) -> Result<(), ClientError> {
+        debug_assert!(
+            self.pending.is_none(),
+            "seal only after the pending batch is sent"
+        );
+        let n = self.buffer.len().min(self.batch_size);
+        let batch = Batch {
+            frame: self.frame.clone(),
+            worker: self.worker,
+            seq: self.next_seq,
+            records: self.buffer.drain(..n).collect(),
+        };
+        self.next_seq = self.next_seq.checked_add(1).ok_or_else(|| {
+            ClientError::InvalidArgument("sequence numbers exhausted (u64::MAX reached)".into())
+        })?;
+        self.pending = Some(Pending {
+            seq: batch.seq,
+            body: Bytes::from(batch.encode()),
+        });
+        Ok(())
+    }
+
+    /// Sends the pending batch; it stays pending if sending fails.
+    async fn send_pending(&mut self) -> Result<Option<BatchAck>, ClientError> {
+        let Some(pending) = &self.pending else {
+            return Ok(None);
+        };
+        let ack = self
+            .client
+            .post_encoded(&self.frame, pending.body.clone())
+            .await?;
+        self.pending = None;
+        Ok(Some(ack))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_and_caps() {
+        let p = RetryPolicy {
+            max_attempts: 5,
+            initial_backoff: Duration::from_millis(100),
+            max_backoff: Duration::from_secs(1),
+        };
+        let waits: Vec<_> = (0..6).map(|r| p.backoff(r).as_millis()).collect();
+        assert_eq!(waits, [100, 200, 400, 800, 1000, 1000]);
+        assert_eq!(p.backoff(u32::MAX), Duration::from_secs(1));
+    }
+
+    #[test]
+    fn delay_is_jittered_within_the_upper_half_and_honours_retry_after() {
+        let p = RetryPolicy {
+            max_attempts: 5,
+            initial_backoff: Duration::from_millis(100),
+            max_backoff: Duration::from_secs(2),
+        };
+        for retry in 0..8 {
+            let d = p.delay(retry, None);
+            assert!(d >= p.backoff(retry) / 2 && d <= p.backoff(retry), "{d:?}");
+        }
+        assert_eq!(
+            p.delay(0, Some(Duration::from_secs(1))),
+            Duration::from_secs(1)
+        );
+        assert_eq!(
+            p.delay(0, Some(Duration::from_secs(60))),
+            Duration::from_secs(2)
+        );
+    }
+
+    #[test]
+    fn transient_statuses() {
+        for s in [500, 502, 503, 504, 408, 429] {
+            assert!(is_transient(StatusCode::from_u16(s).expect("valid")), "{s}");
+        }
+        for s in [400, 401, 404, 409, 413, 415, 422] {
+            assert!(
+                !is_transient(StatusCode::from_u16(s).expect("valid")),
+                "{s}"
+            );
+        }
+    }
+
+    #[test]
+    fn base_url_checks() {
+        assert!(Client::new("http://127.0.0.1:7878/").is_ok());
+        for bad in [
+            "https://host",
+            "127.0.0.1:7878",
+            "http://h/?q=1",
+            "not a url",
+        ] {
+            assert!(
+                matches!(Client::new(bad), Err(ClientError::InvalidUrl { .. })),
+                "{bad}"
+            );
+        }
+    }
+
+    #[test]
+    fn error_body_falls_back_for_non_json() {
+        let b = error_body(StatusCode::NOT_FOUND, b"<html>nope</html>");
+        assert_eq!(b.error, "http_404");
+        assert!(b.message.contains("nope"), "{}", b.message);
+        let b = error_body(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            br#"{"error":"pixel_out_of_range","message":"x 9 >= width 4"}"#,
+        );
+        assert_eq!(b, ErrorBody::new("pixel_out_of_range", "x 9 >= width 4"));
+    }
+}

@@ -1,0 +1,61 @@
+//! Wire format of splatd, shared by the server and the render workers.
+//!
+//! Render workers stream Monte Carlo samples over HTTP to a splatd server,
+//! which accumulates them per pixel in brightness cascades and resolves
+//! OpenEXR frames with fireflies removed. This crate is the contract between
+//! the two sides, in two formats:
+//!
+//! * **Sample batches** ([`Batch`], module [`batch`]): a compact binary body
+//!   (`Content-Type: application/x-splatd-batch`, see [`BATCH_CONTENT_TYPE`])
+//!   of 20-byte records, because the server ingests millions of samples per
+//!   second. Magic and version, then bincode 2 with the legacy (fixed-width,
+//!   little-endian) configuration.
+//! * **Everything else** ([`api`]): small JSON documents: frame creation,
+//!   frame state, batch acknowledgements and error bodies.
+//!
+//! With the default `client` feature the crate also has an async HTTP
+//! client for workers (`client` module, reqwest + tokio) with retries that
+//! keep batches exactly-once. `default-features = false` leaves only serde,
+//! bincode and thiserror.
+//!
+//! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
+//! and the HTTP endpoints for implementers in other languages;
+//! `python/splatd_client.py` is a numpy implementation.
+//!
+//! # Example
+//!
+//! ```
+//! use splatd_proto::{Batch, DecodeLimits, Record};
+//!
+//! let batch = Batch::new(
+//!     "shot010.beauty",
+//!     42, // worker id
+//!     0,  // sequence number of this worker's batch
+//!     vec![Record::new(10, 20, [0.25, 0.5, 1.0])],
+//! )?;
+//! let bytes = batch.encode();
+//! assert_eq!(&bytes[..4], b"SPLB");
+//! assert_eq!(bytes.len(), 4 + 2 + 8 + 14 + 8 + 8 + 8 + 20);
+//!
+//! let decoded = Batch::decode(&bytes, &DecodeLimits::default())?;
+//! assert_eq!(decoded, batch);
+//! # Ok::<(), splatd_proto::WireError>(())
+//! ```
+
+#![warn(missing_docs)]
+
+pub mod api;
+pub mod batch;
+#[cfg(feature = "client")]
+pub mod client;
+
+pub use api::{
+    BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery,
+    ResolveParams, Variant,
+};
+pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
+#[cfg(feature = "client")]
+pub use client::{BatchWriter, Client, ClientError, RetryPolicy};
+
+/// `Content-Type` of a sample batch body.
+pub const BATCH_CONTENT_TYPE: &str = "application/x-splatd-batch";
