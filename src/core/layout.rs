@@ -61,6 +61,8 @@ pub struct CascadeLayout {
     to_units: Vec<f64>,
     /// `c_j / 2^FRAC_BITS`: multiplies fixed-point units of cascade `j` back to a value.
     from_units: Vec<f64>,
+    /// `1 / c_j`.
+    inv_scales: Vec<f64>,
 }
 
 impl fmt::Debug for CascadeLayout {
@@ -74,8 +76,8 @@ impl fmt::Debug for CascadeLayout {
     }
 }
 
-/// Where one sample goes: `lo` receives `w_lo * s` and `count_lo` count units, `lo + 1` (if
-/// `hi_share` is true) receives `(1 - w_lo) * s` and the rest of one count.
+/// Where one sample goes: `lo` receives `w_lo * s` and `count_lo` count units, `lo + 1`
+/// receives `(1 - w_lo) * s` and the rest of one count. `lo` is at most `K - 2`.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Split {
     /// The lower cascade.
@@ -144,6 +146,7 @@ impl CascadeLayout {
             luminance,
             to_units: scales.iter().map(|c| one / c).collect(),
             from_units: scales.iter().map(|c| c / one).collect(),
+            inv_scales: scales.iter().map(|c| 1.0 / c).collect(),
             scales,
         })
     }
@@ -194,6 +197,11 @@ impl CascadeLayout {
         self.from_units[j]
     }
 
+    #[inline]
+    pub(crate) fn inv_scale(&self, j: usize) -> f64 {
+        self.inv_scales[j]
+    }
+
     /// How a sample of brightness `l >= 0` is split (the authors' `split.cpp`, with the energy of
     /// out-of-range samples kept):
     ///
@@ -202,37 +210,37 @@ impl CascadeLayout {
     /// * `c_j < l < c_{j+1}`: `w_lo = (c_{j+1}/l - 1) / (b - 1)` of the value to `j`, the rest
     ///   to `j + 1`; counts `w_lo * l / c_j = (b - l/c_j) / (b - 1)` and its complement, so
     ///   `L(B_j) / c_j` still counts samples;
-    /// * `l >= c_{K-1}`: all of it to the top cascade with weight 1 (the authors clamp it to
+    /// * `l >= c_{K-1}`: all of it to the top cascade `K-1` (returned as `lo = K-2`, `w_lo = 0`)
+    ///   with weight 1 (the authors clamp it to
     ///   `c_{K-1}/l`, losing energy even in the plain mean; splatd keeps it so that the mean
     ///   layer is the true Monte Carlo mean).
     #[inline]
     pub fn split(&self, l: f64) -> Split {
+        // Branch-free on purpose: sample brightness is heavy-tailed and unpredictable, and a
+        // mispredicted branch per sample costs more than the arithmetic. Clamping `l` to
+        // `[c0, c_{K-1}]` gives exactly the out-of-range rules: at `c0` the pair (0, 1) puts
+        // everything in 0, at `c_{K-1}` the pair (K-2, K-1) puts everything in K-1.
         let k = self.scales.len();
-        if l <= self.scales[0] {
-            return Split {
-                lo: 0,
-                w_lo: 1.0,
-                count_lo: COUNT_ONE,
-            };
-        }
-        if l >= self.scales[k - 1] {
-            return Split {
-                lo: k - 1,
-                w_lo: 1.0,
-                count_lo: COUNT_ONE,
-            };
-        }
-        // Largest j in 0..=K-2 with c_j <= l; l < c_{K-1} guarantees l < c_{j+1}.
-        let mut j = 0;
-        while j + 2 < k && self.scales[j + 1] <= l {
-            j += 1;
-        }
-        let w_lo = (self.scales[j + 1] / l - 1.0) / (self.base - 1.0);
-        let count = (self.base - l / self.scales[j]) / (self.base - 1.0);
+        let lc = l.clamp(self.scales[0], self.scales[k - 1]);
+        // Largest j in 0..=K-2 with c_j <= lc (so lc <= c_{j+1}).
+        let j = self.scales[1..k - 1]
+            .iter()
+            .fold(0, |j, &c| j + usize::from(c <= lc));
+        let w_lo = (self.scales[j + 1] / lc - 1.0) / (self.base - 1.0);
+        let count = (self.base - lc * self.inv_scales[j]) / (self.base - 1.0);
+        // c_{j+1} / c_j may round away from b; pin the end points so that in-range rounding
+        // never leaks a sliver of a dim sample into cascade 1, or of a bright one into K-2.
+        let (w_lo, count) = if l <= self.scales[0] {
+            (1.0, 1.0)
+        } else if l >= self.scales[k - 1] {
+            (0.0, 0.0)
+        } else {
+            (w_lo.clamp(0.0, 1.0), count.clamp(0.0, 1.0))
+        };
         Split {
             lo: j,
             w_lo,
-            count_lo: to_fixed(count.clamp(0.0, 1.0), COUNT_ONE as f64),
+            count_lo: to_fixed(count, COUNT_ONE as f64),
         }
     }
 }
@@ -323,13 +331,14 @@ mod tests {
                 }
             );
         }
+        // Beyond the top: all of it (and the whole count) to the upper cascade of the top pair.
         for l in [32768.0, 1e9, 1e30, f64::MAX] {
             assert_eq!(
                 layout.split(l),
                 Split {
-                    lo: 5,
-                    w_lo: 1.0,
-                    count_lo: COUNT_ONE
+                    lo: 4,
+                    w_lo: 0.0,
+                    count_lo: 0
                 }
             );
         }

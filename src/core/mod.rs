@@ -25,5 +25,5 @@ pub use resolve::{
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, SHADER_E_MIN_FLOOR,
 };
 pub use state::{
-    cell_len, check_sample, FrameState, MergeError, SampleError, ShapeError, SplatReport,
+    cell_len, cell_spp, check_sample, FrameState, MergeError, SampleError, ShapeError, SplatReport,
 };

@@ -17,7 +17,7 @@
 //!   `kappa_exponent in [0, 1)` so that every band with a fixed probability is eventually fully
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
-use super::layout::{CascadeLayout, ParamError, COUNT_ONE};
+use super::layout::{CascadeLayout, ParamError, COUNT_ONE, FRAC_BITS};
 use super::state::{cell_len, FrameState};
 
 /// Which weight formula to use.
@@ -170,14 +170,19 @@ impl FrameState {
     /// # Panics
     /// If the state holds only a band (use [`resolve_bands`]).
     pub fn resolve(&self, params: &ResolveParams) -> Resolved {
-        resolve_bands(&[self], params).expect("a whole-frame state tiles its frame")
+        resolve_bands(&[self], params, 1).expect("a whole-frame state tiles its frame")
     }
 }
 
 /// Resolves a frame held as bands that tile it top to bottom (in order, same layout and size).
+///
+/// `threads` row ranges are resolved in parallel (scoped threads; the core does no I/O and
+/// chooses no thread count itself). The result is bit-identical for any `threads`: every pixel
+/// is a pure function of its own cell and its neighbours'.
 pub fn resolve_bands(
     bands: &[&FrameState],
     params: &ResolveParams,
+    threads: usize,
 ) -> Result<Resolved, TilingError> {
     let first = bands
         .first()
@@ -206,174 +211,228 @@ pub fn resolve_bands(
             rows.len()
         )));
     }
-    Ok(Resolver::new(first.layout(), width as usize, params).run(&rows))
+    let (w, h) = (width as usize, height as usize);
+    let pixels = w * h;
+    let mut out = Resolved {
+        width,
+        height,
+        reweighted: vec![[0.0; 3]; pixels],
+        mean: vec![[0.0; 3]; pixels],
+        removed: vec![[0.0; 3]; pixels],
+        spp: vec![0; pixels],
+    };
+    if pixels == 0 {
+        return Ok(out);
+    }
+    let threads = threads.clamp(1, h);
+    let chunk = h.div_ceil(threads) * w;
+    let layout = first.layout();
+    let rows = &rows;
+    std::thread::scope(|scope| {
+        let parts = out
+            .reweighted
+            .chunks_mut(chunk)
+            .zip(out.mean.chunks_mut(chunk))
+            .zip(out.removed.chunks_mut(chunk))
+            .zip(out.spp.chunks_mut(chunk))
+            .enumerate();
+        for (i, (((reweighted, mean), removed), spp)) in parts {
+            let part = Part {
+                y0: i * chunk / w,
+                reweighted,
+                mean,
+                removed,
+                spp,
+            };
+            if i + 1 == threads.min(pixels.div_ceil(chunk)) {
+                // The last part runs on this thread.
+                Resolver::new(layout, w, params).run(rows, part);
+            } else {
+                scope.spawn(move || Resolver::new(layout, w, params).run(rows, part));
+            }
+        }
+    });
+    Ok(out)
 }
 
-/// Working memory of one resolve: per-pixel support counts of three rows, pooled horizontally.
+/// The rows `y0..` of the output that one resolver fills.
+struct Part<'o> {
+    y0: usize,
+    reweighted: &'o mut [[f32; 3]],
+    mean: &'o mut [[f32; 3]],
+    removed: &'o mut [[f32; 3]],
+    spp: &'o mut [u64],
+}
+
+/// Working memory of one resolve: per-pixel support counts of three rows, own and pooled
+/// horizontally, in a ring indexed by row.
 struct Resolver<'a> {
     layout: &'a CascadeLayout,
     params: &'a ResolveParams,
     width: usize,
     k: usize,
-    /// Horizontal 3-pixel sums of `[n_0 .. n_{K-1}, N]` for up to three rows, tagged by row.
-    ring: [(usize, Vec<f64>); 3],
-    /// Support counts of the current row's pixels themselves (the shader variant needs them).
+    ring: [RingRow; 3],
+}
+
+/// `[n_0 .. n_{K-1}, N]` of every pixel of one row, and their horizontal 3-pixel sums.
+struct RingRow {
+    y: usize,
     own: Vec<f64>,
-    /// Scratch: `[n_0 .. n_{K-1}, N]` of one row before horizontal pooling.
-    scratch: Vec<f64>,
+    pooled: Vec<f64>,
 }
 
 impl<'a> Resolver<'a> {
     fn new(layout: &'a CascadeLayout, width: usize, params: &'a ResolveParams) -> Self {
         let k = layout.cascades();
-        let row = || (usize::MAX, vec![0.0; width * (k + 1)]);
+        let row = || RingRow {
+            y: usize::MAX,
+            own: vec![0.0; width * (k + 1)],
+            pooled: vec![0.0; width * (k + 1)],
+        };
         Self {
             layout,
             params,
             width,
             k,
             ring: [row(), row(), row()],
-            own: vec![0.0; width * (k + 1)],
-            scratch: vec![0.0; width * (k + 1)],
         }
     }
 
     /// Support `n_j = count_{j-1} + count_j + count_{j+1}` of every pixel of a row, and `N`.
     fn support(k: usize, cells: &[u64], out: &mut [f64]) {
-        let stride = cell_len(k);
         let one = 1.0 / COUNT_ONE as f64;
-        for (cell, out) in cells.chunks_exact(stride).zip(out.chunks_exact_mut(k + 1)) {
-            let mut prev = 0.0;
-            let mut cur = cell[3] as f64 * one;
+        let mut counts = [0.0f64; crate::core::MAX_CASCADES as usize + 2];
+        for (cell, out) in cells
+            .chunks_exact(cell_len(k))
+            .zip(out.chunks_exact_mut(k + 1))
+        {
+            let mut total = 0u64;
             for j in 0..k {
-                let next = if j + 1 < k {
-                    cell[4 * (j + 1) + 3] as f64 * one
-                } else {
-                    0.0
-                };
-                out[j] = prev + cur + next;
-                prev = cur;
-                cur = next;
+                let c = cell[4 * j + 3];
+                total = total.saturating_add(c);
+                counts[j + 1] = c as f64 * one;
             }
-            out[k] = cell[4 * k] as f64;
+            // counts[0] and counts[k + 1] stay 0: the missing neighbours at the ends.
+            for j in 0..k {
+                out[j] = counts[j] + counts[j + 1] + counts[j + 2];
+            }
+            out[k] = (total >> FRAC_BITS) as f64;
         }
     }
 
-    /// Makes ring slot `y % 3` hold the horizontally pooled support of row `y`.
+    /// Makes ring slot `y % 3` hold row `y`.
     fn load(&mut self, y: usize, rows: &[&[u64]]) {
-        let slot = y % 3;
-        if self.ring[slot].0 == y {
+        let (k, w) = (self.k, self.width);
+        let row = &mut self.ring[y % 3];
+        if row.y == y {
             return;
         }
-        let (k, w) = (self.k, self.width);
+        Self::support(k, rows[y], &mut row.own);
         let n = k + 1;
-        Self::support(k, rows[y], &mut self.scratch);
-        let pooled = &mut self.ring[slot].1;
+        let (own, pooled) = (&row.own, &mut row.pooled);
         for x in 0..w {
-            let (l, r) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            let (l, r) = (x.saturating_sub(1) * n, (x + 1).min(w - 1) * n);
+            let c = x * n;
             for i in 0..n {
-                pooled[x * n + i] =
-                    self.scratch[l * n + i] + self.scratch[x * n + i] + self.scratch[r * n + i];
+                pooled[c + i] = own[l + i] + own[c + i] + own[r + i];
             }
         }
-        self.ring[slot].0 = y;
+        row.y = y;
     }
 
-    fn run(mut self, rows: &[&[u64]]) -> Resolved {
+    fn run(mut self, rows: &[&[u64]], part: Part<'_>) {
         let (w, h, k) = (self.width, rows.len(), self.k);
-        let pixels = w * h;
-        let mut out = Resolved {
-            width: w as u32,
-            height: h as u32,
-            reweighted: Vec::with_capacity(pixels),
-            mean: Vec::with_capacity(pixels),
-            removed: Vec::with_capacity(pixels),
-            spp: Vec::with_capacity(pixels),
-        };
         let n = k + 1;
         let mut pooled = vec![0.0; n];
-        for y in 0..h {
+        let part_rows = part.spp.len() / w;
+        for y in part.y0..part.y0 + part_rows {
             let (up, down) = (y.saturating_sub(1), (y + 1).min(h - 1));
             self.load(up, rows);
             self.load(y, rows);
             self.load(down, rows);
-            Self::support(k, rows[y], &mut self.own);
-            for x in 0..w {
+            let [a, b, c] = [&self.ring[up % 3], &self.ring[y % 3], &self.ring[down % 3]];
+            for (x, cell) in rows[y].chunks_exact(cell_len(k)).enumerate() {
+                let at = x * n;
                 for (i, p) in pooled.iter_mut().enumerate() {
-                    *p = self.ring[up % 3].1[x * n + i]
-                        + self.ring[y % 3].1[x * n + i]
-                        + self.ring[down % 3].1[x * n + i];
+                    *p = a.pooled[at + i] + b.pooled[at + i] + c.pooled[at + i];
                 }
-                let cell = &rows[y][x * cell_len(k)..(x + 1) * cell_len(k)];
-                let own = &self.own[x * n..(x + 1) * n];
-                let px = self.pixel(cell, own, &pooled);
-                out.reweighted.push(px.reweighted);
-                out.mean.push(px.mean);
-                out.removed.push(px.removed);
-                out.spp.push(cell[4 * k]);
+                let own = &b.own[at..at + n];
+                let px = pixel(self.layout, self.params, cell, own, &pooled);
+                let i = (y - part.y0) * w + x;
+                part.reweighted[i] = px.reweighted;
+                part.mean[i] = px.mean;
+                part.removed[i] = px.removed;
+                part.spp[i] = own[k] as u64;
             }
         }
-        out
     }
+}
 
-    /// One pixel: `cell` its fixed-point state, `own` its support counts and `N`, `pooled` the
-    /// 3x3 sums of support counts and `N`.
-    #[inline]
-    fn pixel(&self, cell: &[u64], own: &[f64], pooled: &[f64]) -> Pixel {
-        let k = self.k;
-        let n = own[k];
-        if n == 0.0 {
-            return Pixel::default();
+/// One pixel: `cell` its fixed-point state, `own` its support counts and `N`, `pooled` the 3x3
+/// sums of support counts and `N`.
+#[inline]
+fn pixel(
+    layout: &CascadeLayout,
+    params: &ResolveParams,
+    cell: &[u64],
+    own: &[f64],
+    pooled: &[f64],
+) -> Pixel {
+    let k = layout.cascades();
+    let n = own[k];
+    if n == 0.0 {
+        return Pixel::default();
+    }
+    // Support relative to this pixel's own sample count (see the module docs).
+    let pool_scale = if pooled[k] > 0.0 { n / pooled[k] } else { 0.0 };
+    let kappa = params.kappa_at(n);
+    let inv_kappa = 1.0 / kappa;
+    let kmin = params.kappa_min;
+    let mut f = [0.0f64; 3];
+    let mut total = [0.0f64; 3];
+    let mut removed = [0.0f64; 3];
+    for j in 0..k {
+        let units = &cell[4 * j..4 * j + 4];
+        if units[0] | units[1] | units[2] == 0 {
+            continue;
         }
-        // Support relative to this pixel's own sample count (see the module docs).
-        let pool_scale = if pooled[k] > 0.0 { n / pooled[k] } else { 0.0 };
-        let kappa = self.params.kappa_at(n);
-        let kmin = self.params.kappa_min;
-        let mut f = [0.0f64; 3];
-        let mut total = [0.0f64; 3];
-        let mut removed = [0.0f64; 3];
-        for j in 0..k {
-            let u = self.layout.from_units(j);
-            let b = [
-                cell[4 * j] as f64 * u,
-                cell[4 * j + 1] as f64 * u,
-                cell[4 * j + 2] as f64 * u,
-            ];
-            if b == [0.0; 3] {
-                continue;
+        let u = layout.from_units(j);
+        let b = [
+            units[0] as f64 * u,
+            units[1] as f64 * u,
+            units[2] as f64 * u,
+        ];
+        let inv_c = layout.inv_scale(j);
+        let lf = layout.luminance(f);
+        let w = match params.variant {
+            Variant::Off => 1.0,
+            Variant::Paper => {
+                let w_c = (pooled[j] * pool_scale - kmin) * inv_kappa;
+                let w_v = lf * inv_kappa * inv_c;
+                w_c.max(w_v).clamp(0.0, 1.0)
             }
-            let c_j = self.layout.scales()[j];
-            let lf = self.layout.luminance(f);
-            let w = match self.params.variant {
-                Variant::Off => 1.0,
-                Variant::Paper => {
-                    let w_c = (pooled[j] * pool_scale - kmin) / kappa;
-                    let w_v = lf / (kappa * c_j);
-                    w_c.max(w_v).clamp(0.0, 1.0)
+            Variant::Shader => {
+                let mut w_c = (pooled[j] * pool_scale - kmin) * inv_kappa;
+                if w_c >= 0.0 {
+                    w_c = (own[j] - kmin) * inv_kappa;
                 }
-                Variant::Shader => {
-                    let mut w_c = (pooled[j] * pool_scale - kmin) / kappa;
-                    if w_c >= 0.0 {
-                        w_c = (own[j] - kmin) / kappa;
-                    }
-                    let t = (1.0 / kappa).min(1.0);
-                    let energy = (1.0 - t) * (0.4 + 0.6 * self.layout.base()) + t;
-                    let w_v = lf.max(SHADER_E_MIN_FLOOR * n) / (kappa * c_j) * energy;
-                    ((w_c + w_v) * 0.5).clamp(0.0, 1.0)
-                }
-            };
-            for c in 0..3 {
-                f[c] += w * b[c];
-                total[c] += b[c];
-                removed[c] += (1.0 - w) * b[c];
+                let t = inv_kappa.min(1.0);
+                let energy = (1.0 - t) * (0.4 + 0.6 * layout.base()) + t;
+                let w_v = lf.max(SHADER_E_MIN_FLOOR * n) * inv_kappa * inv_c * energy;
+                ((w_c + w_v) * 0.5).clamp(0.0, 1.0)
             }
+        };
+        for c in 0..3 {
+            f[c] += w * b[c];
+            total[c] += b[c];
+            removed[c] += (1.0 - w) * b[c];
         }
-        let inv = 1.0 / n;
-        Pixel {
-            reweighted: f.map(|v| (v * inv) as f32),
-            mean: total.map(|v| (v * inv) as f32),
-            removed: removed.map(|v| (v * inv) as f32),
-        }
+    }
+    let inv = 1.0 / n;
+    Pixel {
+        reweighted: f.map(|v| (v * inv) as f32),
+        mean: total.map(|v| (v * inv) as f32),
+        removed: removed.map(|v| (v * inv) as f32),
     }
 }
 
@@ -456,9 +515,9 @@ mod tests {
         let layout = CascadeLayout::with_defaults();
         let bands = FrameState::bands(4, 6, 3, &layout);
         let p = ResolveParams::with_defaults();
-        assert!(resolve_bands(&[&bands[0], &bands[2]], &p).is_err());
-        assert!(resolve_bands(&[&bands[1], &bands[0], &bands[2]], &p).is_err());
-        assert!(resolve_bands(&[], &p).is_err());
-        assert!(resolve_bands(&[&bands[0], &bands[1], &bands[2]], &p).is_ok());
+        assert!(resolve_bands(&[&bands[0], &bands[2]], &p, 1).is_err());
+        assert!(resolve_bands(&[&bands[1], &bands[0], &bands[2]], &p, 1).is_err());
+        assert!(resolve_bands(&[], &p, 1).is_err());
+        assert!(resolve_bands(&[&bands[0], &bands[1], &bands[2]], &p, 1).is_ok());
     }
 }
