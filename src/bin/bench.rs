@@ -1,0 +1,402 @@
+//! splatd's estimator benchmarks; not part of the test suite.
+//!
+//! * `bench quality [--data bench-data] [--grid]`: relMSE and energy bias at 16, 64 and 256 spp of
+//!   the plain mean, clamped means, median-of-means and the reweighted resolve, on the synthetic
+//!   scene (exact mean) and on the path-traced streams written by
+//!   `benches/quality/render_streams.py`. `--grid` also sweeps `c0`, `kappa`, `kappa_exponent`
+//!   and the variant, ranking settings by the geometric mean of relMSE over scenes and spp: that
+//!   is how the defaults were chosen.
+//! * `bench speed`: the core's speed goals as ratios measured in one run (splat vs a plain RGB +
+//!   count accumulation, resolve vs one read of the state, merge vs memcpy) and the state size.
+
+use std::hint::black_box;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{bail, Context, Result};
+use splatd::core::{
+    cell_len, resolve_bands, CascadeLayout, FrameState, ResolveParams, Variant, DEFAULT_KAPPA,
+    DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
+};
+use splatd::quality::{energy_bias, rel_mse};
+use splatd::synth::{FireflyScene, SplitMix64};
+
+fn main() -> Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let flag = |name: &str| args.iter().any(|a| a == name);
+    let value = |name: &str| {
+        args.iter()
+            .position(|a| a == name)
+            .and_then(|i| args.get(i + 1).cloned())
+    };
+    match args.first().map(String::as_str) {
+        Some("quality") => {
+            let data = PathBuf::from(value("--data").unwrap_or_else(|| "bench-data".into()));
+            quality(&data, flag("--grid"))
+        }
+        Some("speed") => speed(),
+        _ => bail!("usage: bench quality [--data DIR] [--grid] | bench speed"),
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Quality
+
+/// A stream of `passes` one-sample-per-pixel passes with its ground truth.
+struct Stream {
+    name: String,
+    width: u32,
+    height: u32,
+    passes: Vec<Vec<[f32; 3]>>,
+    gt: Vec<[f32; 3]>,
+}
+
+impl Stream {
+    fn synthetic(size: u32, passes: u64) -> Self {
+        let scene = FireflyScene::new(size, size, 7);
+        Self {
+            name: "synthetic".into(),
+            width: size,
+            height: size,
+            passes: (0..passes)
+                .map(|p| scene.pass(p).map(|(_, _, rgb)| rgb).collect())
+                .collect(),
+            gt: (0..size)
+                .flat_map(|y| (0..size).map(move |x| scene.mean(x, y).map(|v| v as f32)))
+                .collect(),
+        }
+    }
+
+    /// Reads `<dir>/passes.f32` (P x H x W x 3), `gt.f32` (H x W x 3) and `meta.json`.
+    fn load(dir: &Path) -> Result<Self> {
+        let meta: serde_json::Value = serde_json::from_slice(
+            &std::fs::read(dir.join("meta.json")).with_context(|| format!("{}", dir.display()))?,
+        )?;
+        let get = |k: &str| {
+            meta[k]
+                .as_u64()
+                .with_context(|| format!("meta.json lacks {k}"))
+        };
+        let (w, h, p) = (get("width")? as u32, get("height")? as u32, get("passes")?);
+        let pixels = (w * h) as usize;
+        let floats = |name: &str, n: usize| -> Result<Vec<[f32; 3]>> {
+            let bytes = std::fs::read(dir.join(name))?;
+            if bytes.len() != n * 12 {
+                bail!("{name}: {} bytes, expected {}", bytes.len(), n * 12);
+            }
+            Ok(bytes
+                .chunks_exact(12)
+                .map(|c| {
+                    let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().unwrap());
+                    [f(0), f(4), f(8)]
+                })
+                .collect())
+        };
+        let all = floats("passes.f32", pixels * p as usize)?;
+        Ok(Self {
+            name: dir.file_name().unwrap().to_string_lossy().into(),
+            width: w,
+            height: h,
+            passes: all.chunks(pixels).map(<[_]>::to_vec).collect(),
+            gt: floats("gt.f32", pixels)?,
+        })
+    }
+
+    /// Replaces invalid samples (a renderer's NaN) by zero, counting them.
+    fn sanitize(&mut self) -> usize {
+        let mut bad = 0;
+        for s in self.passes.iter_mut().flatten() {
+            if s.iter().any(|v| !v.is_finite() || *v < 0.0) {
+                *s = [0.0; 3];
+                bad += 1;
+            }
+        }
+        bad
+    }
+}
+
+const SPPS: [usize; 3] = [16, 64, 256];
+
+/// States of a stream after 16, 64 and 256 passes for one layout.
+fn states(stream: &Stream, layout: &CascadeLayout) -> Vec<FrameState> {
+    let mut state = FrameState::new(stream.width, stream.height, layout.clone());
+    let mut out = Vec::new();
+    let w = stream.width;
+    for (i, pass) in stream.passes.iter().enumerate().take(SPPS[2]) {
+        for (p, &rgb) in pass.iter().enumerate() {
+            state.splat_checked(p as u32 % w, p as u32 / w, rgb);
+        }
+        if SPPS.contains(&(i + 1)) {
+            out.push(state.clone());
+        }
+    }
+    out
+}
+
+fn baselines(stream: &Stream, spp: usize) -> Vec<(String, Vec<[f32; 3]>)> {
+    let pixels = stream.gt.len();
+    let passes = &stream.passes[..spp];
+    let mean_of = |range: std::ops::Range<usize>, clamp: f64| -> Vec<[f32; 3]> {
+        (0..pixels)
+            .map(|p| {
+                let mut acc = [0.0f64; 3];
+                for pass in &passes[range.clone()] {
+                    let s = pass[p].map(|v| v as f64);
+                    let l = REC709_LUMINANCE[0] * s[0]
+                        + REC709_LUMINANCE[1] * s[1]
+                        + REC709_LUMINANCE[2] * s[2];
+                    let k = if l > clamp { clamp / l } else { 1.0 };
+                    for c in 0..3 {
+                        acc[c] += s[c] * k;
+                    }
+                }
+                acc.map(|v| (v / range.len() as f64) as f32)
+            })
+            .collect()
+    };
+    let mut out = vec![("mean".to_string(), mean_of(0..spp, f64::INFINITY))];
+    for clamp in [1.0, 4.0, 16.0] {
+        out.push((format!("clamp L<={clamp}"), mean_of(0..spp, clamp)));
+    }
+    // Median of 4 means, per channel (the mean of the two middle ones).
+    let groups: Vec<Vec<[f32; 3]>> = (0..4)
+        .map(|g| mean_of(g * spp / 4..(g + 1) * spp / 4, f64::INFINITY))
+        .collect();
+    let mom = (0..pixels)
+        .map(|p| {
+            std::array::from_fn(|c| {
+                let mut v: Vec<f32> = groups.iter().map(|g| g[p][c]).collect();
+                v.sort_by(f32::total_cmp);
+                (v[1] + v[2]) * 0.5
+            })
+        })
+        .collect();
+    out.push(("median-of-4-means".into(), mom));
+    out
+}
+
+fn quality(data: &Path, grid: bool) -> Result<()> {
+    let mut streams = vec![Stream::synthetic(128, 256)];
+    if let Ok(entries) = std::fs::read_dir(data) {
+        let mut dirs: Vec<_> = entries.flatten().map(|e| e.path()).collect();
+        dirs.sort();
+        for dir in dirs.into_iter().filter(|d| d.join("meta.json").exists()) {
+            let mut stream = Stream::load(&dir)?;
+            let bad = stream.sanitize();
+            if bad > 0 {
+                println!("{}: {bad} invalid samples replaced by 0", stream.name);
+            }
+            streams.push(stream);
+        }
+    }
+    if streams.len() == 1 {
+        println!(
+            "note: no path-traced streams in {} (python3 benches/quality/render_streams.py)",
+            data.display()
+        );
+    }
+    let defaults = ResolveParams::with_defaults();
+    println!(
+        "defaults: c0={DEFAULT_LOWEST_SCALE} kappa={DEFAULT_KAPPA} kappa_min={DEFAULT_KAPPA_MIN} \
+         kappa_exponent={DEFAULT_KAPPA_EXPONENT} variant={:?}",
+        defaults.variant()
+    );
+    println!(
+        "{:<12} {:>4}  {:<24} {:>9} {:>9}",
+        "scene", "spp", "estimator", "relMSE", "bias"
+    );
+    for stream in &streams {
+        let layout = CascadeLayout::with_defaults();
+        let states = states(stream, &layout);
+        for (i, &spp) in SPPS.iter().enumerate() {
+            let mut rows = baselines(stream, spp);
+            let shader = ResolveParams::new(Variant::Shader, 32.0, 1.0, 0.0)?;
+            rows.push((
+                "reweighted (default)".into(),
+                states[i].resolve(&defaults).reweighted,
+            ));
+            rows.push((
+                "shader, UI kappa=32".into(),
+                states[i].resolve(&shader).reweighted,
+            ));
+            for (name, image) in rows {
+                println!(
+                    "{:<12} {:>4}  {:<24} {:>9.4} {:>+8.2}%",
+                    stream.name,
+                    spp,
+                    name,
+                    rel_mse(&image, &stream.gt),
+                    100.0 * energy_bias(&image, &stream.gt, REC709_LUMINANCE)
+                );
+            }
+        }
+    }
+    if grid {
+        sweep(&streams)?;
+    }
+    Ok(())
+}
+
+/// Ranks settings by the geometric mean of relMSE over every scene and spp.
+fn sweep(streams: &[Stream]) -> Result<()> {
+    let mut results = Vec::new();
+    for c0 in [1.0, 0.25, 0.125, 1.0 / 32.0, 1.0 / 64.0] {
+        let layout = CascadeLayout::new(8.0, 8, c0, REC709_LUMINANCE)?;
+        let states: Vec<Vec<FrameState>> = streams.iter().map(|s| states(s, &layout)).collect();
+        for variant in [Variant::Paper, Variant::Shader] {
+            for kappa in [1.0, 2.0, 4.0, 8.0, 16.0, 32.0] {
+                for exponent in [0.0, 0.25, 0.5] {
+                    let params = ResolveParams::new(variant, kappa, 1.0, exponent)?;
+                    let mut log_sum = 0.0;
+                    let mut worst_bias: f64 = 0.0;
+                    let mut cells = Vec::new();
+                    for (stream, states) in streams.iter().zip(&states) {
+                        for state in states {
+                            let image = state.resolve(&params).reweighted;
+                            let e = rel_mse(&image, &stream.gt);
+                            let b = energy_bias(&image, &stream.gt, REC709_LUMINANCE);
+                            log_sum += e.ln();
+                            worst_bias = worst_bias.min(b);
+                            cells.push(e);
+                        }
+                    }
+                    let geo = (log_sum / cells.len() as f64).exp();
+                    results.push((geo, c0, variant, kappa, exponent, worst_bias, cells));
+                }
+            }
+        }
+    }
+    results.sort_by(|a, b| a.0.total_cmp(&b.0));
+    println!("\nsweep (8 cascades), best first; relMSE per scene x spp in loading order");
+    for (geo, c0, variant, kappa, exponent, bias, cells) in results.iter().take(25) {
+        let cells: Vec<String> = cells.iter().map(|e| format!("{e:.4}")).collect();
+        println!(
+            "geo {geo:.4}  c0={c0:<9.5} {variant:?} kappa={kappa:<4} exp={exponent:<4} \
+             worst bias {:+.1}%  [{}]",
+            100.0 * bias,
+            cells.join(" ")
+        );
+    }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------
+// Speed
+
+/// Best of `runs` timings of `f`, in seconds (the minimum is the least disturbed by a noisy box).
+fn best_of(runs: usize, mut f: impl FnMut()) -> f64 {
+    (0..runs)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn speed() -> Result<()> {
+    let (w, h) = (1920u32, 1080u32);
+    let n_records = 8_000_000usize;
+    let mut rng = SplitMix64::new(1);
+    let records: Vec<(u32, u32, [f32; 3])> = (0..n_records)
+        .map(|_| {
+            let x = (rng.next_u64() % w as u64) as u32;
+            let y = (rng.next_u64() % h as u64) as u32;
+            let z = 0.2 * rng.next_f64().powf(-1.0 / 1.3);
+            (x, y, [z as f32, (z * 0.8) as f32, (z * 0.5) as f32])
+        })
+        .collect();
+    println!(
+        "machine: {} cores",
+        std::thread::available_parallelism()?.get()
+    );
+
+    // 1. Splat vs a plain RGB + count accumulation of the same records, in two orders: random
+    //    pixels (the adversarial case: every record misses every cache) and scan order (what a
+    //    worker sends when it posts whole passes or tiles).
+    let layout6 = CascadeLayout::with_defaults();
+    let mut state = FrameState::new(w, h, layout6.clone());
+    let mut plain = vec![[0.0f32; 4]; (w * h) as usize];
+    let mut scan = records.clone();
+    scan.sort_by_key(|r| (r.1, r.0));
+    let rate = |t: f64| n_records as f64 / t / 1e6;
+    for (order, records) in [("random", &records), ("scan", &scan)] {
+        let t_plain = best_of(3, || {
+            for &(x, y, rgb) in records.iter() {
+                let p = &mut plain[(y * w + x) as usize];
+                p[0] += rgb[0];
+                p[1] += rgb[1];
+                p[2] += rgb[2];
+                p[3] += 1.0;
+            }
+            black_box(&plain);
+        });
+        let t_splat = best_of(3, || {
+            let report = state.splat_all(records.iter().copied());
+            assert_eq!(report.accepted, n_records as u64);
+            black_box(&state);
+        });
+        println!(
+            "splat {order:<6} {:>6.1} M samples/s; plain RGB+count {:>6.1} M/s; ratio {:.2} \
+             (goal >= 0.5)",
+            rate(t_splat),
+            rate(t_plain),
+            t_plain / t_splat
+        );
+    }
+
+    // 2. Resolve 1080p, 8 cascades, vs one pass reading the same memory.
+    let layout8 = CascadeLayout::new(8.0, 8, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE)?;
+    let mut state8 = FrameState::new(w, h, layout8);
+    for &(x, y, rgb) in &records {
+        state8.splat_checked(x, y, rgb);
+    }
+    let t_read = best_of(3, || {
+        let sum = state8.cells().iter().fold(0u64, |a, &v| a.wrapping_add(v));
+        black_box(sum);
+    });
+    let params = ResolveParams::with_defaults();
+    for threads in [1, 2] {
+        let t_resolve = best_of(3, || {
+            black_box(resolve_bands(&[&state8], &params, threads).expect("whole frame"));
+        });
+        println!(
+            "resolve    {:>7.3} s with {threads} thread(s); one read of the state {:.3} s; \
+             ratio {:.2} (goal <= 3)",
+            t_resolve,
+            t_read,
+            t_resolve / t_read
+        );
+    }
+
+    // 3. Merge of two 1080p states vs a memcpy of one.
+    let other = state8.clone();
+    let mut target = state8.clone();
+    let mut copy = vec![0u64; state8.cells().len()];
+    let t_copy = best_of(3, || {
+        copy.copy_from_slice(state8.cells());
+        black_box(&copy);
+    });
+    let t_merge = best_of(3, || {
+        target.merge(&other).expect("same frame");
+        black_box(&target);
+    });
+    println!(
+        "merge      {:>7.3} s; memcpy of the state {:.3} s; ratio {:.2} (goal <= 2)",
+        t_merge,
+        t_copy,
+        t_merge / t_copy
+    );
+
+    // 4. State size.
+    let per_pixel = state.memory_bytes() as f64 / (w * h) as f64;
+    let k = layout6.cascades();
+    println!(
+        "state      {per_pixel} bytes/pixel with K={k} (goal <= 32K+8 = {}); 1080p: {:.0} MB \
+         (goal < 420 MB); cell = {} u64",
+        32 * k + 8,
+        state.memory_bytes() as f64 / 1e6,
+        cell_len(k)
+    );
+    Ok(())
+}

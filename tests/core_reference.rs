@@ -1,0 +1,218 @@
+//! The optimized estimator against a deliberately simple reference written from ALGORITHM.md:
+//! it keeps every sample, works in `f64` throughout, finds cascades with logarithms, and resolves
+//! with plain 3x3 loops. Disagreement beyond fixed-point rounding is a bug in one of them.
+
+use proptest::prelude::*;
+use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant, REC709_LUMINANCE};
+
+/// The reference: samples per pixel, nothing else.
+struct Reference {
+    width: usize,
+    height: usize,
+    base: f64,
+    c0: f64,
+    k: usize,
+    samples: Vec<Vec<[f64; 3]>>,
+}
+
+fn lum(s: [f64; 3]) -> f64 {
+    REC709_LUMINANCE[0] * s[0] + REC709_LUMINANCE[1] * s[1] + REC709_LUMINANCE[2] * s[2]
+}
+
+impl Reference {
+    fn scale(&self, j: usize) -> f64 {
+        self.c0 * self.base.powi(j as i32)
+    }
+
+    /// Cascade sums and explicit counts of one pixel, straight from the definitions.
+    fn cascades(&self, p: usize) -> (Vec<[f64; 3]>, Vec<f64>) {
+        let mut sums = vec![[0.0; 3]; self.k];
+        let mut counts = vec![0.0; self.k];
+        for &s in &self.samples[p] {
+            let l = lum(s);
+            let top = self.k - 1;
+            let mut add = |j: usize, w: f64, count: f64| {
+                for c in 0..3 {
+                    sums[j][c] += w * s[c];
+                }
+                counts[j] += count;
+            };
+            if l <= self.c0 {
+                add(0, 1.0, 1.0);
+            } else if l >= self.scale(top) {
+                add(top, 1.0, 1.0);
+            } else {
+                // Notes: j = floor(log_b(L / c0)); weight (b^j/L - 1/b)/(1 - 1/b) in c0 units.
+                let mut j = ((l / self.c0).ln() / self.base.ln()).floor() as usize;
+                // Guard against log rounding right at a boundary.
+                while j > 0 && self.scale(j) > l {
+                    j -= 1;
+                }
+                while j + 1 < top && self.scale(j + 1) <= l {
+                    j += 1;
+                }
+                let r = self.scale(j) / l;
+                let w = (r - 1.0 / self.base) / (1.0 - 1.0 / self.base);
+                add(j, w, w * l / self.scale(j));
+                add(j + 1, 1.0 - w, (1.0 - w) * l / self.scale(j + 1));
+            }
+        }
+        (sums, counts)
+    }
+
+    fn support(&self, counts: &[f64], j: usize) -> f64 {
+        let mut n = counts[j];
+        if j > 0 {
+            n += counts[j - 1];
+        }
+        if j + 1 < self.k {
+            n += counts[j + 1];
+        }
+        n
+    }
+
+    /// Reweighted, mean and removed of every pixel.
+    fn resolve(&self, params: &ResolveParams) -> Vec<[[f64; 3]; 3]> {
+        let (w, h) = (self.width as i64, self.height as i64);
+        let all: Vec<_> = (0..self.samples.len()).map(|p| self.cascades(p)).collect();
+        let mut out = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let p = (y * w + x) as usize;
+                let n = self.samples[p].len() as f64;
+                if n == 0.0 {
+                    out.push([[0.0; 3]; 3]);
+                    continue;
+                }
+                let (sums, counts) = &all[p];
+                let mut f = [0.0; 3];
+                let mut mean = [0.0; 3];
+                let mut removed = [0.0; 3];
+                let kappa = params.kappa() * n.powf(params.kappa_exponent());
+                let kmin = params.kappa_min();
+                for j in 0..self.k {
+                    // Pooled support of the clamped 3x3 neighbourhood, relative to own N.
+                    let (mut pool_n, mut pool_total) = (0.0, 0.0);
+                    for dy in -1..=1 {
+                        for dx in -1..=1 {
+                            let q =
+                                ((y + dy).clamp(0, h - 1) * w + (x + dx).clamp(0, w - 1)) as usize;
+                            pool_n += self.support(&all[q].1, j);
+                            pool_total += self.samples[q].len() as f64;
+                        }
+                    }
+                    let pooled = n * pool_n / pool_total;
+                    let own = self.support(counts, j);
+                    let lf = lum(f);
+                    let c = self.scale(j);
+                    let wj = match params.variant() {
+                        Variant::Off => 1.0,
+                        Variant::Paper => {
+                            let wc = (pooled - kmin) / kappa;
+                            let wv = n * (lf / n) / (kappa * c);
+                            f64::min(1.0, f64::max(wc, wv)).max(0.0)
+                        }
+                        Variant::Shader => {
+                            let global = (pooled - kmin) / kappa;
+                            let wc = if global >= 0.0 {
+                                (own - kmin) / kappa
+                            } else {
+                                global
+                            };
+                            let t = f64::min(1.0, 1.0 / kappa);
+                            let factor = (1.0 - t) * (0.4 + 0.6 * self.base) + t;
+                            let wv = f64::max(lf / n, 0.05) * n / (kappa * c) * factor;
+                            ((wc + wv) / 2.0).clamp(0.0, 1.0)
+                        }
+                    };
+                    for ch in 0..3 {
+                        f[ch] += wj * sums[j][ch];
+                        mean[ch] += sums[j][ch];
+                        removed[ch] += (1.0 - wj) * sums[j][ch];
+                    }
+                }
+                out.push([
+                    f.map(|v| v / n),
+                    mean.map(|v| v / n),
+                    removed.map(|v| v / n),
+                ]);
+            }
+        }
+        out
+    }
+}
+
+fn close(a: f32, b: f64, what: &str) -> Result<(), TestCaseError> {
+    // Fixed point keeps 2^-32 of each cascade's scale; the output is f32.
+    let tol = 1e-5 * b.abs().max(1e-3) + 1e-6;
+    prop_assert!(
+        (a as f64 - b).abs() <= tol,
+        "{what}: optimized {a} vs reference {b}"
+    );
+    Ok(())
+}
+
+/// Sample values spanning dim, in-range and far-out-of-range brightness, with fireflies.
+fn sample() -> impl Strategy<Value = [f32; 3]> {
+    prop_oneof![
+        4 => prop::array::uniform3(0.0f32..1.0),
+        2 => prop::array::uniform3(0.0f32..50.0),
+        1 => prop::array::uniform3(0.0f32..1e5),
+        1 => Just([0.0f32; 3]),
+    ]
+}
+
+fn scene() -> impl Strategy<Value = (usize, usize, Vec<(usize, usize, [f32; 3])>)> {
+    (1usize..6, 1usize..6).prop_flat_map(|(w, h)| {
+        let records = prop::collection::vec((0..w, 0..h, sample()), 0..300);
+        (Just(w), Just(h), records)
+    })
+}
+
+fn params() -> impl Strategy<Value = ResolveParams> {
+    (
+        prop_oneof![
+            Just(Variant::Paper),
+            Just(Variant::Shader),
+            Just(Variant::Off)
+        ],
+        0.5f64..40.0,
+        0.0f64..2.0,
+        prop_oneof![Just(0.0), 0.0f64..0.9],
+    )
+        .prop_map(|(v, k, kmin, e)| ResolveParams::new(v, k, kmin, e).unwrap())
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(200))]
+
+    #[test]
+    fn optimized_resolve_matches_the_per_sample_reference(
+        (w, h, records) in scene(),
+        base in prop_oneof![Just(8.0f64), 2.0f64..16.0],
+        k in 2u32..8,
+        c0 in prop_oneof![Just(1.0f64), Just(0.125), 0.01f64..2.0],
+        params in params(),
+    ) {
+        let layout = CascadeLayout::new(base, k, c0, REC709_LUMINANCE).unwrap();
+        let mut state = FrameState::new(w as u32, h as u32, layout);
+        let mut reference = Reference {
+            width: w, height: h, base, c0, k: k as usize,
+            samples: vec![Vec::new(); w * h],
+        };
+        for &(x, y, rgb) in &records {
+            state.splat(x as u32, y as u32, rgb).unwrap();
+            reference.samples[y * w + x].push(rgb.map(|v| v as f64));
+        }
+        let ours = state.resolve(&params);
+        let theirs = reference.resolve(&params);
+        for p in 0..w * h {
+            prop_assert_eq!(ours.spp[p], reference.samples[p].len() as u64);
+            for c in 0..3 {
+                close(ours.reweighted[p][c], theirs[p][0][c], "reweighted")?;
+                close(ours.mean[p][c], theirs[p][1][c], "mean")?;
+                close(ours.removed[p][c], theirs[p][2][c], "removed")?;
+            }
+        }
+    }
+}
