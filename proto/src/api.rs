@@ -68,7 +68,8 @@ pub struct CascadeParams {
     /// Number of cascades.
     #[serde(default = "default_cascade_count")]
     pub cascades: u32,
-    /// Upper luminance bound of the lowest cascade.
+    /// Scale `c0` of the lowest cascade: cascade `j` has scale `c0 * base^j`, and samples
+    /// dimmer than `c0` go entirely to cascade 0.
     #[serde(default = "default_lowest_scale")]
     pub lowest_scale: f64,
     /// Weights turning linear RGB into the luminance that picks a cascade.
@@ -94,7 +95,7 @@ pub enum Variant {
     /// The reweighting of Zirr et al. 2018 as published.
     #[default]
     Paper,
-    /// The simplified, shader-friendly variant.
+    /// The weights of the authors' published shader (`rw/reweight.fs`).
     Shader,
     /// No firefly removal: the plain mean of all samples.
     Off,
