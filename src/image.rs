@@ -36,8 +36,10 @@ pub fn encode_exr(resolved: &Resolved, extra: &[ExtraLayer]) -> Result<Vec<u8>> 
     for layer in extra {
         push_rgb(&mut channels, &format!("{}.", layer.name), &layer.rgb);
     }
-    let mut attributes = LayerAttributes::default();
-    attributes.software_name = Some(Text::from("splatd"));
+    let attributes = LayerAttributes {
+        software_name: Some(Text::from("splatd")),
+        ..LayerAttributes::default()
+    };
     let layer = Layer::new(
         size,
         attributes,

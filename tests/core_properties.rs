@@ -75,7 +75,7 @@ proptest! {
         for (record, &part) in all.iter().zip(&parts) {
             partial[part].splat(record.0, record.1, record.2).unwrap();
         }
-        let combined = partial.iter().fold(FrameState::new(W, H, layout()), |acc, p| merged(acc, p));
+        let combined = partial.iter().fold(FrameState::new(W, H, layout()), merged);
         prop_assert_eq!(&combined, &single);
         let p = ResolveParams::with_defaults();
         prop_assert_eq!(bits(&combined.resolve(&p)), bits(&single.resolve(&p)));

@@ -188,12 +188,12 @@ impl CascadeLayout {
     }
 
     #[inline]
-    pub(crate) fn to_units(&self, j: usize) -> f64 {
+    pub(crate) fn units_per_value(&self, j: usize) -> f64 {
         self.to_units[j]
     }
 
     #[inline]
-    pub(crate) fn from_units(&self, j: usize) -> f64 {
+    pub(crate) fn unit_value(&self, j: usize) -> f64 {
         self.from_units[j]
     }
 

@@ -396,7 +396,7 @@ fn pixel(
         if units[0] | units[1] | units[2] == 0 {
             continue;
         }
-        let u = layout.from_units(j);
+        let u = layout.unit_value(j);
         let b = [
             units[0] as f64 * u,
             units[1] as f64 * u,

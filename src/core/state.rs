@@ -99,12 +99,12 @@ pub enum MergeError {
         theirs_h: u32,
     },
     /// Different cascade layouts (the same sample would have gone to different cascades).
-    #[error("cascade layout differs: {ours:?} here, {theirs:?} in the other state")]
+    #[error("cascade layout differs: {ours} here, {theirs} in the other state")]
     Layout {
-        /// Our layout.
-        ours: CascadeLayout,
-        /// Their layout.
-        theirs: CascadeLayout,
+        /// Our layout, described.
+        ours: String,
+        /// Their layout, described.
+        theirs: String,
     },
     /// Row ranges that only partly overlap: adding them would merge part of a state silently.
     #[error(
@@ -385,8 +385,8 @@ impl FrameState {
         let (w_lo, count_lo) = (p.split.w_lo, p.split.count_lo);
         let cascades = &mut self.cells[p.at..p.at + 8];
         let (low, high) = cascades.split_at_mut(4);
-        add_share(low, p.s, self.layout.to_units(lo) * w_lo, count_lo);
-        let units = self.layout.to_units(lo + 1) * (1.0 - w_lo);
+        add_share(low, p.s, self.layout.units_per_value(lo) * w_lo, count_lo);
+        let units = self.layout.units_per_value(lo + 1) * (1.0 - w_lo);
         add_share(high, p.s, units, COUNT_ONE - count_lo);
     }
 
@@ -407,8 +407,8 @@ impl FrameState {
         }
         if self.layout != other.layout {
             return Err(MergeError::Layout {
-                ours: self.layout.clone(),
-                theirs: other.layout.clone(),
+                ours: format!("{:?}", self.layout),
+                theirs: format!("{:?}", other.layout),
             });
         }
         let (ours, theirs) = (self.rows(), other.rows());
@@ -494,7 +494,7 @@ mod tests {
     fn cascade(state: &FrameState, x: u32, y: u32, j: usize) -> [f64; 4] {
         let k = state.layout().cascades();
         let cell = &state.row(y)[x as usize * cell_len(k)..];
-        let u = state.layout().from_units(j);
+        let u = state.layout().unit_value(j);
         let c = COUNT_ONE as f64;
         [
             cell[4 * j] as f64 * u,
