@@ -6,8 +6,10 @@
 //! * [`synth`] generates deterministic firefly-heavy sample streams with an exactly known mean,
 //!   for the offline demo, the tests and the benchmarks.
 //! * [`image`] writes resolved frames as multi-layer OpenEXR.
+//! * [`export`] turns frame states into their wire form and back, for merging nodes.
 //! * [`quality`] holds the error metrics of the demo, tests and benchmarks.
 pub mod core;
+pub mod export;
 pub mod image;
 pub mod quality;
 pub mod synth;

@@ -10,6 +10,8 @@
 //!   of 20-byte records, because the server ingests millions of samples per
 //!   second. Magic and version, then bincode 2 with the legacy (fixed-width,
 //!   little-endian) configuration.
+//! * **Frame states** ([`StateDump`], module [`state`]): a frame's accumulated cascades,
+//!   verbatim, for merging nodes (`Content-Type: application/x-splatd-state`).
 //! * **Everything else** ([`api`]): small JSON documents: frame creation,
 //!   frame state, batch acknowledgements and error bodies.
 //!
@@ -48,6 +50,7 @@ pub mod api;
 pub mod batch;
 #[cfg(feature = "client")]
 pub mod client;
+pub mod state;
 
 pub use api::{
     BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery,
@@ -56,6 +59,7 @@ pub use api::{
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
 pub use client::{BatchWriter, Client, ClientError, RetryPolicy};
+pub use state::{Origin, StateDump, StateError, STATE_CONTENT_TYPE};
 
 /// `Content-Type` of a sample batch body.
 pub const BATCH_CONTENT_TYPE: &str = "application/x-splatd-batch";
