@@ -8,8 +8,10 @@
 //! * [`image`] writes resolved frames as multi-layer OpenEXR.
 //! * [`export`] turns frame states into their wire form and back, for merging nodes.
 //! * [`quality`] holds the error metrics of the demo, tests and benchmarks.
+pub mod batchfile;
 pub mod core;
 pub mod export;
 pub mod image;
 pub mod quality;
+pub mod service;
 pub mod synth;

@@ -1,14 +1,21 @@
-//! The `splatd` command line.
+//! The `splatd` command line: the server, the offline tools and the demo.
 
-use std::path::PathBuf;
+use std::fs::File;
+use std::io::BufReader;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
 
-use anyhow::{Context, Result};
-use clap::{Parser, Subcommand};
+use anyhow::{bail, Context, Result};
+use clap::{Args, Parser, Subcommand};
 
+use splatd::batchfile::BatchReader;
 use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant};
-use splatd::image::encode_exr;
+use splatd::image::{encode_exr, ExtraLayer};
 use splatd::quality::{energy_bias, rel_mse};
+use splatd::service::server::{bind, serve, shutdown_signal};
+use splatd::service::{AppState, Limits};
 use splatd::synth::FireflyScene;
+use splatd_proto::{DecodeLimits, StateDump};
 
 #[derive(Parser)]
 #[command(
@@ -17,6 +24,10 @@ use splatd::synth::FireflyScene;
     about = "Firefly-reweighting sample accumulation service"
 )]
 struct Cli {
+    /// Log filter (tracing's `EnvFilter` syntax, e.g. `info` or `splatd=debug`); `RUST_LOG`
+    /// overrides it.
+    #[arg(long, global = true, default_value = "info")]
+    log_level: String,
     #[command(subcommand)]
     command: Command,
 }
@@ -35,20 +46,280 @@ enum Command {
         #[arg(long, default_value_t = 64)]
         spp: u64,
     },
+    /// Runs the HTTP server.
+    Serve(ServeArgs),
+    /// Resolves batch files or state files into an EXR, offline.
+    Resolve(ResolveArgs),
+    /// Adds state files of one frame together into one state file, offline.
+    Merge {
+        /// State files (`GET /v1/frames/{id}/state` bodies).
+        #[arg(required = true)]
+        inputs: Vec<PathBuf>,
+        /// Output state file.
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+}
+
+#[derive(Args)]
+struct ServeArgs {
+    /// Address to listen on (port 0 picks a free port; the address is printed).
+    #[arg(long, default_value = "127.0.0.1:7878")]
+    addr: String,
+    /// Most records in one batch.
+    #[arg(long, default_value_t = splatd_proto::batch::DEFAULT_MAX_RECORDS)]
+    max_records: usize,
+    /// Most frames held at once.
+    #[arg(long, default_value_t = 64)]
+    max_frames: usize,
+    /// Most pixels in one frame.
+    #[arg(long, default_value_t = 8192 * 8192)]
+    max_pixels: u64,
+    /// Most cascades in one frame.
+    #[arg(long, default_value_t = splatd::core::MAX_CASCADES)]
+    max_cascades: u32,
+    /// Most MiB of cascades over all frames.
+    #[arg(long, default_value_t = 8192)]
+    max_memory_mib: u64,
+    /// Longest a request may take, body included, in seconds.
+    #[arg(long, default_value_t = 120)]
+    request_timeout: u64,
+    /// Longest a connection may idle or take to send its headers, in seconds.
+    #[arg(long, default_value_t = 60)]
+    idle_timeout: u64,
+}
+
+#[derive(Args)]
+struct ResolveArgs {
+    /// Batch files (length-prefixed batches) or state files; kinds cannot be mixed.
+    #[arg(required = true)]
+    inputs: Vec<PathBuf>,
+    /// Output EXR.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Frame width (batch files only; a state knows its size).
+    #[arg(long)]
+    width: Option<u32>,
+    /// Frame height (batch files only).
+    #[arg(long)]
+    height: Option<u32>,
+    /// Cascade base (batch files only).
+    #[arg(long, default_value_t = splatd_proto::api::DEFAULT_CASCADE_BASE)]
+    base: f64,
+    /// Number of cascades (batch files only).
+    #[arg(long, default_value_t = splatd_proto::api::DEFAULT_CASCADE_COUNT)]
+    cascades: u32,
+    /// Scale of the lowest cascade (batch files only).
+    #[arg(long, default_value_t = splatd_proto::api::DEFAULT_LOWEST_SCALE)]
+    lowest_scale: f64,
+    /// Resolve variant: paper, shader or off.
+    #[arg(long, default_value = "paper")]
+    variant: splatd_proto::Variant,
+    /// Firefly threshold.
+    #[arg(long, default_value_t = splatd_proto::api::DEFAULT_KAPPA)]
+    kappa: f64,
+    /// Lower bound of kappa.
+    #[arg(long, default_value_t = splatd_proto::api::DEFAULT_KAPPA_MIN)]
+    kappa_min: f64,
+    /// Sample-count exponent of kappa.
+    #[arg(long, default_value_t = splatd_proto::api::DEFAULT_KAPPA_EXPONENT)]
+    kappa_exponent: f64,
+    /// Also write one raw layer per cascade.
+    #[arg(long)]
+    cascade_layers: bool,
 }
 
 fn main() -> Result<()> {
+    let cli = Cli::parse();
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .or_else(|_| tracing_subscriber::EnvFilter::try_new(&cli.log_level))
+        .context("invalid --log-level")?;
     tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
-        )
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
         .init();
-    match Cli::parse().command {
+    match cli.command {
         Command::Demo { out, size, spp } => demo(&out, size, spp),
+        Command::Serve(args) => run_server(args),
+        Command::Resolve(args) => resolve(args),
+        Command::Merge { inputs, output } => merge(&inputs, &output),
     }
 }
 
-fn demo(out: &std::path::Path, size: u32, spp: u64) -> Result<()> {
+fn run_server(args: ServeArgs) -> Result<()> {
+    let limits = Limits {
+        max_records: args.max_records,
+        max_frames: args.max_frames,
+        max_pixels: args.max_pixels,
+        max_cascades: args.max_cascades,
+        max_memory_bytes: args.max_memory_mib << 20,
+        request_timeout: Duration::from_secs(args.request_timeout),
+        idle_timeout: Duration::from_secs(args.idle_timeout),
+    };
+    let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
+        .set_buckets(&[
+            0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+        ])
+        .context("metric buckets")?
+        .install_recorder()
+        .context("installing the metrics recorder")?;
+    let app = AppState::new(limits, Some(metrics));
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(async move {
+        let (listener, local) = bind(&args.addr)
+            .await
+            .with_context(|| format!("binding {}", args.addr))?;
+        // Scripts and tests wait for this line to learn the port.
+        println!("splatd listening on http://{local}");
+        tracing::info!(%local, "listening");
+        serve(listener, app, shutdown_signal())
+            .await
+            .context("serving")?;
+        tracing::info!("stopped");
+        Ok(())
+    })
+}
+
+/// What an input file is, from its first bytes.
+fn is_state_file(path: &Path) -> Result<bool> {
+    use std::io::Read;
+    let mut magic = [0u8; 4];
+    let mut f = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let n = f.read(&mut magic)?;
+    Ok(n == 4 && &magic == b"SPLS")
+}
+
+fn read_state(path: &Path) -> Result<(String, FrameState)> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let dump = StateDump::decode(&bytes, u64::MAX)
+        .with_context(|| format!("{} is not a valid state", path.display()))?;
+    let frame = dump.frame.clone();
+    let state =
+        splatd::export::load(dump).with_context(|| format!("loading {}", path.display()))?;
+    Ok((frame, state))
+}
+
+/// Adds state files together, checking they are of one frame.
+fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState)> {
+    let (frame, mut total) = read_state(&inputs[0])?;
+    for path in &inputs[1..] {
+        let (other_frame, state) = read_state(path)?;
+        if other_frame != frame {
+            bail!(
+                "{} is a state of frame {other_frame:?}, but {} is of frame {frame:?}",
+                path.display(),
+                inputs[0].display()
+            );
+        }
+        total
+            .merge(&state)
+            .with_context(|| format!("merging {}", path.display()))?;
+    }
+    Ok((frame, total))
+}
+
+fn merge(inputs: &[PathBuf], output: &Path) -> Result<()> {
+    let (frame, total) = merge_states(inputs)?;
+    let bytes = splatd::export::dump(&total, &frame, None).encode();
+    std::fs::write(output, bytes).with_context(|| format!("writing {}", output.display()))?;
+    println!(
+        "merged {} states of frame {frame:?} ({} samples) into {}",
+        inputs.len(),
+        total.total_samples(),
+        output.display()
+    );
+    Ok(())
+}
+
+fn resolve(args: ResolveArgs) -> Result<()> {
+    let states = args
+        .inputs
+        .iter()
+        .map(|p| is_state_file(p))
+        .collect::<Result<Vec<bool>>>()?;
+    let state = if states.iter().all(|&s| s) {
+        merge_states(&args.inputs)?.1
+    } else if states.iter().all(|&s| !s) {
+        let (Some(width), Some(height)) = (args.width, args.height) else {
+            bail!("batch files do not carry the frame size: give --width and --height");
+        };
+        let layout = CascadeLayout::new(
+            args.base,
+            args.cascades,
+            args.lowest_scale,
+            splatd_proto::api::DEFAULT_LUMINANCE,
+        )?;
+        let mut state = FrameState::new(width, height, layout);
+        let mut frame_id: Option<String> = None;
+        for path in &args.inputs {
+            let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+            let limits = DecodeLimits {
+                max_records: splatd_proto::batch::HARD_MAX_RECORDS,
+                ..DecodeLimits::default()
+            };
+            for batch in BatchReader::new(BufReader::new(file), limits) {
+                let batch = batch.with_context(|| format!("in {}", path.display()))?;
+                match &frame_id {
+                    None => frame_id = Some(batch.frame.clone()),
+                    Some(f) if *f != batch.frame => bail!(
+                        "{} holds batches of frames {f:?} and {:?}; resolve one frame at a time",
+                        path.display(),
+                        batch.frame
+                    ),
+                    Some(_) => {}
+                }
+                let report = state.splat_all(batch.records.iter().map(|r| (r.x, r.y, r.rgb)));
+                if report.rejected() > 0 {
+                    bail!(
+                        "{}: batch (worker {}, seq {}) has invalid samples: {report:?}",
+                        path.display(),
+                        batch.worker,
+                        batch.seq
+                    );
+                }
+            }
+        }
+        state
+    } else {
+        bail!("inputs mix state files and batch files");
+    };
+    let variant = match args.variant {
+        splatd_proto::Variant::Paper => Variant::Paper,
+        splatd_proto::Variant::Shader => Variant::Shader,
+        splatd_proto::Variant::Off => Variant::Off,
+    };
+    let params = ResolveParams::new(variant, args.kappa, args.kappa_min, args.kappa_exponent)?;
+    let resolved = state.resolve(&params);
+    let extra: Vec<ExtraLayer> = if args.cascade_layers {
+        state
+            .cascade_means()
+            .into_iter()
+            .enumerate()
+            .map(|(j, rgb)| ExtraLayer {
+                name: format!("cascade{j}"),
+                rgb,
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let bytes = encode_exr(&resolved, &extra)?;
+    std::fs::write(&args.output, bytes)
+        .with_context(|| format!("writing {}", args.output.display()))?;
+    println!(
+        "resolved {} samples ({}x{}) into {}",
+        state.total_samples(),
+        state.width(),
+        state.height(),
+        args.output.display()
+    );
+    Ok(())
+}
+
+fn demo(out: &Path, size: u32, spp: u64) -> Result<()> {
     let scene = FireflyScene::new(size, size, 2018);
     let layout = CascadeLayout::with_defaults();
     let mut state = FrameState::new(size, size, layout.clone());

@@ -252,6 +252,17 @@ pub struct BatchAck {
     pub duplicate: bool,
 }
 
+/// Response of `POST /v1/frames/{id}/state` (importing a state or a pushed delta).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ImportAck {
+    /// The frame.
+    pub frame: String,
+    /// Samples the state added (0 for a duplicate).
+    pub samples: u64,
+    /// The state was a delta this frame had applied before; nothing was added.
+    pub duplicate: bool,
+}
+
 /// Body of every error response (4xx and 5xx).
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ErrorBody {

@@ -25,7 +25,7 @@ use reqwest::header::{CONTENT_TYPE, RETRY_AFTER};
 use reqwest::{Method, StatusCode};
 use serde::de::DeserializeOwned;
 
-use crate::api::{BatchAck, CreateFrame, ErrorBody, FrameInfo};
+use crate::api::{BatchAck, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck};
 use crate::batch::{validate_frame_id, Batch, Record, WireError, DEFAULT_MAX_RECORDS};
 use crate::BATCH_CONTENT_TYPE;
 
@@ -268,6 +268,51 @@ impl Client {
         parse_json(&format!("POST {path}"), status, &bytes)
     }
 
+    /// `GET /v1/frames`: every frame on the server.
+    pub async fn list_frames(&self) -> Result<Vec<FrameInfo>, ClientError> {
+        let (status, bytes) = self.send(Method::GET, "/v1/frames", None).await?;
+        let list: FrameList = parse_json("GET /v1/frames", status, &bytes)?;
+        Ok(list.frames)
+    }
+
+    /// `DELETE /v1/frames/{id}`.
+    pub async fn delete_frame(&self, id: &str) -> Result<(), ClientError> {
+        validate_frame_id(id)?;
+        self.send(Method::DELETE, &format!("/v1/frames/{id}"), None)
+            .await
+            .map(|_| ())
+    }
+
+    /// `GET /v1/frames/{id}/image.exr`: the frame resolved now, as OpenEXR bytes.
+    pub async fn image(&self, id: &str, query: &ImageQuery) -> Result<Bytes, ClientError> {
+        validate_frame_id(id)?;
+        let query = image_query_string(query);
+        let path = format!("/v1/frames/{id}/image.exr{query}");
+        self.send(Method::GET, &path, None).await.map(|(_, b)| b)
+    }
+
+    /// `GET /v1/frames/{id}/state`: the frame's accumulated state (see [`crate::StateDump`]).
+    pub async fn export_state(&self, id: &str) -> Result<Bytes, ClientError> {
+        validate_frame_id(id)?;
+        let path = format!("/v1/frames/{id}/state");
+        self.send(Method::GET, &path, None).await.map(|(_, b)| b)
+    }
+
+    /// `POST /v1/frames/{id}/state`: adds an encoded state to the frame. A state carrying an
+    /// [`crate::Origin`] is applied once however often it is resent.
+    pub async fn import_state(&self, id: &str, state: Bytes) -> Result<ImportAck, ClientError> {
+        validate_frame_id(id)?;
+        let path = format!("/v1/frames/{id}/state");
+        let (status, bytes) = self
+            .send(
+                Method::POST,
+                &path,
+                Some((state, crate::STATE_CONTENT_TYPE)),
+            )
+            .await?;
+        parse_json(&format!("POST {path}"), status, &bytes)
+    }
+
     /// A [`BatchWriter`] for `frame` that numbers its batches from `first_seq`.
     pub fn batch_writer(
         &self,
@@ -363,6 +408,31 @@ impl Client {
             attempts,
             last: last.map_or_else(|| "none".to_owned(), |t| t.message),
         })
+    }
+}
+
+/// `?a=1&b=2` for the parameters of an image request that are set, or nothing.
+fn image_query_string(q: &ImageQuery) -> String {
+    let mut parts = Vec::new();
+    if let Some(v) = q.variant {
+        parts.push(format!("variant={v}"));
+    }
+    for (name, value) in [
+        ("kappa", q.kappa),
+        ("kappa_min", q.kappa_min),
+        ("kappa_exponent", q.kappa_exponent),
+    ] {
+        if let Some(v) = value {
+            parts.push(format!("{name}={v}"));
+        }
+    }
+    if q.cascades {
+        parts.push("cascades=1".to_owned());
+    }
+    if parts.is_empty() {
+        String::new()
+    } else {
+        format!("?{}", parts.join("&"))
     }
 }
 

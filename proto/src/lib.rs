@@ -53,7 +53,7 @@ pub mod client;
 pub mod state;
 
 pub use api::{
-    BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery,
+    BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
     ResolveParams, Variant,
 };
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};

@@ -431,6 +431,68 @@ impl FrameState {
     }
 }
 
+impl FrameState {
+    /// What this state holds beyond `earlier`, an earlier copy of it: `self - earlier`, cell by
+    /// cell. Merging the result into `earlier` gives back `self` exactly, so a node can ship only
+    /// what it accumulated since its last push. Cells only grow, so the difference is exact as
+    /// long as no cell saturated (2^64 units: more than 4 billion samples in one pixel).
+    pub fn delta_since(&self, earlier: &FrameState) -> Result<FrameState, MergeError> {
+        if (self.width, self.height) != (earlier.width, earlier.height) {
+            return Err(MergeError::Size {
+                ours_w: self.width,
+                ours_h: self.height,
+                theirs_w: earlier.width,
+                theirs_h: earlier.height,
+            });
+        }
+        if self.layout != earlier.layout {
+            return Err(MergeError::Layout {
+                ours: format!("{:?}", self.layout),
+                theirs: format!("{:?}", earlier.layout),
+            });
+        }
+        if self.rows() != earlier.rows() {
+            return Err(MergeError::Rows {
+                ours: self.rows(),
+                theirs: earlier.rows(),
+            });
+        }
+        let mut delta = self.clone();
+        for (d, e) in delta.cells.iter_mut().zip(&earlier.cells) {
+            *d = d.saturating_sub(*e);
+        }
+        Ok(delta)
+    }
+
+    /// The mean contribution of each cascade, `B_j / N` per pixel (row-major over the rows held):
+    /// the raw layers summed by the plain mean, for inspecting what the resolve reweights.
+    pub fn cascade_means(&self) -> Vec<Vec<[f32; 3]>> {
+        let k = self.layout.cascades();
+        let stride = cell_len(k);
+        (0..k)
+            .map(|j| {
+                let unit = self.layout.unit_value(j);
+                self.cells
+                    .chunks_exact(stride)
+                    .map(|cell| {
+                        let n = cell_spp(cell);
+                        if n == 0 {
+                            return [0.0; 3];
+                        }
+                        let scale = unit / n as f64;
+                        let c = &cell[4 * j..4 * j + 3];
+                        [
+                            (c[0] as f64 * scale) as f32,
+                            (c[1] as f64 * scale) as f32,
+                            (c[2] as f64 * scale) as f32,
+                        ]
+                    })
+                    .collect()
+            })
+            .collect()
+    }
+}
+
 /// A sample whose split is computed and whose cascades are being fetched.
 #[derive(Clone, Copy)]
 struct Pending {

@@ -1,0 +1,660 @@
+//! One frame held by the server: the core's state split into row bands, each behind its own lock.
+//!
+//! Workers post batches concurrently. A single lock per frame would serialize them, so the state
+//! is kept as horizontal bands ([`FrameState::band`]); a batch is bucketed by band and each band is
+//! locked only while its own samples are added. A batch is still applied atomically as seen from
+//! a reader: writers hold a shared *gate* while they apply, and anything that needs a consistent
+//! cut (resolve, export, snapshot) takes the gate exclusively for the moment it takes to copy the
+//! bands. So a resolve never sees half a batch, and an applied batch is never half-durable.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Mutex, MutexGuard, RwLock};
+
+use splatd_proto::api::{CreateFrame, FrameInfo};
+use splatd_proto::{Batch, Origin};
+
+use crate::core::{
+    self, cell_len, cell_spp, check_sample, resolve_bands, CascadeLayout, FrameState, MergeError,
+    ParamError, Resolved, SampleError,
+};
+
+use super::dedup::Seen;
+
+/// Most bands a frame is split into. Contention falls with the number of bands, and 32 is far
+/// more than the cores of any one render head; each band costs one lock and one `Vec`.
+const MAX_BANDS: u32 = 32;
+/// Fewest rows in a band, so tiny frames are not split into pointless slivers.
+const MIN_BAND_ROWS: u32 = 8;
+
+/// A frame's parameters, checked and turned into the core's types.
+#[derive(Debug, Clone)]
+pub struct FrameSpec {
+    /// The request as the frame was created (after defaults were filled in).
+    pub request: CreateFrame,
+    /// The cascade layout.
+    pub layout: CascadeLayout,
+    /// The default resolve parameters.
+    pub resolve: core::ResolveParams,
+}
+
+impl FrameSpec {
+    /// Checks a create request. Size limits are the store's business, not this one's.
+    pub fn new(request: CreateFrame) -> Result<FrameSpec, ParamError> {
+        splatd_proto::validate_frame_id(&request.id)
+            .map_err(|e| ParamError::new("id", e.to_string()))?;
+        if request.width == 0 || request.height == 0 {
+            return Err(ParamError::new(
+                "width/height",
+                format!(
+                    "a frame needs at least one pixel, got {}x{}",
+                    request.width, request.height
+                ),
+            ));
+        }
+        let c = &request.cascades;
+        let layout = CascadeLayout::new(c.base, c.cascades, c.lowest_scale, c.luminance)?;
+        let resolve = core_resolve_params(&request.resolve)?;
+        Ok(FrameSpec {
+            request,
+            layout,
+            resolve,
+        })
+    }
+
+    /// Bytes of cascade memory a frame of this spec holds.
+    pub fn memory_bytes(&self) -> u64 {
+        self.request.width as u64
+            * self.request.height as u64
+            * cell_len(self.layout.cascades()) as u64
+            * 8
+    }
+}
+
+/// The core's resolve parameters from the API's.
+pub fn core_resolve_params(
+    p: &splatd_proto::api::ResolveParams,
+) -> Result<core::ResolveParams, ParamError> {
+    let variant = match p.variant {
+        splatd_proto::api::Variant::Paper => core::Variant::Paper,
+        splatd_proto::api::Variant::Shader => core::Variant::Shader,
+        splatd_proto::api::Variant::Off => core::Variant::Off,
+    };
+    core::ResolveParams::new(variant, p.kappa, p.kappa_min, p.kappa_exponent)
+}
+
+/// Why a batch was refused. Nothing of a refused batch is applied.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum IngestError {
+    /// A record is outside the frame or not a valid radiance value.
+    #[error(
+        "record {index} (pixel ({}, {}), RGB ({}, {}, {})): {error}",
+        record.x, record.y, record.rgb[0], record.rgb[1], record.rgb[2]
+    )]
+    Sample {
+        /// Index of the first bad record in the batch.
+        index: usize,
+        /// The record.
+        record: splatd_proto::Record,
+        /// What is wrong with it.
+        error: SampleError,
+    },
+    /// The batch names another frame.
+    #[error("batch is for frame {batch:?} but was posted to frame {url:?}")]
+    WrongFrame {
+        /// Frame id inside the batch.
+        batch: String,
+        /// Frame id of the URL.
+        url: String,
+    },
+}
+
+/// What an applied (or recognised) batch did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Ingested {
+    /// Samples added (0 for a duplicate).
+    pub accepted: u64,
+    /// The batch had been applied before; nothing was added this time.
+    pub duplicate: bool,
+}
+
+/// Why an imported state was refused. Nothing of it is applied.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum ImportRefused {
+    /// Size, rows or cascade layout differ from the frame's.
+    #[error("state does not fit frame {frame:?}: {error}")]
+    Mismatch {
+        /// The frame.
+        frame: String,
+        /// What differs.
+        error: MergeError,
+    },
+    /// The state names another frame.
+    #[error("state is of frame {state:?} but was posted to frame {url:?}")]
+    WrongFrame {
+        /// Frame id inside the state.
+        state: String,
+        /// Frame id of the URL.
+        url: String,
+    },
+}
+
+/// Running totals of a frame (besides what the cascades themselves hold).
+#[derive(Debug, Default)]
+struct Counters {
+    samples: AtomicU64,
+    batches: AtomicU64,
+    rejected_samples: AtomicU64,
+    rejected_batches: AtomicU64,
+    imports: AtomicU64,
+}
+
+/// Counter values, as saved in snapshots and restored from them.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct CounterValues {
+    /// Accepted samples (records of applied batches and samples of imported states).
+    pub samples: u64,
+    /// Applied batches.
+    pub batches: u64,
+    /// Samples of refused batches.
+    pub rejected_samples: u64,
+    /// Refused batches.
+    pub rejected_batches: u64,
+    /// Imported states and pushed deltas.
+    pub imports: u64,
+}
+
+/// A consistent copy of a frame: what resolve, export and snapshots work from.
+#[derive(Debug, Clone)]
+pub struct FrameCut {
+    /// The bands, top to bottom.
+    pub bands: Vec<FrameState>,
+    /// Senders seen when the copy was taken.
+    pub seen: Seen,
+    /// Counters when the copy was taken.
+    pub counters: CounterValues,
+    /// The frame's version when the copy was taken (see [`ShardedFrame::version`]).
+    pub version: u64,
+}
+
+impl FrameCut {
+    /// The bands merged into one whole-frame state.
+    pub fn whole(&self) -> FrameState {
+        let first = &self.bands[0];
+        let mut whole = FrameState::new(first.width(), first.height(), first.layout().clone());
+        for band in &self.bands {
+            whole
+                .merge(band)
+                .expect("bands of one frame fit the whole frame");
+        }
+        whole
+    }
+
+    /// Resolves the copy on `threads` threads.
+    pub fn resolve(&self, params: &core::ResolveParams, threads: usize) -> Resolved {
+        let refs: Vec<&FrameState> = self.bands.iter().collect();
+        resolve_bands(&refs, params, threads).expect("a frame's bands tile it")
+    }
+
+    /// `B_j / N` per cascade over the whole frame (raw layers for the EXR).
+    pub fn cascade_means(&self) -> Vec<Vec<[f32; 3]>> {
+        let mut layers: Vec<Vec<[f32; 3]>> = Vec::new();
+        for band in &self.bands {
+            for (j, layer) in band.cascade_means().into_iter().enumerate() {
+                match layers.get_mut(j) {
+                    Some(all) => all.extend(layer),
+                    None => layers.push(layer),
+                }
+            }
+        }
+        layers
+    }
+}
+
+/// A frame being accumulated by the server.
+#[derive(Debug)]
+pub struct ShardedFrame {
+    spec: FrameSpec,
+    bands: Vec<Mutex<FrameState>>,
+    /// Band index of each row.
+    band_of_row: Vec<u16>,
+    /// Shared while a batch is applied, exclusive while a consistent copy is taken.
+    gate: RwLock<()>,
+    seen: Mutex<Seen>,
+    counters: Counters,
+    /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
+    /// happened since they last looked.
+    version: AtomicU64,
+}
+
+/// Locks a mutex, ignoring poisoning: every mutation of the guarded values is a sequence of
+/// additions that cannot panic half-way, so a panic elsewhere leaves them consistent.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl ShardedFrame {
+    /// An empty frame.
+    pub fn new(spec: FrameSpec) -> ShardedFrame {
+        let (w, h) = (spec.request.width, spec.request.height);
+        let n = (h / MIN_BAND_ROWS).clamp(1, MAX_BANDS);
+        let bands = FrameState::bands(w, h, n, &spec.layout);
+        Self::from_bands(spec, bands, Seen::default(), CounterValues::default())
+    }
+
+    /// A frame restored from a snapshot: its spec, a whole-frame state and what it had seen.
+    pub fn restore(
+        spec: FrameSpec,
+        state: &FrameState,
+        seen: Seen,
+        counters: CounterValues,
+    ) -> Result<ShardedFrame, MergeError> {
+        let frame = ShardedFrame::new(spec);
+        frame.check_fits(state)?;
+        for band in &frame.bands {
+            lock(band).merge(state)?;
+        }
+        *lock(&frame.seen) = seen;
+        frame.set_counters(counters);
+        Ok(frame)
+    }
+
+    fn from_bands(
+        spec: FrameSpec,
+        bands: Vec<FrameState>,
+        seen: Seen,
+        counters: CounterValues,
+    ) -> ShardedFrame {
+        let mut band_of_row = vec![0u16; spec.request.height as usize];
+        for (i, band) in bands.iter().enumerate() {
+            for y in band.rows() {
+                band_of_row[y as usize] = i as u16;
+            }
+        }
+        let frame = ShardedFrame {
+            spec,
+            bands: bands.into_iter().map(Mutex::new).collect(),
+            band_of_row,
+            gate: RwLock::new(()),
+            seen: Mutex::new(seen),
+            counters: Counters::default(),
+            version: AtomicU64::new(0),
+        };
+        frame.set_counters(counters);
+        frame
+    }
+
+    fn set_counters(&self, v: CounterValues) {
+        let c = &self.counters;
+        c.samples.store(v.samples, Ordering::Relaxed);
+        c.batches.store(v.batches, Ordering::Relaxed);
+        c.rejected_samples
+            .store(v.rejected_samples, Ordering::Relaxed);
+        c.rejected_batches
+            .store(v.rejected_batches, Ordering::Relaxed);
+        c.imports.store(v.imports, Ordering::Relaxed);
+    }
+
+    fn counter_values(&self) -> CounterValues {
+        let c = &self.counters;
+        CounterValues {
+            samples: c.samples.load(Ordering::Relaxed),
+            batches: c.batches.load(Ordering::Relaxed),
+            rejected_samples: c.rejected_samples.load(Ordering::Relaxed),
+            rejected_batches: c.rejected_batches.load(Ordering::Relaxed),
+            imports: c.imports.load(Ordering::Relaxed),
+        }
+    }
+
+    /// The frame id.
+    pub fn id(&self) -> &str {
+        &self.spec.request.id
+    }
+
+    /// The frame's parameters.
+    pub fn spec(&self) -> &FrameSpec {
+        &self.spec
+    }
+
+    /// Changes whenever samples are added; equal versions mean equal states.
+    pub fn version(&self) -> u64 {
+        self.version.load(Ordering::Acquire)
+    }
+
+    /// Counts a batch refused before it reached [`ShardedFrame::ingest`] (a decode error, say).
+    pub fn count_rejected(&self, samples: u64) {
+        self.counters
+            .rejected_batches
+            .fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .rejected_samples
+            .fetch_add(samples, Ordering::Relaxed);
+    }
+
+    /// Checks every record of a batch, then applies all of them, or none.
+    ///
+    /// A batch whose `(worker, seq)` was applied before is recognised and not applied again.
+    /// Blocking (it may take tens of milliseconds for a large batch): call from a blocking thread.
+    pub fn ingest(&self, batch: &Batch) -> Result<Ingested, IngestError> {
+        let result = self.ingest_inner(batch);
+        if result.is_err() {
+            self.count_rejected(batch.records.len() as u64);
+        }
+        result
+    }
+
+    fn ingest_inner(&self, batch: &Batch) -> Result<Ingested, IngestError> {
+        if batch.frame != self.id() {
+            return Err(IngestError::WrongFrame {
+                batch: batch.frame.clone(),
+                url: self.id().to_owned(),
+            });
+        }
+        let (w, h) = (self.spec.request.width, self.spec.request.height);
+        let mut buckets: Vec<Vec<(u32, u32, [f32; 3])>> = vec![Vec::new(); self.bands.len()];
+        let single = self.bands.len() == 1;
+        if single {
+            buckets[0].reserve_exact(batch.records.len());
+        }
+        for (index, r) in batch.records.iter().enumerate() {
+            if r.x >= w || r.y >= h {
+                return Err(IngestError::Sample {
+                    index,
+                    record: *r,
+                    error: SampleError::OutOfFrame {
+                        x: r.x,
+                        y: r.y,
+                        width: w,
+                        height: h,
+                    },
+                });
+            }
+            check_sample(r.rgb).map_err(|error| IngestError::Sample {
+                index,
+                record: *r,
+                error,
+            })?;
+            let band = if single {
+                0
+            } else {
+                self.band_of_row[r.y as usize] as usize
+            };
+            buckets[band].push((r.x, r.y, r.rgb));
+        }
+
+        let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
+        if !lock(&self.seen).insert_batch(batch.worker, batch.seq) {
+            return Ok(Ingested {
+                accepted: 0,
+                duplicate: true,
+            });
+        }
+        for (band, samples) in self.bands.iter().zip(buckets) {
+            if samples.is_empty() {
+                continue;
+            }
+            let report = lock(band).splat_all(samples);
+            debug_assert_eq!(report.rejected(), 0, "records were checked above");
+        }
+        let n = batch.records.len() as u64;
+        self.counters.samples.fetch_add(n, Ordering::Relaxed);
+        self.counters.batches.fetch_add(1, Ordering::Relaxed);
+        self.version.fetch_add(1, Ordering::AcqRel);
+        Ok(Ingested {
+            accepted: n,
+            duplicate: false,
+        })
+    }
+
+    fn check_fits(&self, state: &FrameState) -> Result<(), MergeError> {
+        let r = &self.spec.request;
+        if (state.width(), state.height()) != (r.width, r.height) {
+            return Err(MergeError::Size {
+                ours_w: r.width,
+                ours_h: r.height,
+                theirs_w: state.width(),
+                theirs_h: state.height(),
+            });
+        }
+        if state.layout() != &self.spec.layout {
+            return Err(MergeError::Layout {
+                ours: format!("{:?}", self.spec.layout),
+                theirs: format!("{:?}", state.layout()),
+            });
+        }
+        Ok(())
+    }
+
+    /// Adds an exported state (or a pushed delta) to this frame. A delta carrying an origin
+    /// that was applied before is recognised and not applied again (returns `Ok(false)`).
+    pub fn import(
+        &self,
+        frame: &str,
+        state: &FrameState,
+        origin: Option<&Origin>,
+    ) -> Result<bool, ImportRefused> {
+        if frame != self.id() {
+            return Err(ImportRefused::WrongFrame {
+                state: frame.to_owned(),
+                url: self.id().to_owned(),
+            });
+        }
+        let mismatch = |error| ImportRefused::Mismatch {
+            frame: self.id().to_owned(),
+            error,
+        };
+        self.check_fits(state).map_err(mismatch)?;
+        let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
+        if let Some(o) = origin {
+            if !lock(&self.seen).insert_delta(&o.node, o.seq) {
+                return Ok(false);
+            }
+        }
+        for band in &self.bands {
+            // Cannot fail: size and layout were checked, and a whole-frame state contains
+            // every band's rows. Bands of a state (rows other than 0..height) fail here before
+            // anything is added only if they straddle a band boundary.
+            lock(band).merge(state).map_err(mismatch)?;
+        }
+        self.counters
+            .samples
+            .fetch_add(state.total_samples(), Ordering::Relaxed);
+        self.counters.imports.fetch_add(1, Ordering::Relaxed);
+        self.version.fetch_add(1, Ordering::AcqRel);
+        Ok(true)
+    }
+
+    /// A consistent copy of the whole frame. Writers wait only for the copy (a memcpy of the
+    /// cascades), not for whatever the copy is used for afterwards.
+    pub fn cut(&self) -> FrameCut {
+        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
+        FrameCut {
+            bands: self.bands.iter().map(|b| lock(b).clone()).collect(),
+            seen: lock(&self.seen).clone(),
+            counters: self.counter_values(),
+            version: self.version(),
+        }
+    }
+
+    /// What the frame looks like now, for `GET /v1/frames/{id}`.
+    pub fn info(&self) -> FrameInfo {
+        let k = self.spec.layout.cascades();
+        let (mut min, mut max, mut sum, mut pixels) = (u64::MAX, 0u64, 0u128, 0u64);
+        for band in &self.bands {
+            let band = lock(band);
+            for cell in band.cells().chunks_exact(cell_len(k)) {
+                let n = cell_spp(cell);
+                min = min.min(n);
+                max = max.max(n);
+                sum += n as u128;
+                pixels += 1;
+            }
+        }
+        let c = self.counter_values();
+        let r = &self.spec.request;
+        FrameInfo {
+            id: r.id.clone(),
+            width: r.width,
+            height: r.height,
+            cascades: r.cascades.clone(),
+            resolve: r.resolve.clone(),
+            samples: c.samples,
+            batches: c.batches,
+            spp_min: if pixels == 0 { 0 } else { min },
+            spp_mean: if pixels == 0 {
+                0.0
+            } else {
+                sum as f64 / pixels as f64
+            },
+            spp_max: max,
+            rejected_samples: c.rejected_samples,
+            rejected_batches: c.rejected_batches,
+            memory_bytes: self.spec.memory_bytes(),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::synth::FireflyScene;
+    use splatd_proto::Record;
+
+    fn spec(w: u32, h: u32) -> FrameSpec {
+        FrameSpec::new(CreateFrame::new("f", w, h)).expect("valid")
+    }
+
+    fn batch(worker: u64, seq: u64, records: Vec<Record>) -> Batch {
+        Batch::new("f", worker, seq, records).expect("valid frame id")
+    }
+
+    fn records(scene: &FireflyScene, pass: u64) -> Vec<Record> {
+        scene
+            .pass(pass)
+            .map(|(x, y, rgb)| Record { x, y, rgb })
+            .collect()
+    }
+
+    #[test]
+    fn banded_frame_resolves_like_one_state() {
+        let scene = FireflyScene::new(13, 70, 5);
+        let frame = ShardedFrame::new(spec(13, 70));
+        assert!(frame.bands.len() > 1, "the test needs several bands");
+        let mut reference = FrameState::new(13, 70, CascadeLayout::with_defaults());
+        for pass in 0..24 {
+            reference.splat_all(scene.pass(pass));
+            let got = frame
+                .ingest(&batch(1, pass, records(&scene, pass)))
+                .unwrap();
+            assert_eq!(got.accepted, 13 * 70);
+        }
+        let params = core::ResolveParams::with_defaults();
+        assert_eq!(frame.cut().resolve(&params, 2), reference.resolve(&params));
+        assert_eq!(frame.cut().whole(), reference);
+        let info = frame.info();
+        assert_eq!(
+            (info.spp_min, info.spp_max, info.samples),
+            (24, 24, 24 * 910)
+        );
+    }
+
+    #[test]
+    fn a_bad_record_anywhere_leaves_the_frame_untouched() {
+        let frame = ShardedFrame::new(spec(4, 40));
+        let mut recs: Vec<Record> = (0..40)
+            .map(|y| Record {
+                x: 1,
+                y,
+                rgb: [1.0; 3],
+            })
+            .collect();
+        recs[39].rgb[1] = f32::NAN;
+        let err = frame.ingest(&batch(1, 0, recs.clone())).unwrap_err();
+        assert!(
+            matches!(err, IngestError::Sample { index: 39, .. }),
+            "{err}"
+        );
+        recs[39].rgb[1] = 1.0;
+        recs[20].x = 4;
+        let err = frame.ingest(&batch(1, 0, recs)).unwrap_err();
+        assert!(
+            err.to_string().starts_with("record 20 (pixel (4, 20)")
+                && err.to_string().contains("outside the 4x40 frame"),
+            "{err}"
+        );
+        assert_eq!(frame.cut().whole().total_samples(), 0);
+        let info = frame.info();
+        assert_eq!((info.rejected_batches, info.rejected_samples), (2, 80));
+        assert_eq!(frame.version(), 0);
+    }
+
+    #[test]
+    fn a_retried_batch_counts_once() {
+        let frame = ShardedFrame::new(spec(4, 4));
+        let recs = vec![Record {
+            x: 0,
+            y: 0,
+            rgb: [2.0; 3],
+        }];
+        let first = frame.ingest(&batch(9, 0, recs.clone())).unwrap();
+        let again = frame.ingest(&batch(9, 0, recs.clone())).unwrap();
+        assert_eq!(
+            first,
+            Ingested {
+                accepted: 1,
+                duplicate: false
+            }
+        );
+        assert_eq!(
+            again,
+            Ingested {
+                accepted: 0,
+                duplicate: true
+            }
+        );
+        assert!(!frame.ingest(&batch(8, 0, recs)).unwrap().duplicate);
+        assert_eq!(frame.info().samples, 2);
+    }
+
+    #[test]
+    fn imports_add_exactly_and_deltas_count_once() {
+        let scene = FireflyScene::new(9, 30, 2);
+        let frame = ShardedFrame::new(spec(9, 30));
+        let mut other = FrameState::new(9, 30, CascadeLayout::with_defaults());
+        for pass in 0..5 {
+            other.splat_all(scene.pass(pass));
+            frame
+                .ingest(&batch(1, pass, records(&scene, pass)))
+                .unwrap();
+        }
+        let origin = Origin {
+            node: "n1".into(),
+            seq: 0,
+        };
+        assert!(frame.import("f", &other, Some(&origin)).unwrap());
+        assert!(!frame.import("f", &other, Some(&origin)).unwrap());
+        let mut expected = other.clone();
+        expected.merge(&other).unwrap();
+        assert_eq!(frame.cut().whole(), expected);
+
+        let wrong = FrameState::new(9, 31, CascadeLayout::with_defaults());
+        let err = frame.import("f", &wrong, None).unwrap_err();
+        assert!(err.to_string().contains("9x30"), "{err}");
+        assert_eq!(frame.cut().whole(), expected);
+    }
+
+    #[test]
+    fn nonsense_parameters_are_refused_by_name() {
+        let mut req = CreateFrame::new("f", 4, 4);
+        req.cascades.base = 1.0;
+        let err = FrameSpec::new(req).unwrap_err();
+        assert!(err.to_string().contains("base"), "{err}");
+        let err = FrameSpec::new(CreateFrame::new("f", 0, 4)).unwrap_err();
+        assert!(err.to_string().contains("0x4"), "{err}");
+        let mut req = CreateFrame::new("f", 4, 4);
+        req.resolve.kappa = -1.0;
+        assert!(FrameSpec::new(req)
+            .unwrap_err()
+            .to_string()
+            .contains("kappa"));
+    }
+}

@@ -1,0 +1,110 @@
+//! The splatd server: an axum shell around the estimator core.
+//!
+//! * [`frame`]: one frame as row bands under separate locks, with all-or-nothing batches and
+//!   duplicate detection ([`dedup`]);
+//! * [`store`]: the frames of a server and the limits on them;
+//! * [`routes`]: one handler per endpoint; [`error`]: the JSON errors they answer;
+//! * [`server`]: the router, its layers (decompression, timeouts, tracing, JSON errors) and the
+//!   listener with graceful shutdown.
+
+pub mod dedup;
+pub mod error;
+pub mod frame;
+pub mod routes;
+pub mod server;
+pub mod store;
+
+use std::ops::Deref;
+use std::sync::Arc;
+use std::time::Duration;
+
+use metrics_exporter_prometheus::PrometheusHandle;
+use splatd_proto::DecodeLimits;
+
+use error::ApiError;
+use frame::ShardedFrame;
+use store::FrameStore;
+
+/// What a server refuses, so that no client can exhaust it.
+#[derive(Debug, Clone)]
+pub struct Limits {
+    /// Most records in one batch (the body limit follows from it).
+    pub max_records: usize,
+    /// Most frames held at once.
+    pub max_frames: usize,
+    /// Most pixels in one frame.
+    pub max_pixels: u64,
+    /// Most cascades in one frame.
+    pub max_cascades: u32,
+    /// Most bytes of cascades over all frames; new frames beyond it are refused.
+    pub max_memory_bytes: u64,
+    /// Longest time one request may take, body included (a slow sender gets 408).
+    pub request_timeout: Duration,
+    /// Longest a connection may sit idle between requests, or take to send its headers.
+    pub idle_timeout: Duration,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_records: splatd_proto::batch::DEFAULT_MAX_RECORDS,
+            max_frames: 64,
+            max_pixels: 8192 * 8192,
+            max_cascades: crate::core::MAX_CASCADES,
+            max_memory_bytes: 8 << 30,
+            request_timeout: Duration::from_secs(120),
+            idle_timeout: Duration::from_secs(60),
+        }
+    }
+}
+
+/// Everything the handlers share.
+#[derive(Debug)]
+pub struct Shared {
+    /// The frames.
+    pub store: FrameStore,
+    /// Limits applied when decoding batches.
+    pub decode_limits: DecodeLimits,
+    /// Threads one resolve may use.
+    pub resolve_threads: usize,
+    /// Renders `/metrics`; `None` when no recorder could be installed.
+    pub metrics: Option<PrometheusHandle>,
+}
+
+/// A cheap handle on [`Shared`], the state of every handler.
+#[derive(Debug, Clone)]
+pub struct AppState(pub Arc<Shared>);
+
+impl Deref for AppState {
+    type Target = Shared;
+    fn deref(&self) -> &Shared {
+        &self.0
+    }
+}
+
+impl AppState {
+    /// A server state with an empty store.
+    pub fn new(limits: Limits, metrics: Option<PrometheusHandle>) -> AppState {
+        let decode_limits = DecodeLimits {
+            max_records: limits.max_records,
+            ..DecodeLimits::default()
+        };
+        let resolve_threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        AppState(Arc::new(Shared {
+            store: FrameStore::new(limits),
+            decode_limits,
+            resolve_threads,
+            metrics,
+        }))
+    }
+
+    /// Called once a new frame is in the store, before the client hears of it.
+    pub async fn on_created(&self, _frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+        Ok(())
+    }
+
+    /// Called once a frame has left the store.
+    pub async fn on_deleted(&self, _frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+        Ok(())
+    }
+}

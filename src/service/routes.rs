@@ -1,0 +1,320 @@
+//! The HTTP surface, one small handler per endpoint: parse, call the frame, answer.
+//!
+//! Anything heavier than a lookup (decoding a batch, splatting it, resolving, encoding an EXR)
+//! runs on tokio's blocking pool, so a 4-million-record batch never stalls the reactor.
+
+use std::time::Instant;
+
+use axum::body::{Body, Bytes};
+use axum::extract::{Path, RawQuery, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use axum::Json;
+use serde::de::DeserializeOwned;
+use splatd_proto::api::{BatchAck, CreateFrame, FrameInfo, FrameList, ImageQuery, ImportAck};
+use splatd_proto::{Batch, StateDump, BATCH_CONTENT_TYPE, STATE_CONTENT_TYPE};
+
+use super::error::ApiError;
+use super::frame::{core_resolve_params, ShardedFrame};
+use super::store::Created;
+use super::AppState;
+use crate::image::{encode_exr, ExtraLayer};
+
+/// Largest JSON request body (a `CreateFrame` is a few hundred bytes).
+const MAX_JSON_BODY: usize = 64 * 1024;
+
+/// `GET /`: the live page.
+pub async fn index() -> impl IntoResponse {
+    (
+        [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
+        include_str!("../web/index.html"),
+    )
+}
+
+/// `GET /healthz`.
+pub async fn healthz() -> impl IntoResponse {
+    Json(serde_json::json!({"status": "ok"}))
+}
+
+/// `POST /v1/frames`.
+pub async fn create_frame(
+    State(app): State<AppState>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Response, ApiError> {
+    let request: CreateFrame = read_json(&headers, body).await?;
+    let spec = app.store.check(request)?;
+    let created = app.store.create(spec)?;
+    let (status, frame) = match created {
+        Created::New(frame) => {
+            if let Err(e) = app.on_created(&frame).await {
+                // Not durable: take it back, so the client's retry creates it properly.
+                let _ = app.store.remove(frame.id());
+                return Err(e);
+            }
+            tracing::info!(frame = frame.id(), "frame created");
+            (StatusCode::CREATED, frame)
+        }
+        Created::Existing(frame) => (StatusCode::OK, frame),
+    };
+    metrics::gauge!("splatd_frames").set(app.store.list().len() as f64);
+    Ok((status, Json(frame.info())).into_response())
+}
+
+/// `GET /v1/frames`.
+pub async fn list_frames(State(app): State<AppState>) -> Json<FrameList> {
+    let frames = app.store.list();
+    let frames = tokio::task::spawn_blocking(move || frames.iter().map(|f| f.info()).collect())
+        .await
+        .unwrap_or_default();
+    Json(FrameList { frames })
+}
+
+/// `GET /v1/frames/{id}`.
+pub async fn frame_info(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<FrameInfo>, ApiError> {
+    let frame = app.store.get(&id)?;
+    blocking("frame info", move || Ok(frame.info()))
+        .await
+        .map(Json)
+}
+
+/// `DELETE /v1/frames/{id}`.
+pub async fn delete_frame(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    let frame = app.store.remove(&id)?;
+    app.on_deleted(&frame).await?;
+    metrics::gauge!("splatd_frames").set(app.store.list().len() as f64);
+    tracing::info!(frame = id, "frame deleted");
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// `POST /v1/frames/{id}/samples`: one batch, applied whole or not at all.
+pub async fn post_samples(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<BatchAck>, ApiError> {
+    check_content_type(&headers, BATCH_CONTENT_TYPE)?;
+    let frame = app.store.get(&id)?;
+    let bytes = read_body(body, app.decode_limits.max_body_len()).await;
+    let bytes = bytes.inspect_err(|_| reject(&frame, 0, "body"))?;
+    metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    let limits = app.decode_limits;
+    let worker_frame = frame.clone();
+    let (batch_id, ingested) = blocking("ingest", move || {
+        let batch = Batch::decode(&bytes, &limits).map_err(|e| {
+            reject(&worker_frame, 0, e.code());
+            ApiError::from(&e)
+        })?;
+        let ingested = worker_frame.ingest(&batch).map_err(|e| {
+            reject_counted(batch.records.len() as u64, "samples");
+            ApiError::from(e)
+        })?;
+        Ok(((batch.worker, batch.seq), ingested))
+    })
+    .await?;
+    let (worker, seq) = batch_id;
+    if ingested.duplicate {
+        metrics::counter!("splatd_batches_duplicate_total").increment(1);
+    } else {
+        metrics::counter!("splatd_batches_ingested_total").increment(1);
+        metrics::counter!("splatd_samples_ingested_total").increment(ingested.accepted);
+    }
+    Ok(Json(BatchAck {
+        frame: id,
+        worker,
+        seq,
+        accepted: ingested.accepted,
+        duplicate: ingested.duplicate,
+    }))
+}
+
+/// Counts a batch refused before the frame saw it (body or decode errors).
+fn reject(frame: &ShardedFrame, samples: u64, reason: &'static str) {
+    frame.count_rejected(samples);
+    reject_counted(samples, reason);
+}
+
+fn reject_counted(samples: u64, reason: &'static str) {
+    metrics::counter!("splatd_batches_rejected_total", "reason" => reason).increment(1);
+    metrics::counter!("splatd_samples_rejected_total").increment(samples);
+}
+
+/// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now.
+pub async fn get_image(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, ApiError> {
+    let query: ImageQuery = parse_query(query.as_deref())?;
+    let frame = app.store.get(&id)?;
+    let params = core_resolve_params(&query.apply(&frame.spec().request.resolve))
+        .map_err(|e| ApiError::bad_request("invalid_parameters", e.to_string()))?;
+    let threads = app.resolve_threads;
+    let started = Instant::now();
+    let exr = blocking("resolve", move || {
+        let cut = frame.cut();
+        let resolved = cut.resolve(&params, threads);
+        let extra: Vec<ExtraLayer> = if query.cascades {
+            cut.cascade_means()
+                .into_iter()
+                .enumerate()
+                .map(|(j, rgb)| ExtraLayer {
+                    name: format!("cascade{j}"),
+                    rgb,
+                })
+                .collect()
+        } else {
+            Vec::new()
+        };
+        encode_exr(&resolved, &extra).map_err(|e| ApiError::internal("EXR encoding", e))
+    })
+    .await?;
+    metrics::histogram!("splatd_resolve_seconds").record(started.elapsed().as_secs_f64());
+    Ok(([(header::CONTENT_TYPE, "image/x-exr")], exr).into_response())
+}
+
+/// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
+pub async fn export_state(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Response, ApiError> {
+    let frame = app.store.get(&id)?;
+    let bytes = blocking("export", move || {
+        let whole = frame.cut().whole();
+        Ok(crate::export::dump(&whole, frame.id(), None).encode())
+    })
+    .await?;
+    metrics::counter!("splatd_exports_total").increment(1);
+    Ok(([(header::CONTENT_TYPE, STATE_CONTENT_TYPE)], bytes).into_response())
+}
+
+/// `POST /v1/frames/{id}/state`: adds another node's state (or pushed delta) to the frame.
+pub async fn import_state(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<ImportAck>, ApiError> {
+    check_content_type(&headers, STATE_CONTENT_TYPE)?;
+    let frame = app.store.get(&id)?;
+    // A state of this frame is its cells plus a header; allow a generous header.
+    let cells = frame.spec().memory_bytes() / 8;
+    let limit = frame.spec().memory_bytes() as usize + 64 * 1024;
+    let bytes = read_body(body, limit).await?;
+    let (samples, applied) = blocking("import", move || {
+        let dump = StateDump::decode(&bytes, cells).map_err(|e| ApiError::from(&e))?;
+        let origin = dump.origin.clone();
+        let name = dump.frame.clone();
+        let state = crate::export::load(dump)
+            .map_err(|e| ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string()))?;
+        let applied = frame.import(&name, &state, origin.as_ref())?;
+        Ok((state.total_samples(), applied))
+    })
+    .await?;
+    metrics::counter!("splatd_imports_total", "result" => if applied { "applied" } else { "duplicate" })
+        .increment(1);
+    Ok(Json(ImportAck {
+        frame: id,
+        samples: if applied { samples } else { 0 },
+        duplicate: !applied,
+    }))
+}
+
+/// `GET /metrics`: Prometheus text format.
+pub async fn metrics_text(State(app): State<AppState>) -> Response {
+    match &app.metrics {
+        Some(handle) => (
+            [(
+                header::CONTENT_TYPE,
+                HeaderValue::from_static("text/plain; version=0.0.4"),
+            )],
+            handle.render(),
+        )
+            .into_response(),
+        None => ApiError::new(
+            StatusCode::NOT_FOUND,
+            "metrics_disabled",
+            "this server was started without a metrics recorder",
+        )
+        .into_response(),
+    }
+}
+
+/// Runs `f` on the blocking pool.
+pub async fn blocking<T, F>(what: &'static str, f: F) -> Result<T, ApiError>
+where
+    T: Send + 'static,
+    F: FnOnce() -> Result<T, ApiError> + Send + 'static,
+{
+    match tokio::task::spawn_blocking(f).await {
+        Ok(result) => result,
+        Err(e) => Err(ApiError::internal(what, e)),
+    }
+}
+
+/// Refuses a body of the wrong type before reading it.
+pub fn check_content_type(headers: &HeaderMap, expected: &str) -> Result<(), ApiError> {
+    let found = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .map(|v| {
+            v.split(';')
+                .next()
+                .unwrap_or("")
+                .trim()
+                .to_ascii_lowercase()
+        });
+    if found.as_deref() == Some(expected) {
+        return Ok(());
+    }
+    Err(ApiError::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_content_type",
+        format!(
+            "expected Content-Type {expected}, got {}",
+            found.map_or_else(|| "none".to_owned(), |f| format!("{f:?}"))
+        ),
+    ))
+}
+
+/// Reads a whole (already decompressed) body, refusing more than `limit` bytes with 413.
+pub async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+    axum::body::to_bytes(body, limit).await.map_err(|e| {
+        let inner = e.into_inner();
+        let mut source: Option<&(dyn std::error::Error + 'static)> = Some(inner.as_ref());
+        while let Some(err) = source {
+            if err.is::<http_body_util::LengthLimitError>() {
+                return ApiError::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "body_too_large",
+                    format!("request body exceeds this endpoint's limit of {limit} bytes"),
+                );
+            }
+            source = err.source();
+        }
+        ApiError::bad_request(
+            "unreadable_body",
+            format!("could not read the request body: {inner}"),
+        )
+    })
+}
+
+async fn read_json<T: DeserializeOwned>(headers: &HeaderMap, body: Body) -> Result<T, ApiError> {
+    check_content_type(headers, "application/json")?;
+    let bytes = read_body(body, MAX_JSON_BODY).await?;
+    serde_json::from_slice(&bytes)
+        .map_err(|e| ApiError::bad_request("bad_request", format!("invalid JSON body: {e}")))
+}
+
+/// Parses a query string strictly (unknown parameters are errors).
+pub fn parse_query<T: DeserializeOwned>(query: Option<&str>) -> Result<T, ApiError> {
+    serde_urlencoded::from_str(query.unwrap_or(""))
+        .map_err(|e| ApiError::bad_request("bad_query", format!("invalid query string: {e}")))
+}

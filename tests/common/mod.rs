@@ -1,0 +1,159 @@
+//! Shared by the integration tests: real `splatd` processes on loopback ports, and small helpers.
+#![allow(dead_code)] // each test binary uses a different subset
+
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+/// A `splatd serve` process on an ephemeral 127.0.0.1 port, stopped (SIGTERM, then SIGKILL)
+/// when dropped.
+pub struct Server {
+    child: Option<Child>,
+    /// `http://127.0.0.1:PORT`
+    pub url: String,
+    /// `127.0.0.1:PORT`
+    pub addr: String,
+}
+
+impl Server {
+    /// Starts `splatd serve --addr 127.0.0.1:0 <args>` and waits for its "listening" line.
+    pub fn start(args: &[&str]) -> Server {
+        Self::start_with_env(args, &[])
+    }
+
+    /// Like [`Server::start`], with extra environment variables.
+    pub fn start_with_env(args: &[&str], env: &[(&str, &str)]) -> Server {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_splatd"));
+        cmd.args(["serve", "--addr", "127.0.0.1:0"])
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit());
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        let mut child = cmd.spawn().expect("starting splatd");
+        let stdout = child.stdout.take().expect("piped stdout");
+        let (tx, rx) = mpsc::channel();
+        std::thread::spawn(move || {
+            let mut lines = BufReader::new(stdout).lines();
+            if let Some(Ok(line)) = lines.next() {
+                let _ = tx.send(line);
+            }
+            // Keep draining so the server never blocks on a full pipe.
+            for _ in lines {}
+        });
+        let line = match rx.recv_timeout(Duration::from_secs(30)) {
+            Ok(line) => line,
+            Err(_) => {
+                let _ = child.kill();
+                panic!("splatd did not report its address within 30 s");
+            }
+        };
+        let url = line
+            .strip_prefix("splatd listening on ")
+            .unwrap_or_else(|| panic!("unexpected first line from splatd: {line:?}"))
+            .to_owned();
+        let addr = url.trim_start_matches("http://").to_owned();
+        Server {
+            child: Some(child),
+            url,
+            addr,
+        }
+    }
+
+    /// The process id.
+    pub fn pid(&self) -> u32 {
+        self.child.as_ref().expect("running").id()
+    }
+
+    /// Sends SIGTERM and waits (bounded) for a clean exit; returns the exit status code.
+    pub fn terminate(mut self) -> Option<i32> {
+        let mut child = self.child.take().expect("running");
+        signal(child.id(), "TERM");
+        wait_bounded(&mut child, Duration::from_secs(20))
+    }
+
+    /// SIGKILLs the process (no chance to flush anything) and reaps it.
+    pub fn kill(mut self) {
+        let mut child = self.child.take().expect("running");
+        let _ = child.kill();
+        let _ = child.wait();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.child.take() {
+            signal(child.id(), "TERM");
+            if wait_bounded(&mut child, Duration::from_secs(5)).is_none() {
+                let _ = child.kill();
+                let _ = child.wait();
+            }
+        }
+    }
+}
+
+fn signal(pid: u32, sig: &str) {
+    let _ = Command::new("kill")
+        .args([&format!("-{sig}"), &pid.to_string()])
+        .status();
+}
+
+fn wait_bounded(child: &mut Child, limit: Duration) -> Option<i32> {
+    let start = Instant::now();
+    while start.elapsed() < limit {
+        if let Ok(Some(status)) = child.try_wait() {
+            return status.code();
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let _ = child.kill();
+    let _ = child.wait();
+    None
+}
+
+/// Channels of an EXR as read by the OpenEXR project's Python bindings (an independent reader).
+pub fn read_exr_with_python(path: &Path) -> (u32, u32, Vec<(String, Vec<f64>)>) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/read_exr.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(path)
+        .output()
+        .expect("running python3 (tests/run.sh installs its packages)");
+    assert!(
+        out.status.success(),
+        "python EXR reader failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("reader prints JSON");
+    let width = v["width"].as_u64().expect("width") as u32;
+    let height = v["height"].as_u64().expect("height") as u32;
+    let mut channels: Vec<(String, Vec<f64>)> = v["channels"]
+        .as_object()
+        .expect("channels")
+        .iter()
+        .map(|(k, vals)| {
+            let vals = vals
+                .as_array()
+                .expect("values")
+                .iter()
+                .map(|x| x.as_f64().expect("number"))
+                .collect();
+            (k.clone(), vals)
+        })
+        .collect();
+    channels.sort_by(|a, b| a.0.cmp(&b.0));
+    (width, height, channels)
+}
+
+/// A multi-threaded runtime for tests that drive servers with async clients.
+pub fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(4)
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
