@@ -12,6 +12,8 @@ pub mod batchfile;
 pub mod core;
 pub mod export;
 pub mod image;
+pub mod passes;
 pub mod quality;
 pub mod service;
 pub mod synth;
+pub mod tev;
