@@ -3,6 +3,7 @@
 use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
@@ -12,6 +13,7 @@ use splatd::batchfile::BatchReader;
 use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant};
 use splatd::image::{encode_exr, ExtraLayer};
 use splatd::quality::{energy_bias, rel_mse};
+use splatd::service::durable::Durable;
 use splatd::service::server::{bind, serve, shutdown_signal};
 use splatd::service::{AppState, Limits};
 use splatd::synth::FireflyScene;
@@ -87,6 +89,13 @@ struct ServeArgs {
     /// Longest a connection may idle or take to send its headers, in seconds.
     #[arg(long, default_value_t = 60)]
     idle_timeout: u64,
+    /// Keep frames on disk here so they survive restarts and crashes (see PROTOCOL.md,
+    /// "Exactly-once and durability"). Without it frames live in memory only.
+    #[arg(long)]
+    data_dir: Option<PathBuf>,
+    /// How often changed frames are snapshotted to the data directory, in milliseconds.
+    #[arg(long, default_value_t = 1000)]
+    snapshot_interval_ms: u64,
 }
 
 #[derive(Args)]
@@ -163,7 +172,20 @@ fn run_server(args: ServeArgs) -> Result<()> {
         .context("metric buckets")?
         .install_recorder()
         .context("installing the metrics recorder")?;
-    let app = AppState::new(limits, Some(metrics));
+    let durable = match &args.data_dir {
+        Some(dir) => Some(Arc::new(
+            Durable::open(dir, Duration::from_millis(args.snapshot_interval_ms.max(1)))
+                .with_context(|| format!("opening data directory {}", dir.display()))?,
+        )),
+        None => None,
+    };
+    let app = AppState::new(limits, Some(metrics), durable.clone());
+    if let Some(durable) = &durable {
+        let n = durable
+            .recover(&app.store)
+            .context("recovering frames from the data directory")?;
+        tracing::info!(frames = n, "recovered");
+    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
@@ -175,9 +197,22 @@ fn run_server(args: ServeArgs) -> Result<()> {
         // Scripts and tests wait for this line to learn the port.
         println!("splatd listening on http://{local}");
         tracing::info!(%local, "listening");
-        serve(listener, app, shutdown_signal())
+        let snapshots = durable.clone().map(|d| tokio::spawn(d.run(app.clone())));
+        serve(listener, app.clone(), shutdown_signal())
             .await
             .context("serving")?;
+        if let Some(task) = snapshots {
+            task.abort();
+        }
+        if let Some(durable) = &durable {
+            // Everything acknowledged as applied becomes durable before a clean exit.
+            for frame in app.store.list() {
+                durable
+                    .snapshot(&app.store, &frame)
+                    .await
+                    .with_context(|| format!("final snapshot of frame {}", frame.id()))?;
+            }
+        }
         tracing::info!("stopped");
         Ok(())
     })

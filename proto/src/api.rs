@@ -250,6 +250,27 @@ pub struct BatchAck {
     /// True when `(worker, seq)` had already been applied and this request
     /// changed nothing.
     pub duplicate: bool,
+    /// Identifies the server process; it changes when the server restarts. A durable server
+    /// loses what it applied after its last snapshot when it crashes: a worker that sees `boot`
+    /// change resends every batch it has not yet seen covered by `durable_floor`.
+    #[serde(default)]
+    pub boot: u64,
+    /// Durable servers only: every batch of this worker for this frame numbered below this is on
+    /// disk and survives a crash; the worker may forget those. Absent when the server keeps
+    /// frames only in memory.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub durable_floor: Option<u64>,
+}
+
+/// Response of `POST /v1/frames/{id}/sync`.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SyncAck {
+    /// The frame.
+    pub frame: String,
+    /// The server process (see [`BatchAck::boot`]).
+    pub boot: u64,
+    /// Whether the server is durable at all; when false nothing survives a restart.
+    pub durable: bool,
 }
 
 /// Response of `POST /v1/frames/{id}/state` (importing a state or a pushed delta).
@@ -469,11 +490,20 @@ mod tests {
             seq: 2,
             accepted: 3,
             duplicate: false,
+            boot: 9,
+            durable_floor: None,
         };
         let v = serde_json::to_value(&ack).expect("serialises");
         assert_eq!(
             v,
-            json!({"frame": "f", "worker": 1, "seq": 2, "accepted": 3, "duplicate": false})
+            json!({"frame": "f", "worker": 1, "seq": 2, "accepted": 3, "duplicate": false,
+                   "boot": 9})
+        );
+        // An older server without the durability fields still parses.
+        let old = json!({"frame": "f", "worker": 1, "seq": 2, "accepted": 3, "duplicate": false});
+        assert_eq!(
+            serde_json::from_value::<BatchAck>(old).ok(),
+            Some(BatchAck { boot: 0, ..ack })
         );
     }
 

@@ -268,6 +268,15 @@ impl Client {
         parse_json(&format!("POST {path}"), status, &bytes)
     }
 
+    /// `POST /v1/frames/{id}/sync`: returns once everything the frame has
+    /// applied is on disk (see [`crate::SyncAck`]).
+    pub async fn sync(&self, id: &str) -> Result<crate::SyncAck, ClientError> {
+        validate_frame_id(id)?;
+        let path = format!("/v1/frames/{id}/sync");
+        let (status, bytes) = self.send(Method::POST, &path, None).await?;
+        parse_json(&format!("POST {path}"), status, &bytes)
+    }
+
     /// `GET /v1/frames`: every frame on the server.
     pub async fn list_frames(&self) -> Result<Vec<FrameInfo>, ClientError> {
         let (status, bytes) = self.send(Method::GET, "/v1/frames", None).await?;
@@ -510,6 +519,15 @@ struct Pending {
 /// it before anything else, so the server sees each sequence number with one
 /// content only. Call `flush` at the end: records still buffered when the
 /// writer is dropped are lost.
+///
+/// Against a durable server (one whose acknowledgements carry
+/// `durable_floor`), acknowledged batches are kept until the server reports
+/// them on disk, and all kept batches are resent when the server's `boot`
+/// changes (it restarted and lost what its last snapshot did not hold; the
+/// ones it did hold come back as duplicates). Call [`BatchWriter::sync`]
+/// instead of `flush` before exiting to be sure every sample is durable.
+/// Number batches from 0 for a new worker id: the server's durable floor
+/// advances over contiguous sequence numbers only.
 #[derive(Debug)]
 pub struct BatchWriter {
     client: Client,
@@ -519,6 +537,12 @@ pub struct BatchWriter {
     batch_size: usize,
     buffer: Vec<Record>,
     pending: Option<Pending>,
+    /// Applied but not yet durable, oldest first.
+    unconfirmed: std::collections::VecDeque<Pending>,
+    /// The server process last heard from.
+    boot: Option<u64>,
+    /// Batches resent because the server restarted.
+    resent: u64,
 }
 
 impl BatchWriter {
@@ -547,6 +571,9 @@ impl BatchWriter {
             batch_size,
             buffer: Vec::with_capacity(batch_size),
             pending: None,
+            unconfirmed: std::collections::VecDeque::new(),
+            boot: None,
+            resent: 0,
         })
     }
 
@@ -660,8 +687,85 @@ impl BatchWriter {
             .client
             .post_encoded(&self.frame, pending.body.clone())
             .await?;
-        self.pending = None;
+        let sent = self.pending.take().expect("checked above");
+        if ack.durable_floor.is_some() {
+            self.unconfirmed.push_back(sent);
+        }
+        self.on_ack(&ack).await?;
         Ok(Some(ack))
+    }
+
+    /// Forgets batches the server reports durable; resends the rest if it restarted.
+    async fn on_ack(&mut self, ack: &BatchAck) -> Result<(), ClientError> {
+        let mut ack = ack.clone();
+        // Bounded: each round is caused by one more restart of the server.
+        for _ in 0..16 {
+            if let Some(floor) = ack.durable_floor {
+                while self.unconfirmed.front().is_some_and(|p| p.seq < floor) {
+                    self.unconfirmed.pop_front();
+                }
+            }
+            let restarted = self.boot.is_some_and(|b| b != ack.boot);
+            self.boot = Some(ack.boot);
+            if !restarted {
+                return Ok(());
+            }
+            // Resend everything kept, oldest first; duplicates are answered as such.
+            let kept: Vec<Bytes> = self.unconfirmed.iter().map(|p| p.body.clone()).collect();
+            for body in kept {
+                let again = self.client.post_encoded(&self.frame, body).await?;
+                self.resent += 1;
+                if again.boot != ack.boot {
+                    ack = again;
+                    break;
+                }
+                ack = again;
+            }
+        }
+        Ok(())
+    }
+
+    /// Flushes, then waits until the server has every batch of this writer on
+    /// disk (`POST /v1/frames/{frame}/sync`), resending what a restart lost.
+    /// Against a server without durability this is `flush`.
+    pub async fn sync(&mut self) -> Result<(), ClientError> {
+        self.flush().await?;
+        for _ in 0..16 {
+            let ack = self.client.sync(&self.frame).await?;
+            if !ack.durable {
+                self.unconfirmed.clear();
+                return Ok(());
+            }
+            if self.boot.is_none_or(|b| b == ack.boot) {
+                self.boot = Some(ack.boot);
+                self.unconfirmed.clear();
+                return Ok(());
+            }
+            // Restarted since our last acknowledgement: resend what it may have lost.
+            let fake = BatchAck {
+                frame: self.frame.clone(),
+                worker: self.worker,
+                seq: 0,
+                accepted: 0,
+                duplicate: true,
+                boot: ack.boot,
+                durable_floor: None,
+            };
+            self.on_ack(&fake).await?;
+        }
+        Err(ClientError::InvalidArgument(
+            "the server kept restarting while syncing".into(),
+        ))
+    }
+
+    /// Batches acknowledged as applied but not yet reported durable.
+    pub fn unconfirmed(&self) -> usize {
+        self.unconfirmed.len()
+    }
+
+    /// Batches resent because the server restarted.
+    pub fn resent(&self) -> u64 {
+        self.resent
     }
 }
 

@@ -54,7 +54,7 @@ pub mod state;
 
 pub use api::{
     BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
-    ResolveParams, Variant,
+    ResolveParams, SyncAck, Variant,
 };
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]

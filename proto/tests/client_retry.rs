@@ -122,6 +122,8 @@ fn ack_json(frame: &str, worker: u64, seq: u64, accepted: u64) -> String {
         seq,
         accepted,
         duplicate: false,
+        boot: 1,
+        durable_floor: None,
     })
     .expect("serialises")
 }

@@ -224,6 +224,10 @@ pub struct ShardedFrame {
     /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
     /// happened since they last looked.
     version: AtomicU64,
+    /// The version of the latest snapshot on disk (durable servers only).
+    durable_version: AtomicU64,
+    /// Per worker, the sequence number below which every batch is in that snapshot.
+    durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
 }
 
 /// Locks a mutex, ignoring poisoning: every mutation of the guarded values is a sequence of
@@ -247,6 +251,7 @@ impl ShardedFrame {
         state: &FrameState,
         seen: Seen,
         counters: CounterValues,
+        version: u64,
     ) -> Result<ShardedFrame, MergeError> {
         let frame = ShardedFrame::new(spec);
         frame.check_fits(state)?;
@@ -255,7 +260,31 @@ impl ShardedFrame {
         }
         *lock(&frame.seen) = seen;
         frame.set_counters(counters);
+        frame.version.store(version, Ordering::Release);
         Ok(frame)
+    }
+
+    /// Records that a snapshot holding everything up to `version`, and the batches in `seen`,
+    /// is on disk.
+    pub fn mark_durable(&self, seen: &Seen, version: u64) {
+        let mut floors = lock(&self.durable_floors);
+        for (&worker, set) in &seen.workers {
+            floors.insert(worker, set.floor());
+        }
+        self.durable_version.fetch_max(version, Ordering::AcqRel);
+    }
+
+    /// The version of the latest snapshot on disk.
+    pub fn durable_version(&self) -> u64 {
+        self.durable_version.load(Ordering::Acquire)
+    }
+
+    /// Every batch of `worker` numbered below this is on disk.
+    pub fn durable_floor(&self, worker: u64) -> u64 {
+        lock(&self.durable_floors)
+            .get(&worker)
+            .copied()
+            .unwrap_or(0)
     }
 
     fn from_bands(
@@ -278,6 +307,8 @@ impl ShardedFrame {
             seen: Mutex::new(seen),
             counters: Counters::default(),
             version: AtomicU64::new(0),
+            durable_version: AtomicU64::new(0),
+            durable_floors: Mutex::new(Default::default()),
         };
         frame.set_counters(counters);
         frame

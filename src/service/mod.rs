@@ -8,6 +8,7 @@
 //!   listener with graceful shutdown.
 
 pub mod dedup;
+pub mod durable;
 pub mod error;
 pub mod frame;
 pub mod routes;
@@ -21,6 +22,7 @@ use std::time::Duration;
 use metrics_exporter_prometheus::PrometheusHandle;
 use splatd_proto::DecodeLimits;
 
+use durable::Durable;
 use error::ApiError;
 use frame::ShardedFrame;
 use store::FrameStore;
@@ -69,6 +71,10 @@ pub struct Shared {
     pub resolve_threads: usize,
     /// Renders `/metrics`; `None` when no recorder could be installed.
     pub metrics: Option<PrometheusHandle>,
+    /// The data directory, when frames are durable.
+    pub durable: Option<Arc<Durable>>,
+    /// Identifies this process (see `BatchAck::boot`): random at every start.
+    pub boot: u64,
 }
 
 /// A cheap handle on [`Shared`], the state of every handler.
@@ -84,7 +90,11 @@ impl Deref for AppState {
 
 impl AppState {
     /// A server state with an empty store.
-    pub fn new(limits: Limits, metrics: Option<PrometheusHandle>) -> AppState {
+    pub fn new(
+        limits: Limits,
+        metrics: Option<PrometheusHandle>,
+        durable: Option<Arc<Durable>>,
+    ) -> AppState {
         let decode_limits = DecodeLimits {
             max_records: limits.max_records,
             ..DecodeLimits::default()
@@ -95,16 +105,60 @@ impl AppState {
             decode_limits,
             resolve_threads,
             metrics,
+            durable,
+            boot: boot_id(),
         }))
     }
 
     /// Called once a new frame is in the store, before the client hears of it.
-    pub async fn on_created(&self, _frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
-        Ok(())
+    pub async fn on_created(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+        let Some(durable) = self.durable.clone() else {
+            return Ok(());
+        };
+        let frame = frame.clone();
+        routes::blocking("frame creation", move || {
+            durable
+                .frame_created(&frame)
+                .map_err(|e| ApiError::internal("writing the frame to disk", e))
+        })
+        .await
     }
 
     /// Called once a frame has left the store.
-    pub async fn on_deleted(&self, _frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
-        Ok(())
+    pub async fn on_deleted(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+        let Some(durable) = self.durable.clone() else {
+            return Ok(());
+        };
+        let id = frame.id().to_owned();
+        routes::blocking("frame deletion", move || {
+            durable
+                .frame_deleted(&id)
+                .map_err(|e| ApiError::internal("removing the frame from disk", e))
+        })
+        .await
     }
+
+    /// Returns once everything applied to `frame` so far is on disk (at once when the server
+    /// is not durable).
+    pub async fn sync(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+        match &self.durable {
+            Some(durable) => durable
+                .snapshot(&self.store, frame)
+                .await
+                .map_err(|e| ApiError::internal("writing a snapshot", e)),
+            None => Ok(()),
+        }
+    }
+}
+
+/// A process id unlikely to repeat across restarts: time, pid and an address, mixed.
+fn boot_id() -> u64 {
+    let nanos = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_nanos() as u64);
+    let local = 0u8;
+    let seed = nanos ^ (u64::from(std::process::id()) << 32) ^ (&local as *const u8 as u64);
+    let mut rng = crate::synth::SplitMix64::new(seed);
+    // Never 0, which old servers (without the field) report.
+    rng.next_u64().max(1)
 }

@@ -11,7 +11,9 @@ use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde::de::DeserializeOwned;
-use splatd_proto::api::{BatchAck, CreateFrame, FrameInfo, FrameList, ImageQuery, ImportAck};
+use splatd_proto::api::{
+    BatchAck, CreateFrame, FrameInfo, FrameList, ImageQuery, ImportAck, SyncAck,
+};
 use splatd_proto::{Batch, StateDump, BATCH_CONTENT_TYPE, STATE_CONTENT_TYPE};
 
 use super::error::ApiError;
@@ -120,6 +122,7 @@ pub async fn post_samples(
     })
     .await?;
     let (worker, seq) = batch_id;
+    let durable_floor = app.durable.as_ref().map(|_| frame.durable_floor(worker));
     if ingested.duplicate {
         metrics::counter!("splatd_batches_duplicate_total").increment(1);
     } else {
@@ -132,6 +135,8 @@ pub async fn post_samples(
         seq,
         accepted: ingested.accepted,
         duplicate: ingested.duplicate,
+        boot: app.boot,
+        durable_floor,
     }))
 }
 
@@ -204,6 +209,7 @@ pub async fn import_state(
 ) -> Result<Json<ImportAck>, ApiError> {
     check_content_type(&headers, STATE_CONTENT_TYPE)?;
     let frame = app.store.get(&id)?;
+    let target = frame.clone();
     // A state of this frame is its cells plus a header; allow a generous header.
     let cells = frame.spec().memory_bytes() / 8;
     let limit = frame.spec().memory_bytes() as usize + 64 * 1024;
@@ -218,12 +224,28 @@ pub async fn import_state(
         Ok((state.total_samples(), applied))
     })
     .await?;
+    // A pusher forgets a delta once it is acknowledged, so make it durable first.
+    app.sync(&target).await?;
     metrics::counter!("splatd_imports_total", "result" => if applied { "applied" } else { "duplicate" })
         .increment(1);
     Ok(Json(ImportAck {
         frame: id,
         samples: if applied { samples } else { 0 },
         duplicate: !applied,
+    }))
+}
+
+/// `POST /v1/frames/{id}/sync`: returns once everything applied to the frame is on disk.
+pub async fn sync_frame(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<Json<SyncAck>, ApiError> {
+    let frame = app.store.get(&id)?;
+    app.sync(&frame).await?;
+    Ok(Json(SyncAck {
+        frame: id,
+        boot: app.boot,
+        durable: app.durable.is_some(),
     }))
 }
 

@@ -42,6 +42,7 @@ pub fn router(app: AppState) -> Router {
         )
         .route("/frames/{id}/samples", post(routes::post_samples))
         .route("/frames/{id}/image.exr", get(routes::get_image))
+        .route("/frames/{id}/sync", post(routes::sync_frame))
         .route(
             "/frames/{id}/state",
             get(routes::export_state).post(routes::import_state),
