@@ -13,6 +13,7 @@ use splatd::batchfile::BatchReader;
 use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant};
 use splatd::image::{encode_exr, ExtraLayer};
 use splatd::quality::{energy_bias, rel_mse};
+use splatd::service::auth::Auth;
 use splatd::service::durable::Durable;
 use splatd::service::server::{bind, serve, shutdown_signal};
 use splatd::service::{AppState, Limits};
@@ -96,6 +97,14 @@ struct ServeArgs {
     /// How often changed frames are snapshotted to the data directory, in milliseconds.
     #[arg(long, default_value_t = 1000)]
     snapshot_interval_ms: u64,
+    /// Bearer tokens with roles, one `<roles> <token>` per line (roles: read, write, admin).
+    /// Entries in the SPLATD_TOKENS environment variable (separated by `;` or newlines) are
+    /// added. Without any token the server is open to everyone.
+    #[arg(long)]
+    tokens_file: Option<PathBuf>,
+    /// Let requests without a token read (list frames, fetch images and previews).
+    #[arg(long)]
+    public_read: bool,
 }
 
 #[derive(Args)]
@@ -179,7 +188,26 @@ fn run_server(args: ServeArgs) -> Result<()> {
         )),
         None => None,
     };
-    let app = AppState::new(limits, Some(metrics), durable.clone());
+    let mut token_text = String::new();
+    if let Some(path) = &args.tokens_file {
+        token_text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading tokens file {}", path.display()))?;
+    }
+    if let Ok(env) = std::env::var("SPLATD_TOKENS") {
+        token_text.push('\n');
+        token_text.push_str(&env);
+    }
+    let auth = Auth::parse(&token_text, args.public_read).context("invalid tokens")?;
+    if auth.enabled() {
+        tracing::info!(
+            tokens = auth.len(),
+            public_read = args.public_read,
+            "bearer tokens required"
+        );
+    } else {
+        tracing::warn!("no tokens configured: anyone who can reach this server may use it");
+    }
+    let app = AppState::with_auth(limits, Some(metrics), durable.clone(), auth);
     if let Some(durable) = &durable {
         let n = durable
             .recover(&app.store)

@@ -7,6 +7,7 @@
 //! * [`server`]: the router, its layers (decompression, timeouts, tracing, JSON errors) and the
 //!   listener with graceful shutdown.
 
+pub mod auth;
 pub mod dedup;
 pub mod durable;
 pub mod error;
@@ -22,6 +23,7 @@ use std::time::Duration;
 use metrics_exporter_prometheus::PrometheusHandle;
 use splatd_proto::DecodeLimits;
 
+use auth::Auth;
 use durable::Durable;
 use error::ApiError;
 use frame::ShardedFrame;
@@ -75,6 +77,8 @@ pub struct Shared {
     pub durable: Option<Arc<Durable>>,
     /// Identifies this process (see `BatchAck::boot`): random at every start.
     pub boot: u64,
+    /// Who may do what.
+    pub auth: Auth,
 }
 
 /// A cheap handle on [`Shared`], the state of every handler.
@@ -95,6 +99,16 @@ impl AppState {
         metrics: Option<PrometheusHandle>,
         durable: Option<Arc<Durable>>,
     ) -> AppState {
+        Self::with_auth(limits, metrics, durable, Auth::open())
+    }
+
+    /// A server state with an empty store and access rules.
+    pub fn with_auth(
+        limits: Limits,
+        metrics: Option<PrometheusHandle>,
+        durable: Option<Arc<Durable>>,
+        auth: Auth,
+    ) -> AppState {
         let decode_limits = DecodeLimits {
             max_records: limits.max_records,
             ..DecodeLimits::default()
@@ -107,6 +121,7 @@ impl AppState {
             metrics,
             durable,
             boot: boot_id(),
+            auth,
         }))
     }
 

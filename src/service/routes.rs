@@ -3,6 +3,7 @@
 //! Anything heavier than a lookup (decoding a batch, splatting it, resolving, encoding an EXR)
 //! runs on tokio's blocking pool, so a 4-million-record batch never stalls the reactor.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use axum::body::{Body, Bytes};
@@ -108,12 +109,80 @@ pub async fn post_samples(
     let bytes = bytes.inspect_err(|_| reject(&frame, 0, "body"))?;
     metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
     let limits = app.decode_limits;
+    ingest(&app, frame, move |frame| {
+        Batch::decode(&bytes, &limits).map_err(|e| {
+            reject(frame, 0, e.code());
+            ApiError::from(&e)
+        })
+    })
+    .await
+}
+
+/// Query of `POST /v1/frames/{id}/passes`: the pass's identity, for exactly-once.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PassQuery {
+    /// The worker that rendered the pass.
+    pub worker: u64,
+    /// The worker's number for this pass (a retry resends the same number).
+    pub seq: u64,
+}
+
+/// `POST /v1/frames/{id}/passes?worker=W&seq=S`: one rendered pass as an EXR; each pixel is one
+/// sample. Applied whole or not at all, and once per `(worker, seq)`, like a batch.
+pub async fn post_pass(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    RawQuery(query): RawQuery,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Json<BatchAck>, ApiError> {
+    let query: PassQuery = parse_query(query.as_deref())?;
+    check_content_type(&headers, EXR_CONTENT_TYPE)?;
+    let frame = app.store.get(&id)?;
+    let spec = &frame.spec().request;
+    let (width, height) = (spec.width, spec.height);
+    let pixels = width as u64 * height as u64;
+    // An EXR of the frame's size: its floats, plus generous room for headers and poor compression.
+    let limit = (pixels as usize)
+        .saturating_mul(4 * 16)
+        .saturating_add(1 << 20);
+    let bytes = read_body(body, limit).await;
+    let bytes = bytes.inspect_err(|_| reject(&frame, 0, "body"))?;
+    metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    ingest(&app, frame, move |frame| {
+        let refuse = |e: crate::passes::PassError| {
+            reject(frame, 0, "pass");
+            ApiError::new(
+                StatusCode::UNPROCESSABLE_ENTITY,
+                "invalid_pass",
+                format!("pass for frame {:?}: {e}", frame.id()),
+            )
+        };
+        let pass = crate::passes::decode_pass_with_limit(&bytes, pixels).map_err(refuse)?;
+        pass.check(width, height).map_err(refuse)?;
+        Ok(Batch {
+            frame: frame.id().to_owned(),
+            worker: query.worker,
+            seq: query.seq,
+            records: pass.records().collect(),
+        })
+    })
+    .await
+}
+
+/// Content type of EXR bodies.
+pub const EXR_CONTENT_TYPE: &str = "image/x-exr";
+
+/// Builds a batch (decoding it on the blocking pool), applies it and acknowledges it.
+async fn ingest(
+    app: &AppState,
+    frame: Arc<ShardedFrame>,
+    make_batch: impl FnOnce(&ShardedFrame) -> Result<Batch, ApiError> + Send + 'static,
+) -> Result<Json<BatchAck>, ApiError> {
     let worker_frame = frame.clone();
     let (batch_id, ingested) = blocking("ingest", move || {
-        let batch = Batch::decode(&bytes, &limits).map_err(|e| {
-            reject(&worker_frame, 0, e.code());
-            ApiError::from(&e)
-        })?;
+        let batch = make_batch(&worker_frame)?;
         let ingested = worker_frame.ingest(&batch).map_err(|e| {
             reject_counted(batch.records.len() as u64, "samples");
             ApiError::from(e)
@@ -130,7 +199,7 @@ pub async fn post_samples(
         metrics::counter!("splatd_samples_ingested_total").increment(ingested.accepted);
     }
     Ok(Json(BatchAck {
-        frame: id,
+        frame: frame.id().to_owned(),
         worker,
         seq,
         accepted: ingested.accepted,
@@ -138,6 +207,76 @@ pub async fn post_samples(
         boot: app.boot,
         durable_floor,
     }))
+}
+
+/// Which layer a preview shows.
+#[derive(Debug, Clone, Copy, Default, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PreviewLayer {
+    /// The reweighted image.
+    #[default]
+    Reweighted,
+    /// The plain mean.
+    Mean,
+    /// The energy removed as fireflies.
+    Removed,
+}
+
+/// Query of `GET /v1/frames/{id}/preview.png`.
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PreviewQuery {
+    /// The layer (default reweighted).
+    #[serde(default)]
+    pub layer: PreviewLayer,
+    /// Exposure multiplier; by default chosen from the reweighted image, so that every layer
+    /// of a frame is shown with the same exposure and compares fairly.
+    pub exposure: Option<f32>,
+    /// Ignored: lets pages defeat caches by naming the sample count they expect.
+    pub samples: Option<u64>,
+}
+
+/// `GET /v1/frames/{id}/preview.png`: a tone-mapped 8-bit view of a layer, for the live page.
+pub async fn get_preview(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    RawQuery(query): RawQuery,
+) -> Result<Response, ApiError> {
+    let query: PreviewQuery = parse_query(query.as_deref())?;
+    if let Some(e) = query.exposure {
+        if !(e.is_finite() && e > 0.0) {
+            return Err(ApiError::bad_request(
+                "bad_query",
+                format!("exposure must be a positive number, got {e}"),
+            ));
+        }
+    }
+    let frame = app.store.get(&id)?;
+    let params = frame.spec().resolve.clone();
+    let threads = app.resolve_threads;
+    let png = blocking("preview", move || {
+        let resolved = frame.cut().resolve(&params, threads);
+        let exposure = query
+            .exposure
+            .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted));
+        let layer = match query.layer {
+            PreviewLayer::Reweighted => &resolved.reweighted,
+            PreviewLayer::Mean => &resolved.mean,
+            PreviewLayer::Removed => &resolved.removed,
+        };
+        let pixels = crate::preview::tonemap(layer, exposure);
+        crate::preview::encode_png(resolved.width, resolved.height, &pixels)
+            .map_err(|e| ApiError::internal("PNG encoding", e))
+    })
+    .await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png"),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        png,
+    )
+        .into_response())
 }
 
 /// Counts a batch refused before the frame saw it (body or decode errors).

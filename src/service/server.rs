@@ -43,6 +43,8 @@ pub fn router(app: AppState) -> Router {
         .route("/frames/{id}/samples", post(routes::post_samples))
         .route("/frames/{id}/image.exr", get(routes::get_image))
         .route("/frames/{id}/sync", post(routes::sync_frame))
+        .route("/frames/{id}/passes", post(routes::post_pass))
+        .route("/frames/{id}/preview.png", get(routes::get_preview))
         .route(
             "/frames/{id}/state",
             get(routes::export_state).post(routes::import_state),
@@ -54,6 +56,12 @@ pub fn router(app: AppState) -> Router {
         .nest("/v1", v1)
         .fallback(unknown_route)
         .layer(RequestDecompressionLayer::new().gzip(true).zstd(true))
+        // Outside decompression: a request without the right token is refused before its
+        // body is read.
+        .layer(axum::middleware::from_fn_with_state(
+            app.clone(),
+            super::auth::require_token,
+        ))
         .layer(axum::middleware::from_fn(json_errors))
         .layer(TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,

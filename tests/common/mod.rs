@@ -30,12 +30,26 @@ impl Server {
 
     /// Starts a server on a given address (to restart one on the port it had).
     pub fn start_at(addr: &str, args: &[&str], env: &[(&str, &str)]) -> Server {
+        Self::start_logged(addr, args, env, None)
+    }
+
+    /// Like [`Server::start_at`], with the server's log (stderr) written to `log`.
+    pub fn start_logged(
+        addr: &str,
+        args: &[&str],
+        env: &[(&str, &str)],
+        log: Option<&Path>,
+    ) -> Server {
         let mut cmd = Command::new(env!("CARGO_BIN_EXE_splatd"));
+        let stderr = match log {
+            Some(path) => Stdio::from(std::fs::File::create(path).expect("log file")),
+            None => Stdio::inherit(),
+        };
         cmd.args(["serve", "--addr", addr])
             .args(args)
             .env("RUST_LOG", "warn")
             .stdout(Stdio::piped())
-            .stderr(Stdio::inherit());
+            .stderr(stderr);
         for (k, v) in env {
             cmd.env(k, v);
         }
