@@ -252,7 +252,7 @@ pub async fn get_preview(
         }
     }
     let frame = app.store.get(&id)?;
-    let params = frame.spec().resolve.clone();
+    let params = frame.spec().resolve;
     let threads = app.resolve_threads;
     let png = blocking("preview", move || {
         let resolved = frame.cut().resolve(&params, threads);
