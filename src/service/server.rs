@@ -62,11 +62,11 @@ pub fn router(app: AppState) -> Router {
             app.clone(),
             super::auth::require_token,
         ))
-        .layer(axum::middleware::from_fn(json_errors))
         .layer(TimeoutLayer::with_status_code(
             StatusCode::REQUEST_TIMEOUT,
             timeout,
         ))
+        .layer(axum::middleware::from_fn(json_errors))
         .layer(TraceLayer::new_for_http())
         .with_state(app)
 }
