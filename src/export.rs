@@ -45,6 +45,32 @@ pub fn dump(state: &FrameState, frame: &str, origin: Option<Origin>) -> StateDum
     }
 }
 
+/// Streams the wire form of a state (a whole frame or a band) to `out` without copying its cells.
+pub fn write(
+    state: &FrameState,
+    frame: &str,
+    origin: Option<Origin>,
+    out: &mut impl std::io::Write,
+) -> std::io::Result<()> {
+    let layout = state.layout();
+    let rows = state.rows();
+    let header = StateDump {
+        frame: frame.to_owned(),
+        width: state.width(),
+        height: state.height(),
+        rows_start: rows.start,
+        rows_end: rows.end,
+        base: layout.base(),
+        cascades: layout.cascades() as u32,
+        lowest_scale: layout.lowest_scale(),
+        luminance: layout.luminance_weights(),
+        frac_bits: FRAC_BITS,
+        origin,
+        cells: Vec::new(),
+    };
+    header.write_with_cells(state.cells(), out)
+}
+
 /// A state from its wire form, validated like a newly created frame.
 pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
     if dump.frac_bits != FRAC_BITS {
@@ -66,6 +92,20 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
 mod tests {
     use super::*;
     use crate::synth::FireflyScene;
+
+    #[test]
+    fn streaming_writes_the_same_bytes_as_dump() {
+        let scene = FireflyScene::new(5, 4, 1);
+        let mut state = FrameState::new(5, 4, CascadeLayout::with_defaults());
+        state.splat_all(scene.pass(0));
+        let origin = Some(Origin {
+            node: "n".into(),
+            seq: 2,
+        });
+        let mut streamed = Vec::new();
+        write(&state, "f", origin.clone(), &mut streamed).unwrap();
+        assert_eq!(streamed, dump(&state, "f", origin).encode());
+    }
 
     #[test]
     fn export_then_import_is_exact() {

@@ -225,12 +225,17 @@ fn run_server(args: ServeArgs) -> Result<()> {
         // Scripts and tests wait for this line to learn the port.
         println!("splatd listening on http://{local}");
         tracing::info!(%local, "listening");
-        let snapshots = durable.clone().map(|d| tokio::spawn(d.run(app.clone())));
+        let (stop_snapshots, stop) = tokio::sync::watch::channel(false);
+        let snapshots = durable
+            .clone()
+            .map(|d| tokio::spawn(d.run(app.clone(), stop)));
         serve(listener, app.clone(), shutdown_signal())
             .await
             .context("serving")?;
+        // Let a snapshot in progress finish before the final ones.
+        let _ = stop_snapshots.send(true);
         if let Some(task) = snapshots {
-            task.abort();
+            let _ = task.await;
         }
         if let Some(durable) = &durable {
             // Everything acknowledged as applied becomes durable before a clean exit.

@@ -186,6 +186,20 @@ impl StateDump {
 
     /// Encodes the state in the layout of the module docs.
     pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(256 + 8 * self.cells.len());
+        self.write_with_cells(&self.cells, &mut out)
+            .expect("writing into a Vec<u8> is infallible");
+        out
+    }
+
+    /// Writes the encoding of this state with `cells` in place of `self.cells`, so a large state
+    /// held elsewhere (a server's frame bands) can be streamed out without first being copied
+    /// into a `StateDump`. `self.cells` is ignored; `cells` must fit the geometry.
+    pub fn write_with_cells(
+        &self,
+        cells: &[u64],
+        out: &mut impl std::io::Write,
+    ) -> std::io::Result<()> {
         let header = Header {
             frame: self.frame.clone(),
             width: self.width,
@@ -198,17 +212,22 @@ impl StateDump {
             luminance: self.luminance,
             frac_bits: self.frac_bits,
             origin: self.origin.clone(),
-            count: self.cells.len() as u64,
+            count: cells.len() as u64,
         };
-        let mut out = Vec::with_capacity(256 + 8 * self.cells.len());
-        out.extend_from_slice(&STATE_MAGIC);
-        out.extend_from_slice(&STATE_VERSION.to_le_bytes());
-        bincode::serde::encode_into_std_write(&header, &mut out, HEADER_CONFIG)
-            .expect("bincode encoding of a state header into a Vec<u8> is infallible");
-        for cell in &self.cells {
-            out.extend_from_slice(&cell.to_le_bytes());
+        out.write_all(&STATE_MAGIC)?;
+        out.write_all(&STATE_VERSION.to_le_bytes())?;
+        let header = bincode::serde::encode_to_vec(&header, HEADER_CONFIG)
+            .expect("bincode encoding of a state header is infallible");
+        out.write_all(&header)?;
+        // Convert in blocks: one write per 64 KiB instead of one per cell.
+        let mut block = [0u8; 8 * 8192];
+        for chunk in cells.chunks(8192) {
+            for (dst, cell) in block.chunks_exact_mut(8).zip(chunk) {
+                dst.copy_from_slice(&cell.to_le_bytes());
+            }
+            out.write_all(&block[..8 * chunk.len()])?;
         }
-        out
+        Ok(())
     }
 
     /// Decodes an untrusted state body holding at most `max_cells` cells.

@@ -42,6 +42,8 @@ use serde::{Deserialize, Serialize};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::StateDump;
 
+use crate::core::FrameState;
+
 use super::dedup::Seen;
 use super::frame::{CounterValues, FrameCut, FrameSpec, ShardedFrame};
 use super::store::FrameStore;
@@ -246,27 +248,52 @@ impl Durable {
             w.write_all(&meta)?;
             w.write_all(&(cut.bands.len() as u32).to_le_bytes())?;
             for band in &cut.bands {
-                let bytes = crate::export::dump(band, frame.id(), None).encode();
-                w.write_all(&(bytes.len() as u64).to_le_bytes())?;
-                w.write_all(&bytes)?;
+                // Length-prefixed, so a reader can bound each band before decoding it.
+                w.write_all(&encoded_len(band, frame.id())?.to_le_bytes())?;
+                crate::export::write(band, frame.id(), None, &mut w)?;
             }
             let crc = w.crc.clone().finalize();
             w.inner.write_all(&crc.to_le_bytes())
         })
     }
 
-    /// Snapshots every changed frame, forever (spawned by the server).
-    pub async fn run(self: Arc<Self>, app: super::AppState) {
+    /// Snapshots every changed frame until `stop` changes (spawned by the server). A round in
+    /// progress is finished first, so no snapshot is abandoned half-written.
+    ///
+    /// Rounds are spaced by the configured interval, or by four times the last round's duration
+    /// if that is longer: a 1080p frame holds 400 MB of cascades, which take over a second to
+    /// write and sync, and snapshots must not take more than a fifth of the machine from ingest.
+    /// Durability lags ingest by at most one spacing plus one round.
+    pub async fn run(
+        self: Arc<Self>,
+        app: super::AppState,
+        mut stop: tokio::sync::watch::Receiver<bool>,
+    ) {
+        let mut wait = self.interval;
         loop {
-            tokio::time::sleep(self.interval).await;
+            tokio::select! {
+                () = tokio::time::sleep(wait) => {}
+                _ = stop.changed() => return,
+            }
+            let started = std::time::Instant::now();
             for frame in app.store.list() {
                 if let Err(e) = self.snapshot(&app.store, &frame).await {
                     tracing::error!(frame = frame.id(), error = %e, "snapshot failed");
                     metrics::counter!("splatd_snapshot_failures_total").increment(1);
                 }
             }
+            wait = self.interval.max(started.elapsed() * 4);
         }
     }
+}
+
+/// Bytes of a band's state encoding, without encoding it.
+fn encoded_len(band: &FrameState, frame: &str) -> io::Result<u64> {
+    // The header does not depend on the cells, so encode it for an empty band of the same frame.
+    let empty = FrameState::band(band.width(), band.height(), 0..0, band.layout().clone());
+    let mut header = Vec::new();
+    crate::export::write(&empty, frame, None, &mut header)?;
+    Ok(header.len() as u64 + 8 * band.cells().len() as u64)
 }
 
 /// Counts a CRC-32 of everything written through it.
