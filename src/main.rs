@@ -105,6 +105,12 @@ struct ServeArgs {
     /// Let requests without a token read (list frames, fetch images and previews).
     #[arg(long)]
     public_read: bool,
+    /// Push resolved frames to the tev viewer listening at HOST:PORT as samples arrive.
+    #[arg(long, value_name = "HOST:PORT")]
+    tev: Option<String>,
+    /// How often changed frames are pushed to tev, in milliseconds.
+    #[arg(long, default_value_t = 1000)]
+    tev_interval_ms: u64,
 }
 
 #[derive(Args)]
@@ -228,13 +234,22 @@ fn run_server(args: ServeArgs) -> Result<()> {
         let (stop_snapshots, stop) = tokio::sync::watch::channel(false);
         let snapshots = durable
             .clone()
-            .map(|d| tokio::spawn(d.run(app.clone(), stop)));
+            .map(|d| tokio::spawn(d.run(app.clone(), stop.clone())));
+        let viewer = args.tev.clone().map(|addr| {
+            let interval = Duration::from_millis(args.tev_interval_ms.max(1));
+            tokio::spawn(splatd::service::viewer::run(
+                app.clone(),
+                addr,
+                interval,
+                stop,
+            ))
+        });
         serve(listener, app.clone(), shutdown_signal())
             .await
             .context("serving")?;
         // Let a snapshot in progress finish before the final ones.
         let _ = stop_snapshots.send(true);
-        if let Some(task) = snapshots {
+        for task in snapshots.into_iter().chain(viewer) {
             let _ = task.await;
         }
         if let Some(durable) = &durable {

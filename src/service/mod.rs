@@ -15,6 +15,7 @@ pub mod frame;
 pub mod routes;
 pub mod server;
 pub mod store;
+pub mod viewer;
 
 use std::ops::Deref;
 use std::sync::Arc;

@@ -47,7 +47,7 @@ impl Server {
         };
         cmd.args(["serve", "--addr", addr])
             .args(args)
-            .env("RUST_LOG", "warn")
+            .env("RUST_LOG", "error")
             .stdout(Stdio::piped())
             .stderr(stderr);
         for (k, v) in env {
