@@ -53,6 +53,8 @@ enum Command {
     Serve(ServeArgs),
     /// Resolves batch files or state files into an EXR, offline.
     Resolve(ResolveArgs),
+    /// Posts rendered passes (OpenEXR, one sample per pixel each) to a server.
+    Post(PostArgs),
     /// Adds state files of one frame together into one state file, offline.
     Merge {
         /// State files (`GET /v1/frames/{id}/state` bodies).
@@ -114,6 +116,29 @@ struct ServeArgs {
 }
 
 #[derive(Args)]
+struct PostArgs {
+    /// Server URL.
+    #[arg(long, default_value = "http://127.0.0.1:7878")]
+    url: String,
+    /// Frame id.
+    #[arg(long)]
+    frame: String,
+    /// Create the frame (default parameters, the size of the first pass) if it does not exist.
+    #[arg(long)]
+    create: bool,
+    /// Worker id identifying these passes (random by default). Rerunning the same command with
+    /// the same `--worker` and files posts nothing twice.
+    #[arg(long)]
+    worker: Option<u64>,
+    /// Bearer token (also read from SPLATD_TOKEN).
+    #[arg(long, env = "SPLATD_TOKEN", hide_env_values = true)]
+    token: Option<String>,
+    /// Pass files, one sample per pixel each; their order numbers them.
+    #[arg(required = true)]
+    passes: Vec<PathBuf>,
+}
+
+#[derive(Args)]
 struct ResolveArgs {
     /// Batch files (length-prefixed batches) or state files; kinds cannot be mixed.
     #[arg(required = true)]
@@ -167,6 +192,7 @@ fn main() -> Result<()> {
         Command::Serve(args) => run_server(args),
         Command::Resolve(args) => resolve(args),
         Command::Merge { inputs, output } => merge(&inputs, &output),
+        Command::Post(args) => post(args),
     }
 }
 
@@ -262,6 +288,76 @@ fn run_server(args: ServeArgs) -> Result<()> {
             }
         }
         tracing::info!("stopped");
+        Ok(())
+    })
+}
+
+fn post(args: PostArgs) -> Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(async move {
+        let mut client = splatd_proto::Client::new(&args.url)?;
+        if let Some(token) = &args.token {
+            client = client.with_token(token.clone());
+        }
+        let worker = args.worker.unwrap_or_else(|| {
+            let seed = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_nanos() as u64)
+                ^ u64::from(std::process::id());
+            splatd::synth::SplitMix64::new(seed).next_u64()
+        });
+        if args.create {
+            let first = std::fs::read(&args.passes[0])
+                .with_context(|| format!("reading {}", args.passes[0].display()))?;
+            let pass = splatd::passes::decode_pass(&first)
+                .with_context(|| format!("decoding {}", args.passes[0].display()))?;
+            let request = splatd_proto::CreateFrame::new(&args.frame, pass.width, pass.height);
+            match client.create_frame(&request).await {
+                Ok(_) => {}
+                Err(splatd_proto::ClientError::Rejected { status: 409, body })
+                    if body.error == "frame_exists" =>
+                {
+                    println!("frame {:?} exists; adding to it", args.frame);
+                }
+                Err(e) => return Err(e).context("creating the frame"),
+            }
+        }
+        let bar = indicatif::ProgressBar::new(args.passes.len() as u64).with_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:40} {pos}/{len} passes, {msg} [{elapsed_precise}, eta {eta}]",
+            )
+            .expect("valid template"),
+        );
+        let (mut samples, mut duplicates) = (0u64, 0u64);
+        for (seq, path) in args.passes.iter().enumerate() {
+            let bytes =
+                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let ack = client
+                .post_pass(&args.frame, worker, seq as u64, bytes.into())
+                .await
+                .with_context(|| format!("posting {}", path.display()))?;
+            samples += ack.accepted;
+            duplicates += u64::from(ack.duplicate);
+            bar.set_message(format!("{samples} samples"));
+            bar.inc(1);
+        }
+        bar.finish();
+        let info = client.frame_info(&args.frame).await?;
+        println!(
+            "posted {} passes ({samples} samples{}) to frame {:?} as worker {worker}; it now has \
+             {:.1} spp on average",
+            args.passes.len(),
+            if duplicates > 0 {
+                format!(", {duplicates} already there")
+            } else {
+                String::new()
+            },
+            args.frame,
+            info.spp_mean
+        );
         Ok(())
     })
 }

@@ -277,6 +277,23 @@ impl Client {
         parse_json(&format!("POST {path}"), status, &bytes)
     }
 
+    /// `POST /v1/frames/{id}/passes?worker=W&seq=S`: one rendered pass as OpenEXR bytes (each
+    /// pixel one sample). `(worker, seq)` make it exactly-once, as for batches.
+    pub async fn post_pass(
+        &self,
+        id: &str,
+        worker: u64,
+        seq: u64,
+        exr: Bytes,
+    ) -> Result<BatchAck, ClientError> {
+        validate_frame_id(id)?;
+        let path = format!("/v1/frames/{id}/passes?worker={worker}&seq={seq}");
+        let (status, bytes) = self
+            .send(Method::POST, &path, Some((exr, "image/x-exr")))
+            .await?;
+        parse_json(&format!("POST {path}"), status, &bytes)
+    }
+
     /// `GET /v1/frames`: every frame on the server.
     pub async fn list_frames(&self) -> Result<Vec<FrameInfo>, ClientError> {
         let (status, bytes) = self.send(Method::GET, "/v1/frames", None).await?;
