@@ -299,12 +299,41 @@ class Client:
         validate_frame_id(frame)
         return self._request("POST", f"/v1/frames/{frame}/samples", bytes(body), BATCH_CONTENT_TYPE)
 
+    def sync(self, frame: str) -> dict:
+        """``POST /v1/frames/{id}/sync``: returns (a SyncAck) once the frame is on disk."""
+        validate_frame_id(frame)
+        return self._request("POST", f"/v1/frames/{frame}/sync")
+
+    def post_pass(self, frame: str, worker: int, seq: int, exr: bytes) -> dict:
+        """``POST /v1/frames/{id}/passes``: one rendered pass as OpenEXR bytes; returns the BatchAck."""
+        validate_frame_id(frame)
+        path = f"/v1/frames/{frame}/passes?worker={_check_u64('worker', worker)}&seq={_check_u64('seq', seq)}"
+        return self._request("POST", path, bytes(exr), "image/x-exr")
+
+    def image(self, frame: str, **query: Any) -> bytes:
+        """``GET /v1/frames/{id}/image.exr`` with optional query parameters; returns the EXR bytes."""
+        validate_frame_id(frame)
+        qs = "&".join(f"{k}={v}" for k, v in query.items())
+        return self._request("GET", f"/v1/frames/{frame}/image.exr" + (f"?{qs}" if qs else ""), binary=True)
+
+    def delete_frame(self, frame: str) -> None:
+        """``DELETE /v1/frames/{id}``."""
+        validate_frame_id(frame)
+        self._request("DELETE", f"/v1/frames/{frame}", binary=True)
+
     def _delay(self, retry: int, retry_after: Optional[float]) -> float:
         base = min(self.initial_backoff * (2 ** min(retry, 62)), self.max_backoff)
         delay = base / 2 + random.uniform(0, base / 2)  # "equal jitter"
         return min(max(delay, retry_after or 0.0), self.max_backoff)
 
-    def _request(self, method: str, path: str, body: Optional[bytes] = None, content_type: Optional[str] = None) -> Any:
+    def _request(
+        self,
+        method: str,
+        path: str,
+        body: Optional[bytes] = None,
+        content_type: Optional[str] = None,
+        binary: bool = False,
+    ) -> Any:
         operation = f"{method} {path}"
         last = "none"
         retry_after: Optional[float] = None
@@ -339,6 +368,8 @@ class Client:
             except (urllib.error.URLError, http.client.HTTPException, OSError) as e:
                 last = f"{type(e).__name__}: {e}"
                 continue
+            if binary:
+                return raw
             try:
                 return json.loads(raw)
             except ValueError as e:
