@@ -52,9 +52,41 @@ pub fn write(
     origin: Option<Origin>,
     out: &mut impl std::io::Write,
 ) -> std::io::Result<()> {
+    header(state, state.rows(), frame, origin).write_with_cells(state.cells(), out)
+}
+
+/// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) to
+/// `out`: the same bytes as [`dump`] of the merged frame, without merging or copying the bands.
+///
+/// # Panics
+/// If `bands` is empty.
+pub fn write_bands(
+    bands: &[FrameState],
+    frame: &str,
+    origin: Option<Origin>,
+    out: &mut impl std::io::Write,
+) -> std::io::Result<()> {
+    let first = &bands[0];
+    debug_assert!(
+        bands
+            .windows(2)
+            .all(|w| w[0].rows().end == w[1].rows().start),
+        "bands tile the frame in order"
+    );
+    let rows = first.rows().start..bands[bands.len() - 1].rows().end;
+    let parts: Vec<&[u64]> = bands.iter().map(|b| b.cells()).collect();
+    header(first, rows, frame, origin).write_with_cell_parts(&parts, out)
+}
+
+/// A dump without cells describing `state`'s frame and layout for `rows`.
+fn header(
+    state: &FrameState,
+    rows: std::ops::Range<u32>,
+    frame: &str,
+    origin: Option<Origin>,
+) -> StateDump {
     let layout = state.layout();
-    let rows = state.rows();
-    let header = StateDump {
+    StateDump {
         frame: frame.to_owned(),
         width: state.width(),
         height: state.height(),
@@ -67,8 +99,7 @@ pub fn write(
         frac_bits: FRAC_BITS,
         origin,
         cells: Vec::new(),
-    };
-    header.write_with_cells(state.cells(), out)
+    }
 }
 
 /// A state from its wire form, validated like a newly created frame.
@@ -105,6 +136,24 @@ mod tests {
         let mut streamed = Vec::new();
         write(&state, "f", origin.clone(), &mut streamed).unwrap();
         assert_eq!(streamed, dump(&state, "f", origin).encode());
+    }
+
+    #[test]
+    fn bands_stream_as_the_whole_frame() {
+        let scene = FireflyScene::new(7, 20, 4);
+        let layout = CascadeLayout::with_defaults();
+        let mut whole = FrameState::new(7, 20, layout.clone());
+        let mut bands = FrameState::bands(7, 20, 3, &layout);
+        for pass in 0..3 {
+            whole.splat_all(scene.pass(pass));
+            for band in &mut bands {
+                let rows = band.rows();
+                band.splat_all(scene.pass(pass).filter(|s| rows.contains(&s.1)));
+            }
+        }
+        let mut streamed = Vec::new();
+        write_bands(&bands, "f", None, &mut streamed).unwrap();
+        assert_eq!(streamed, dump(&whole, "f", None).encode());
     }
 
     #[test]

@@ -200,6 +200,17 @@ impl StateDump {
         cells: &[u64],
         out: &mut impl std::io::Write,
     ) -> std::io::Result<()> {
+        self.write_with_cell_parts(&[cells], out)
+    }
+
+    /// Like [`StateDump::write_with_cells`], with the cells given as consecutive parts (a
+    /// frame's row bands, top to bottom), so they need not be gathered into one buffer first.
+    pub fn write_with_cell_parts(
+        &self,
+        parts: &[&[u64]],
+        out: &mut impl std::io::Write,
+    ) -> std::io::Result<()> {
+        let count: usize = parts.iter().map(|p| p.len()).sum();
         let header = Header {
             frame: self.frame.clone(),
             width: self.width,
@@ -212,7 +223,7 @@ impl StateDump {
             luminance: self.luminance,
             frac_bits: self.frac_bits,
             origin: self.origin.clone(),
-            count: cells.len() as u64,
+            count: count as u64,
         };
         out.write_all(&STATE_MAGIC)?;
         out.write_all(&STATE_VERSION.to_le_bytes())?;
@@ -221,7 +232,7 @@ impl StateDump {
         out.write_all(&header)?;
         // Convert in blocks: one write per 64 KiB instead of one per cell.
         let mut block = [0u8; 8 * 8192];
-        for chunk in cells.chunks(8192) {
+        for chunk in parts.iter().flat_map(|p| p.chunks(8192)) {
             for (dst, cell) in block.chunks_exact_mut(8).zip(chunk) {
                 dst.copy_from_slice(&cell.to_le_bytes());
             }

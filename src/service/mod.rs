@@ -4,6 +4,9 @@
 //!   duplicate detection ([`dedup`]);
 //! * [`store`]: the frames of a server and the limits on them;
 //! * [`routes`]: one handler per endpoint; [`error`]: the JSON errors they answer;
+//! * [`durable`]: snapshots and recovery; [`auth`]: bearer tokens and roles;
+//! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
+//!   [`viewer`]: pushing frames to tev;
 //! * [`server`]: the router, its layers (decompression, timeouts, tracing, JSON errors) and the
 //!   listener with graceful shutdown.
 
@@ -12,6 +15,7 @@ pub mod dedup;
 pub mod durable;
 pub mod error;
 pub mod frame;
+pub mod push;
 pub mod routes;
 pub mod server;
 pub mod store;

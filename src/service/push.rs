@@ -27,9 +27,10 @@
 //!   (they are not persisted), so a restarted node must push under a new id, or the upstream
 //!   would take its new deltas for old ones and drop them. The default id is 64 random bits
 //!   chosen at start-up; `--node-id` is for logs and dashboards and must not be reused across
-//!   restarts. A consequence: a node that restarts from a snapshot pushes its restored samples
-//!   again, in full, under its new id; do not combine push mode with restoring frames that
-//!   were already pushed.
+//!   restarts. A consequence: a node restored from a snapshot would push its restored samples
+//!   again, in full, under its new id, so `splatd serve` refuses `--upstream` together with
+//!   `--data-dir`: a pushing node keeps its frames in memory, and the upstream is where
+//!   durability lives.
 //!
 //! Sequence numbers of a frame id are kept for the life of the process even when the frame is
 //! deleted, so a frame deleted and created again continues its numbering (from an empty
@@ -337,8 +338,12 @@ impl Pusher {
             }
         }
         match tokio::time::timeout(FINAL_PUSH_TIMEOUT, self.final_push()).await {
-            Ok(true) => tracing::info!("final push done"),
-            Ok(false) => tracing::error!("final push incomplete; unsent samples are lost"),
+            Ok(report) if report.is_clean() => tracing::info!("final push done"),
+            Ok(report) => tracing::error!(
+                undelivered = report.failed,
+                refused = report.refused,
+                "final push incomplete: the samples of these frames never reach the upstream"
+            ),
             Err(_) => tracing::error!(
                 "final push took longer than {}s; unsent samples are lost",
                 FINAL_PUSH_TIMEOUT.as_secs()
@@ -346,15 +351,12 @@ impl Pusher {
         }
     }
 
-    /// Rounds until nothing is pending, or a round makes no progress.
-    async fn final_push(&mut self) -> bool {
+    /// Rounds until nothing is pending, or a round makes no progress; the last round's report.
+    async fn final_push(&mut self) -> PushReport {
         loop {
             let report = self.push_once().await;
-            if report.is_clean() {
-                return true;
-            }
-            if report.applied + report.duplicate == 0 {
-                return false;
+            if report.is_clean() || report.applied + report.duplicate == 0 {
+                return report;
             }
         }
     }

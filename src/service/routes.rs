@@ -331,8 +331,11 @@ pub async fn export_state(
 ) -> Result<Response, ApiError> {
     let frame = app.store.get(&id)?;
     let bytes = blocking("export", move || {
-        let whole = frame.cut().whole();
-        Ok(crate::export::dump(&whole, frame.id(), None).encode())
+        let cut = frame.cut();
+        let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
+        crate::export::write_bands(&cut.bands, frame.id(), None, &mut out)
+            .expect("writing into a Vec<u8> is infallible");
+        Ok(out)
     })
     .await?;
     metrics::counter!("splatd_exports_total").increment(1);

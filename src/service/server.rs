@@ -20,6 +20,7 @@ use hyper_util::server::conn::auto;
 use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
+use tower_http::compression::CompressionLayer;
 use tower_http::decompression::RequestDecompressionLayer;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
@@ -47,7 +48,10 @@ pub fn router(app: AppState) -> Router {
         .route("/frames/{id}/preview.png", get(routes::get_preview))
         .route(
             "/frames/{id}/state",
-            get(routes::export_state).post(routes::import_state),
+            // States are mostly small integers and zeros: compress them for clients that ask.
+            get(routes::export_state)
+                .layer(CompressionLayer::new().gzip(true).zstd(true))
+                .post(routes::import_state),
         );
     Router::new()
         .route("/", get(routes::index))

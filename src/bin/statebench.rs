@@ -1,0 +1,214 @@
+//! How fast a frame state moves between nodes: export (`GET /v1/frames/{id}/state`), transfer
+//! over loopback and import (`POST /v1/frames/{id}/state`) of a 1920x1080 state with 8
+//! cascades, against a plain memcpy of the same bytes measured in the same run.
+//!
+//! ```sh
+//! cargo build --release --bins && cargo run --release --bin statebench
+//! ```
+//!
+//! The server is the `splatd` binary next to this one, started as a child process on a free
+//! loopback port. The source frame is filled with a few passes of the synthetic firefly scene
+//! (imported as one state, which is faster than posting batches and gives the same cells).
+
+use std::io::{BufRead, BufReader};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, Context, Result};
+use clap::Parser;
+use splatd::core::{CascadeLayout, FrameState};
+use splatd::synth::FireflyScene;
+use splatd_proto::api::{CascadeParams, CreateFrame};
+use splatd_proto::Client;
+
+#[derive(Parser)]
+#[command(about = "State export/transfer/import over loopback, against memcpy")]
+struct Args {
+    /// Frame width.
+    #[arg(long, default_value_t = 1920)]
+    width: u32,
+    /// Frame height.
+    #[arg(long, default_value_t = 1080)]
+    height: u32,
+    /// Cascades.
+    #[arg(long, default_value_t = 8)]
+    cascades: u32,
+    /// Passes (samples per pixel) of the synthetic scene in the source frame.
+    #[arg(long, default_value_t = 4)]
+    spp: u64,
+    /// Timed runs; the best is reported.
+    #[arg(long, default_value_t = 3)]
+    runs: u32,
+}
+
+/// The server child, killed when dropped.
+struct ServerProcess {
+    child: Child,
+    url: String,
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start_server() -> Result<ServerProcess> {
+    let exe = std::env::current_exe()?.with_file_name("splatd");
+    if !exe.exists() {
+        bail!(
+            "{} not found: build the server next to this benchmark first \
+             (cargo build --release --bins)",
+            exe.display()
+        );
+    }
+    let mut child = Command::new(&exe)
+        .args([
+            "serve",
+            "--addr",
+            "127.0.0.1:0",
+            "--max-memory-mib",
+            "16384",
+        ])
+        .env("RUST_LOG", "warn")
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .with_context(|| format!("starting {}", exe.display()))?;
+    let stdout = child.stdout.take().context("piped stdout")?;
+    let mut lines = BufReader::new(stdout).lines();
+    let line = lines
+        .next()
+        .context("the server exited before printing its address")??;
+    // Keep draining so the server never blocks on a full pipe.
+    std::thread::spawn(move || for _ in lines {});
+    let url = line
+        .strip_prefix("splatd listening on ")
+        .with_context(|| format!("unexpected first line from splatd: {line:?}"))?
+        .to_owned();
+    Ok(ServerProcess { child, url })
+}
+
+/// Best time of `runs` memcpys of `src` into a buffer already faulted in.
+fn memcpy_best(src: &[u8], runs: u32) -> Duration {
+    let mut dst = vec![1u8; src.len()];
+    let mut best = Duration::MAX;
+    for _ in 0..runs.max(3) {
+        let t = Instant::now();
+        dst.copy_from_slice(std::hint::black_box(src));
+        std::hint::black_box(&mut dst);
+        best = best.min(t.elapsed());
+    }
+    best
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+fn main() -> Result<()> {
+    let args = Args::parse();
+    let (w, h, k) = (args.width, args.height, args.cascades);
+    let cascades = CascadeParams {
+        cascades: k,
+        ..CascadeParams::default()
+    };
+    let layout = CascadeLayout::new(
+        cascades.base,
+        cascades.cascades,
+        cascades.lowest_scale,
+        cascades.luminance,
+    )?;
+
+    eprintln!(
+        "filling a {w}x{h} state with {k} cascades, {} spp ...",
+        args.spp
+    );
+    let scene = FireflyScene::new(w, h, 42);
+    let mut fill = FrameState::new(w, h, layout);
+    for pass in 0..args.spp {
+        fill.splat_all(scene.pass(pass));
+    }
+    let fill_bytes = splatd::export::dump(&fill, "bench.src", None).encode();
+    drop(fill);
+
+    let server = start_server()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let client = Client::new(&server.url)?;
+    let (export, import, total, bytes) = runtime.block_on(async {
+        for id in ["bench.src", "bench.dst"] {
+            let mut req = CreateFrame::new(id, w, h);
+            req.cascades = cascades.clone();
+            client.create_frame(&req).await?;
+        }
+        client
+            .import_state("bench.src", fill_bytes.into())
+            .await
+            .context("filling the source frame")?;
+        let (mut export, mut import, mut total) = (Duration::MAX, Duration::MAX, Duration::MAX);
+        let mut last = bytes::Bytes::new();
+        for run in 0..args.runs.max(1) {
+            let t0 = Instant::now();
+            let state = client.export_state("bench.src").await?;
+            let t1 = Instant::now();
+            // The same bytes, posted to another frame of the same size.
+            let mut dump = splatd_proto::StateDump::decode(&state, u64::MAX)?;
+            dump.frame = "bench.dst".into();
+            let body = bytes::Bytes::from(dump.encode());
+            let t2 = Instant::now();
+            client.import_state("bench.dst", body).await?;
+            let t3 = Instant::now();
+            eprintln!(
+                "run {run}: export {:.0} ms, import {:.0} ms ({} bytes)",
+                ms(t1 - t0),
+                ms(t3 - t2),
+                state.len()
+            );
+            export = export.min(t1 - t0);
+            import = import.min(t3 - t2);
+            total = total.min((t1 - t0) + (t3 - t2));
+            last = state;
+        }
+        anyhow::Ok((export, import, total, last))
+    })?;
+    let copy = memcpy_best(&bytes, args.runs);
+    let mib = bytes.len() as f64 / (1 << 20) as f64;
+    println!(
+        "state {w}x{h}, {k} cascades: {mib:.1} MiB ({} bytes)",
+        bytes.len()
+    );
+    println!(
+        "export (GET state)   best of {}: {:>8.1} ms  {:>7.0} MiB/s",
+        args.runs,
+        ms(export),
+        mib / export.as_secs_f64()
+    );
+    println!(
+        "import (POST state)  best of {}: {:>8.1} ms  {:>7.0} MiB/s",
+        args.runs,
+        ms(import),
+        mib / import.as_secs_f64()
+    );
+    println!(
+        "export + import      best of {}: {:>8.1} ms  {:>7.0} MiB/s",
+        args.runs,
+        ms(total),
+        mib / total.as_secs_f64()
+    );
+    println!(
+        "memcpy of the bytes  best of {}: {:>8.1} ms  {:>7.0} MiB/s",
+        args.runs.max(3),
+        ms(copy),
+        mib / copy.as_secs_f64()
+    );
+    println!(
+        "ratio (export + import) / memcpy: {:.1}x",
+        total.as_secs_f64() / copy.as_secs_f64()
+    );
+    drop(server);
+    Ok(())
+}

@@ -1,0 +1,59 @@
+#!/usr/bin/env bash
+# Installs nginx (Debian's nginx-light, else nginx) if no nginx binary is on PATH.
+# Idempotent and non-interactive; uses sudo only when not already root.
+# Prints the path of the nginx binary on success.
+set -euo pipefail
+
+find_nginx() {
+    command -v nginx 2>/dev/null || { [ -x /usr/sbin/nginx ] && echo /usr/sbin/nginx; } || true
+}
+
+found="$(find_nginx)"
+if [ -n "$found" ]; then
+    echo "$found"
+    exit 0
+fi
+
+if ! command -v apt-get >/dev/null 2>&1; then
+    echo "nginx is not installed and apt-get is not available; install nginx by hand" >&2
+    exit 1
+fi
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then
+    if command -v sudo >/dev/null 2>&1; then
+        SUDO="sudo -n"
+    else
+        echo "nginx is not installed, and installing it needs root (no sudo found)" >&2
+        exit 1
+    fi
+fi
+
+export DEBIAN_FRONTEND=noninteractive
+# Don't let the package start a system nginx on port 80: the tests run their own.
+policy_added=""
+if [ ! -e /usr/sbin/policy-rc.d ] && [ -z "$SUDO" ]; then
+    printf '#!/bin/sh\nexit 101\n' > /usr/sbin/policy-rc.d
+    chmod +x /usr/sbin/policy-rc.d
+    policy_added=1
+fi
+cleanup() { if [ -n "$policy_added" ]; then rm -f /usr/sbin/policy-rc.d; fi; }
+trap cleanup EXIT
+
+apt_install() {
+    $SUDO apt-get install -y -q --no-install-recommends \
+        -o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold "$@" >&2
+}
+
+# Try with the package lists as they are first; refresh them only if that fails.
+if ! apt_install nginx-light && ! apt_install nginx; then
+    $SUDO apt-get update -q >&2
+    apt_install nginx-light || apt_install nginx
+fi
+
+found="$(find_nginx)"
+if [ -z "$found" ]; then
+    echo "nginx was installed but no nginx binary was found" >&2
+    exit 1
+fi
+echo "$found"
