@@ -10,6 +10,7 @@
 //! * [`quality`] holds the error metrics of the demo, tests and benchmarks.
 pub mod batchfile;
 pub mod core;
+pub mod demo;
 pub mod export;
 pub mod image;
 pub mod passes;

@@ -12,12 +12,11 @@ use clap::{Args, Parser, Subcommand};
 use splatd::batchfile::BatchReader;
 use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant};
 use splatd::image::{encode_exr, ExtraLayer};
-use splatd::quality::{energy_bias, rel_mse};
 use splatd::service::auth::Auth;
 use splatd::service::durable::Durable;
+use splatd::service::push::PushConfig;
 use splatd::service::server::{bind, serve, shutdown_signal};
 use splatd::service::{AppState, Limits};
-use splatd::synth::FireflyScene;
 use splatd_proto::{DecodeLimits, StateDump};
 
 #[derive(Parser)]
@@ -37,18 +36,9 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Runs the estimator on the built-in firefly-heavy scene and writes EXRs.
-    Demo {
-        /// Output folder.
-        #[arg(long, default_value = "out/demo")]
-        out: PathBuf,
-        /// Image width and height.
-        #[arg(long, default_value_t = 256)]
-        size: u32,
-        /// Samples per pixel.
-        #[arg(long, default_value_t = 64)]
-        spp: u64,
-    },
+    /// Path-traces the built-in scene with render workers that stream samples over HTTP to an
+    /// embedded server; writes reweighted.exr, mean.exr and side_by_side.png.
+    Demo(DemoArgs),
     /// Runs the HTTP server.
     Serve(ServeArgs),
     /// Resolves batch files or state files into an EXR, offline.
@@ -64,6 +54,31 @@ enum Command {
         #[arg(short, long)]
         output: PathBuf,
     },
+}
+
+#[derive(Args)]
+struct DemoArgs {
+    /// Output folder.
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    /// Image width.
+    #[arg(long, default_value_t = 640)]
+    width: u32,
+    /// Image height.
+    #[arg(long, default_value_t = 480)]
+    height: u32,
+    /// Samples per pixel.
+    #[arg(long, default_value_t = 64)]
+    spp: u64,
+    /// Concurrent render workers.
+    #[arg(long, default_value_t = 2)]
+    workers: usize,
+    /// Address of the embedded server (port 0 picks a free port).
+    #[arg(long, default_value = "127.0.0.1:0")]
+    addr: String,
+    /// Keep serving the live page after the demo, until Ctrl-C.
+    #[arg(long)]
+    serve: bool,
 }
 
 #[derive(Args)]
@@ -113,6 +128,22 @@ struct ServeArgs {
     /// How often changed frames are pushed to tev, in milliseconds.
     #[arg(long, default_value_t = 1000)]
     tev_interval_ms: u64,
+    /// Push mode: send what this node accumulates to the splatd at this URL
+    /// (e.g. `http://render-head:7878`) as exact deltas, each applied there once.
+    /// Not with `--data-dir`: what was pushed is not part of a snapshot, so a restarted node
+    /// would push its restored frames again and count them twice upstream.
+    #[arg(long, conflicts_with = "data_dir")]
+    upstream: Option<String>,
+    /// This node's id in its pushed deltas. Must not be reused by another process, including
+    /// this node after a restart (default: 64 random bits).
+    #[arg(long, requires = "upstream")]
+    node_id: Option<String>,
+    /// Milliseconds between two push rounds.
+    #[arg(long, default_value_t = 1000, requires = "upstream")]
+    push_interval_ms: u64,
+    /// Bearer token sent to the upstream.
+    #[arg(long, requires = "upstream")]
+    upstream_token: Option<String>,
 }
 
 #[derive(Args)]
@@ -180,15 +211,29 @@ struct ResolveArgs {
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
+    // The demo's progress bar is its output; the embedded server's routine logs would clutter it.
+    let level = match (&cli.command, cli.log_level.as_str()) {
+        (Command::Demo(_), "info") => "warn",
+        (_, level) => level,
+    };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .or_else(|_| tracing_subscriber::EnvFilter::try_new(&cli.log_level))
+        .or_else(|_| tracing_subscriber::EnvFilter::try_new(level))
         .context("invalid --log-level")?;
     tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)
         .init();
     match cli.command {
-        Command::Demo { out, size, spp } => demo(&out, size, spp),
+        Command::Demo(a) => splatd::demo::run(&splatd::demo::DemoOptions {
+            out: a.out,
+            width: a.width,
+            height: a.height,
+            spp: a.spp,
+            workers: a.workers,
+            addr: a.addr,
+            keep_serving: a.serve,
+        })
+        .map(|_| ()),
         Command::Serve(args) => run_server(args),
         Command::Resolve(args) => resolve(args),
         Command::Merge { inputs, output } => merge(&inputs, &output),
@@ -239,6 +284,18 @@ fn run_server(args: ServeArgs) -> Result<()> {
     } else {
         tracing::warn!("no tokens configured: anyone who can reach this server may use it");
     }
+    let push = args.upstream.clone().map(|upstream| {
+        let mut cfg = PushConfig::new(upstream);
+        if let Some(node) = args.node_id.clone() {
+            cfg.node = node;
+        }
+        cfg.interval = Duration::from_millis(args.push_interval_ms.max(1));
+        cfg.token = args.upstream_token.clone();
+        cfg
+    });
+    if let Some(cfg) = &push {
+        cfg.client().context("--upstream")?;
+    }
     let app = AppState::with_auth(limits, Some(metrics), durable.clone(), auth);
     if let Some(durable) = &durable {
         let n = durable
@@ -267,15 +324,24 @@ fn run_server(args: ServeArgs) -> Result<()> {
                 app.clone(),
                 addr,
                 interval,
-                stop,
+                stop.clone(),
             ))
+        });
+        let pusher = push.map(|cfg| {
+            tracing::info!(upstream = cfg.upstream, node = cfg.node, "push mode");
+            let mut stop = stop.clone();
+            splatd::service::push::spawn_until(app.clone(), cfg, async move {
+                let _ = stop.wait_for(|stopped| *stopped).await;
+            })
         });
         serve(listener, app.clone(), shutdown_signal())
             .await
             .context("serving")?;
         // Let a snapshot in progress finish before the final ones.
         let _ = stop_snapshots.send(true);
-        for task in snapshots.into_iter().chain(viewer) {
+        // The pusher makes a final push: requests in flight are done, so it carries everything
+        // acknowledged.
+        for task in snapshots.into_iter().chain(viewer).chain(pusher) {
             let _ = task.await;
         }
         if let Some(durable) = &durable {
@@ -495,47 +561,5 @@ fn resolve(args: ResolveArgs) -> Result<()> {
         state.height(),
         args.output.display()
     );
-    Ok(())
-}
-
-fn demo(out: &Path, size: u32, spp: u64) -> Result<()> {
-    let scene = FireflyScene::new(size, size, 2018);
-    let layout = CascadeLayout::with_defaults();
-    let mut state = FrameState::new(size, size, layout.clone());
-    for pass in 0..spp {
-        let report = state.splat_all(scene.pass(pass));
-        anyhow::ensure!(
-            report.rejected() == 0,
-            "synthetic stream produced {report:?}"
-        );
-    }
-    let exact: Vec<[f32; 3]> = (0..size)
-        .flat_map(|y| (0..size).map(move |x| scene.mean(x, y).map(|v| v as f32)))
-        .collect();
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    println!("built-in firefly scene, {size}x{size}, {spp} spp");
-    println!("{:<12} {:>10} {:>12}", "estimate", "relMSE", "energy bias");
-    for (name, params) in [
-        ("mean", ResolveParams::off()),
-        ("reweighted", ResolveParams::with_defaults()),
-        (
-            "shader",
-            ResolveParams::new(Variant::Shader, 4.0, 1.0, 0.0).expect("valid parameters"),
-        ),
-    ] {
-        let resolved = state.resolve(&params);
-        let image = &resolved.reweighted;
-        println!(
-            "{name:<12} {:>10.4} {:>+11.2}%",
-            rel_mse(image, &exact),
-            100.0 * energy_bias(image, &exact, layout.luminance_weights())
-        );
-        if name != "shader" {
-            let path = out.join(format!("{name}.exr"));
-            std::fs::write(&path, encode_exr(&resolved, &[])?)
-                .with_context(|| format!("writing {}", path.display()))?;
-            println!("{:<12} wrote {}", "", path.display());
-        }
-    }
     Ok(())
 }

@@ -1,0 +1,66 @@
+#!/usr/bin/env bash
+# Installs Debian's chromium and chromium-driver if either binary is missing, for
+# tests/live_page.rs. Idempotent and non-interactive; uses sudo only when not already root.
+# Refreshes the package lists only if installing from the present ones fails.
+# Prints the paths of the chromium and chromedriver binaries (one per line) on success.
+set -euo pipefail
+
+find_bin() {
+    for name in "$@"; do
+        command -v "$name" 2>/dev/null && return 0
+        for dir in /usr/bin /usr/lib/chromium; do
+            if [ -x "$dir/$name" ]; then
+                echo "$dir/$name"
+                return 0
+            fi
+        done
+    done
+    return 0
+}
+
+found() {
+    chromium="$(find_bin chromium chromium-browser)"
+    driver="$(find_bin chromedriver)"
+    [ -n "$chromium" ] && [ -n "$driver" ]
+}
+
+if found; then
+    echo "$chromium"
+    echo "$driver"
+    exit 0
+fi
+
+if ! command -v apt-get >/dev/null 2>&1; then
+    echo "chromium/chromedriver are not installed and apt-get is not available; install them by hand" >&2
+    exit 1
+fi
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then
+    if command -v sudo >/dev/null 2>&1; then
+        SUDO="sudo -n"
+    else
+        echo "chromium is not installed, and installing it needs root (no sudo found)" >&2
+        exit 1
+    fi
+fi
+
+export DEBIAN_FRONTEND=noninteractive
+apt_install() {
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
+        -o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold \
+        chromium chromium-driver >&2
+}
+
+# Try with the package lists as they are first; refresh them only if that fails.
+if ! apt_install; then
+    $SUDO apt-get update -q >&2
+    apt_install
+fi
+
+if ! found; then
+    echo "chromium and chromium-driver were installed, but chromium='$chromium' chromedriver='$driver'" >&2
+    exit 1
+fi
+echo "$chromium"
+echo "$driver"
