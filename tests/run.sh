@@ -1,11 +1,34 @@
 #!/usr/bin/env bash
-# The whole test suite, from a fresh clone with only the Rust toolchain and Python 3 present:
-# installs what the tests need beyond cargo's own crates, then runs every test.
+# The whole test suite, from a fresh clone with only the Rust toolchain present: installs what
+# the tests need beyond cargo's own crates, then runs every test.
+#
+#   Python 3 + numpy + OpenEXR   independent EXR reader/writer, the Python client's tests (pip)
+#   nginx                        the load balancer in front of several nodes (Debian package)
+#   chromium + chromedriver      the live page, driven headless (Debian packages)
+#
+# The Debian packages are installed as root (or with sudo) when missing; each script is
+# idempotent and does nothing when its tools are already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# Independent readers and the Python client's tests need numpy and OpenEXR's Python package.
-python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore -r tests/requirements.txt
+as_root() {
+    if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo -n "$@"; fi
+}
+
+if ! command -v python3 >/dev/null 2>&1 || ! python3 -m pip --version >/dev/null 2>&1; then
+    as_root apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq --no-install-recommends \
+        python3 python3-pip python3-venv >/dev/null
+fi
+python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
+    -r tests/requirements.txt 2>/dev/null \
+    || python3 -m pip install --quiet --disable-pip-version-check --break-system-packages \
+        -r tests/requirements.txt
+
+# Installed up front, once: the tests call the same scripts, which then find the tools present
+# (two tests running apt-get at the same time would fight over its lock).
+bash tests/setup/nginx.sh >/dev/null
+bash tests/setup/chromium.sh >/dev/null
 
 cargo test --workspace
 python3 proto/python/test_splatd_client.py
