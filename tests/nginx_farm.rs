@@ -180,8 +180,9 @@ fn pass_records(scene: &FireflyScene, pass: u64) -> Vec<Record> {
 }
 
 /// Creates every frame, then posts every pass of every frame from one task per frame.
-/// `header_create`: create with a raw request carrying `X-Splatd-Frame`, for every other frame
-/// (the rest go through the Rust client, which nginx routes by the JSON body).
+/// `header_create`: every other frame is created with a raw request that names the frame only in
+/// its JSON body (nginx routes it by the body); the rest go through the Rust client, which also
+/// sends `X-Splatd-Frame`.
 async fn drive(base: &str, frames: &[TestFrame], header_create: bool) {
     let client = Client::new(base).unwrap();
     let http = reqwest::Client::new();
@@ -190,7 +191,6 @@ async fn drive(base: &str, frames: &[TestFrame], header_create: bool) {
             let r = http
                 .post(format!("{base}/v1/frames"))
                 .header("content-type", "application/json")
-                .header("x-splatd-frame", &f.create.id)
                 .body(serde_json::to_vec(&f.create).unwrap())
                 .send()
                 .await

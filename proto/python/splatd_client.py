@@ -283,7 +283,10 @@ class Client:
             req["cascades"] = cascades
         if resolve is not None:
             req["resolve"] = resolve
-        return self._request("POST", "/v1/frames", json.dumps(req).encode(), "application/json")
+        # The id also goes in a header, for proxies that route frames by id (deploy/nginx/).
+        return self._request(
+            "POST", "/v1/frames", json.dumps(req).encode(), "application/json", headers={"X-Splatd-Frame": id}
+        )
 
     def frame_info(self, id: str) -> dict:
         """``GET /v1/frames/{id}``."""
@@ -333,6 +336,7 @@ class Client:
         body: Optional[bytes] = None,
         content_type: Optional[str] = None,
         binary: bool = False,
+        headers: Optional[dict] = None,
     ) -> Any:
         operation = f"{method} {path}"
         last = "none"
@@ -346,6 +350,8 @@ class Client:
                 req.add_header("Content-Type", content_type)
             if self.token:
                 req.add_header("Authorization", f"Bearer {self.token}")
+            for name, value in (headers or {}).items():
+                req.add_header(name, value)
             try:
                 with self._open(req, timeout=self.timeout) as resp:
                     raw = resp.read()

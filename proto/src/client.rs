@@ -29,6 +29,9 @@ use crate::api::{BatchAck, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQu
 use crate::batch::{validate_frame_id, Batch, Record, WireError, DEFAULT_MAX_RECORDS};
 use crate::BATCH_CONTENT_TYPE;
 
+/// Header naming the frame of a `POST /v1/frames`, for routing proxies.
+pub const FRAME_HEADER: &str = "x-splatd-frame";
+
 /// Longest piece of a non-JSON error body kept in an error.
 const MAX_BODY_EXCERPT: usize = 512;
 
@@ -231,11 +234,14 @@ impl Client {
         let body = serde_json::to_vec(req).map_err(|e| {
             ClientError::InvalidArgument(format!("could not serialise the frame request: {e}"))
         })?;
+        // The id also goes in a header, for proxies that route frames to nodes by id without
+        // parsing bodies (see `deploy/nginx/`).
         let (status, bytes) = self
-            .send(
+            .send_with(
                 Method::POST,
                 "/v1/frames",
                 Some((Bytes::from(body), "application/json")),
+                Some((FRAME_HEADER, req.id.as_str())),
             )
             .await?;
         parse_json("POST /v1/frames", status, &bytes)
@@ -358,6 +364,17 @@ impl Client {
         path: &str,
         body: Option<(Bytes, &'static str)>,
     ) -> Result<(StatusCode, Bytes), ClientError> {
+        self.send_with(method, path, body, None).await
+    }
+
+    /// [`Client::send`] with one extra request header.
+    async fn send_with(
+        &self,
+        method: Method,
+        path: &str,
+        body: Option<(Bytes, &'static str)>,
+        header: Option<(&'static str, &str)>,
+    ) -> Result<(StatusCode, Bytes), ClientError> {
         let operation = format!("{method} {path}");
         let url = format!("{}{path}", self.base);
         let attempts = self.retry.max_attempts.max(1);
@@ -369,6 +386,9 @@ impl Client {
             let mut req = self.http.request(method.clone(), &url);
             if let Some(token) = &self.token {
                 req = req.bearer_auth(token);
+            }
+            if let Some((name, value)) = header {
+                req = req.header(name, value);
             }
             if let Some((bytes, content_type)) = &body {
                 // Bytes clones share the buffer: every attempt sends the same bytes.
