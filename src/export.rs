@@ -27,21 +27,9 @@ pub enum ImportError {
 
 /// The wire form of a state (a whole frame or a band).
 pub fn dump(state: &FrameState, frame: &str, origin: Option<Origin>) -> StateDump {
-    let layout = state.layout();
-    let rows = state.rows();
     StateDump {
-        frame: frame.to_owned(),
-        width: state.width(),
-        height: state.height(),
-        rows_start: rows.start,
-        rows_end: rows.end,
-        base: layout.base(),
-        cascades: layout.cascades() as u32,
-        lowest_scale: layout.lowest_scale(),
-        luminance: layout.luminance_weights(),
-        frac_bits: FRAC_BITS,
-        origin,
         cells: state.cells().to_vec(),
+        ..header(state, state.rows(), frame, origin)
     }
 }
 
