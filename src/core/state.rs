@@ -390,13 +390,8 @@ impl FrameState {
         add_share(high, p.s, units, COUNT_ONE - count_lo);
     }
 
-    /// Adds another state of the same frame into this one, exactly.
-    ///
-    /// The layouts and frame sizes must match. Row ranges must be equal, or one must contain the
-    /// other; then the rows they share are added (so a whole-frame state can be merged into a
-    /// band, and a band into a whole-frame state). Addition saturates instead of wrapping, which
-    /// keeps it commutative and associative on the unsigned cells.
-    pub fn merge(&mut self, other: &FrameState) -> Result<(), MergeError> {
+    /// Checks that `other` is a state of a frame of the same size and cascade layout.
+    fn check_same_frame(&self, other: &FrameState) -> Result<(), MergeError> {
         if (self.width, self.height) != (other.width, other.height) {
             return Err(MergeError::Size {
                 ours_w: self.width,
@@ -411,6 +406,17 @@ impl FrameState {
                 theirs: format!("{:?}", other.layout),
             });
         }
+        Ok(())
+    }
+
+    /// Adds another state of the same frame into this one, exactly.
+    ///
+    /// The layouts and frame sizes must match. Row ranges must be equal, or one must contain the
+    /// other; then the rows they share are added (so a whole-frame state can be merged into a
+    /// band, and a band into a whole-frame state). Addition saturates instead of wrapping, which
+    /// keeps it commutative and associative on the unsigned cells.
+    pub fn merge(&mut self, other: &FrameState) -> Result<(), MergeError> {
+        self.check_same_frame(other)?;
         let (ours, theirs) = (self.rows(), other.rows());
         let nested = |a: &std::ops::Range<u32>, b: &std::ops::Range<u32>| {
             a.start <= b.start && b.end <= a.end
@@ -437,20 +443,7 @@ impl FrameState {
     /// what it accumulated since its last push. Cells only grow, so the difference is exact as
     /// long as no cell saturated (2^64 units: more than 4 billion samples in one pixel).
     pub fn delta_since(&self, earlier: &FrameState) -> Result<FrameState, MergeError> {
-        if (self.width, self.height) != (earlier.width, earlier.height) {
-            return Err(MergeError::Size {
-                ours_w: self.width,
-                ours_h: self.height,
-                theirs_w: earlier.width,
-                theirs_h: earlier.height,
-            });
-        }
-        if self.layout != earlier.layout {
-            return Err(MergeError::Layout {
-                ours: format!("{:?}", self.layout),
-                theirs: format!("{:?}", earlier.layout),
-            });
-        }
+        self.check_same_frame(earlier)?;
         if self.rows() != earlier.rows() {
             return Err(MergeError::Rows {
                 ours: self.rows(),
