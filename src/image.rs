@@ -19,6 +19,19 @@ pub struct ExtraLayer {
     pub rgb: Vec<[f32; 3]>,
 }
 
+/// The raw cascade layers `cascade0`, `cascade1`, ... from per-cascade means
+/// ([`crate::core::FrameState::cascade_means`]), to write beside the resolved layers.
+pub fn cascade_layers(means: Vec<Vec<[f32; 3]>>) -> Vec<ExtraLayer> {
+    means
+        .into_iter()
+        .enumerate()
+        .map(|(j, rgb)| ExtraLayer {
+            name: format!("cascade{j}"),
+            rgb,
+        })
+        .collect()
+}
+
 /// Encodes a resolved frame (and any extra layers) as EXR bytes.
 ///
 /// `exr` compresses blocks on a thread pool it starts per call: from async code call this inside

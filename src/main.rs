@@ -10,10 +10,11 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 
 use splatd::batchfile::BatchReader;
-use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant};
-use splatd::image::{encode_exr, ExtraLayer};
+use splatd::core::{CascadeLayout, FrameState};
+use splatd::image::{cascade_layers, encode_exr};
 use splatd::service::auth::Auth;
 use splatd::service::durable::Durable;
+use splatd::service::frame::core_resolve_params;
 use splatd::service::push::PushConfig;
 use splatd::service::server::{bind, serve, shutdown_signal};
 use splatd::service::{AppState, Limits};
@@ -531,23 +532,15 @@ fn resolve(args: ResolveArgs) -> Result<()> {
     } else {
         bail!("inputs mix state files and batch files");
     };
-    let variant = match args.variant {
-        splatd_proto::Variant::Paper => Variant::Paper,
-        splatd_proto::Variant::Shader => Variant::Shader,
-        splatd_proto::Variant::Off => Variant::Off,
-    };
-    let params = ResolveParams::new(variant, args.kappa, args.kappa_min, args.kappa_exponent)?;
+    let params = core_resolve_params(&splatd_proto::ResolveParams {
+        variant: args.variant,
+        kappa: args.kappa,
+        kappa_min: args.kappa_min,
+        kappa_exponent: args.kappa_exponent,
+    })?;
     let resolved = state.resolve(&params);
-    let extra: Vec<ExtraLayer> = if args.cascade_layers {
-        state
-            .cascade_means()
-            .into_iter()
-            .enumerate()
-            .map(|(j, rgb)| ExtraLayer {
-                name: format!("cascade{j}"),
-                rgb,
-            })
-            .collect()
+    let extra = if args.cascade_layers {
+        cascade_layers(state.cascade_means())
     } else {
         Vec::new()
     };

@@ -21,7 +21,7 @@ use super::error::ApiError;
 use super::frame::{core_resolve_params, ShardedFrame};
 use super::store::Created;
 use super::AppState;
-use crate::image::{encode_exr, ExtraLayer};
+use crate::image::{cascade_layers, encode_exr};
 
 /// Largest JSON request body (a `CreateFrame` is a few hundred bytes).
 const MAX_JSON_BODY: usize = 64 * 1024;
@@ -305,15 +305,8 @@ pub async fn get_image(
     let exr = blocking("resolve", move || {
         let cut = frame.cut();
         let resolved = cut.resolve(&params, threads);
-        let extra: Vec<ExtraLayer> = if query.cascades {
-            cut.cascade_means()
-                .into_iter()
-                .enumerate()
-                .map(|(j, rgb)| ExtraLayer {
-                    name: format!("cascade{j}"),
-                    rgb,
-                })
-                .collect()
+        let extra = if query.cascades {
+            cascade_layers(cut.cascade_means())
         } else {
             Vec::new()
         };
