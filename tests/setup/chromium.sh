@@ -30,20 +30,8 @@ if found; then
     exit 0
 fi
 
-if ! command -v apt-get >/dev/null 2>&1; then
-    echo "chromium/chromedriver are not installed and apt-get is not available; install them by hand" >&2
-    exit 1
-fi
-
-SUDO=""
-if [ "$(id -u)" -ne 0 ]; then
-    if command -v sudo >/dev/null 2>&1; then
-        SUDO="sudo -n"
-    else
-        echo "chromium is not installed, and installing it needs root (no sudo found)" >&2
-        exit 1
-    fi
-fi
+. "$(dirname "$0")/apt.sh"
+need_apt chromium/chromedriver
 
 export DEBIAN_FRONTEND=noninteractive
 apt_install() {

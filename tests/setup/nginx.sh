@@ -14,20 +14,8 @@ if [ -n "$found" ]; then
     exit 0
 fi
 
-if ! command -v apt-get >/dev/null 2>&1; then
-    echo "nginx is not installed and apt-get is not available; install nginx by hand" >&2
-    exit 1
-fi
-
-SUDO=""
-if [ "$(id -u)" -ne 0 ]; then
-    if command -v sudo >/dev/null 2>&1; then
-        SUDO="sudo -n"
-    else
-        echo "nginx is not installed, and installing it needs root (no sudo found)" >&2
-        exit 1
-    fi
-fi
+. "$(dirname "$0")/apt.sh"
+need_apt nginx
 
 export DEBIAN_FRONTEND=noninteractive
 # Don't let the package start a system nginx on port 80: the tests run their own.
