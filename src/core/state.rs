@@ -390,8 +390,9 @@ impl FrameState {
         add_share(high, p.s, units, COUNT_ONE - count_lo);
     }
 
-    /// Checks that `other` is a state of a frame of the same size and cascade layout.
-    fn check_same_frame(&self, other: &FrameState) -> Result<(), MergeError> {
+    /// Checks that `other` is a state of a frame of the same size and cascade layout (its rows
+    /// may differ).
+    pub fn check_same_frame(&self, other: &FrameState) -> Result<(), MergeError> {
         if (self.width, self.height) != (other.width, other.height) {
             return Err(MergeError::Size {
                 ours_w: self.width,

@@ -437,22 +437,8 @@ impl ShardedFrame {
     }
 
     fn check_fits(&self, state: &FrameState) -> Result<(), MergeError> {
-        let r = &self.spec.request;
-        if (state.width(), state.height()) != (r.width, r.height) {
-            return Err(MergeError::Size {
-                ours_w: r.width,
-                ours_h: r.height,
-                theirs_w: state.width(),
-                theirs_h: state.height(),
-            });
-        }
-        if state.layout() != &self.spec.layout {
-            return Err(MergeError::Layout {
-                ours: format!("{:?}", self.spec.layout),
-                theirs: format!("{:?}", state.layout()),
-            });
-        }
-        Ok(())
+        // Every band has the frame's size and layout.
+        lock(&self.bands[0]).check_same_frame(state)
     }
 
     /// Adds an exported state (or a pushed delta) to this frame. A delta carrying an origin
