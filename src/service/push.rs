@@ -326,7 +326,11 @@ impl Pusher {
     /// everything.
     pub async fn run_until(mut self, stop: impl Future<Output = ()>) {
         tracing::info!(node = self.node, "pushing to upstream");
-        let mut ticks = tokio::time::interval(self.interval);
+        // The first round comes one interval after start, not at once (`interval` ticks
+        // immediately): "every interval" then means the same thing however the runtime schedules
+        // this task against the first requests.
+        let mut ticks =
+            tokio::time::interval_at(tokio::time::Instant::now() + self.interval, self.interval);
         ticks.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
         tokio::pin!(stop);
         loop {
