@@ -10,7 +10,7 @@
 //! At the end the frame is fetched twice over HTTP, reweighted (the frame's default) and as the
 //! plain mean (`variant=off`), and written as `reweighted.exr`, `mean.exr` and
 //! `side_by_side.png`: mean | reweighted | removed energy, all tone-mapped with one exposure,
-//! the reweighted image's (see [`crate::preview::auto_exposure`]), so that the panels compare
+//! the reweighted image's (see [`splatd_server::preview::auto_exposure`]), so that the panels compare
 //! fairly.
 //!
 //! Nothing in here is privileged: the demo uses the same endpoints, client and batch format as
@@ -27,11 +27,11 @@ use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Client, Record, Variant};
 use tokio::sync::oneshot;
 
-use crate::image::decode_exr_channels;
-use crate::preview::{auto_exposure, encode_png, side_by_side, tonemap};
-use crate::service::server::{bind, serve, shutdown_signal};
-use crate::service::{AppState, Limits};
-use crate::tracer::Tracer;
+use splatd_scenes::tracer::Tracer;
+use splatd_server::image::decode_exr_channels;
+use splatd_server::preview::{auto_exposure, encode_png, side_by_side, tonemap};
+use splatd_server::server::{bind, serve, shutdown_signal};
+use splatd_server::{AppState, Limits};
 
 /// The id of the demo's frame.
 pub const FRAME_ID: &str = "demo";
@@ -326,7 +326,7 @@ fn write_results(
     let luminance = |layer: &[[f32; 3]]| -> f64 {
         layer
             .iter()
-            .map(|p| 0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2]))
+            .map(|p| splatd_estimator::rec709_luminance(p.map(f64::from)))
             .sum()
     };
     let total = luminance(&mean);

@@ -1,5 +1,7 @@
 //! The `splatd` command line: the server, the offline tools and the demo.
 
+mod demo;
+
 use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
@@ -9,16 +11,16 @@ use std::time::Duration;
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 
-use splatd::batchfile::BatchReader;
-use splatd::core::{CascadeLayout, FrameState};
-use splatd::image::{cascade_layers, encode_exr};
-use splatd::service::auth::Auth;
-use splatd::service::durable::Durable;
-use splatd::service::frame::core_resolve_params;
-use splatd::service::push::PushConfig;
-use splatd::service::server::{bind, serve, shutdown_signal};
-use splatd::service::{AppState, Limits};
+use splatd_estimator::{CascadeLayout, FrameState};
+use splatd_proto::batchfile::BatchReader;
 use splatd_proto::{DecodeLimits, StateDump};
+use splatd_server::auth::Auth;
+use splatd_server::durable::Durable;
+use splatd_server::frame::core_resolve_params;
+use splatd_server::image::{cascade_layers, encode_exr};
+use splatd_server::push::PushConfig;
+use splatd_server::server::{bind, serve, shutdown_signal};
+use splatd_server::{AppState, Limits};
 
 #[derive(Parser)]
 #[command(
@@ -97,7 +99,7 @@ struct ServeArgs {
     #[arg(long, default_value_t = 8192 * 8192)]
     max_pixels: u64,
     /// Most cascades in one frame.
-    #[arg(long, default_value_t = splatd::core::MAX_CASCADES)]
+    #[arg(long, default_value_t = splatd_estimator::MAX_CASCADES)]
     max_cascades: u32,
     /// Most MiB of cascades over all frames.
     #[arg(long, default_value_t = 8192)]
@@ -225,7 +227,7 @@ fn main() -> Result<()> {
         .with_writer(std::io::stderr)
         .init();
     match cli.command {
-        Command::Demo(a) => splatd::demo::run(&splatd::demo::DemoOptions {
+        Command::Demo(a) => crate::demo::run(&crate::demo::DemoOptions {
             out: a.out,
             width: a.width,
             height: a.height,
@@ -321,7 +323,7 @@ fn run_server(args: ServeArgs) -> Result<()> {
             .map(|d| tokio::spawn(d.run(app.clone(), stop.clone())));
         let viewer = args.tev.clone().map(|addr| {
             let interval = Duration::from_millis(args.tev_interval_ms.max(1));
-            tokio::spawn(splatd::service::viewer::run(
+            tokio::spawn(splatd_server::viewer::run(
                 app.clone(),
                 addr,
                 interval,
@@ -331,7 +333,7 @@ fn run_server(args: ServeArgs) -> Result<()> {
         let pusher = push.map(|cfg| {
             tracing::info!(upstream = cfg.upstream, node = cfg.node, "push mode");
             let mut stop = stop.clone();
-            splatd::service::push::spawn_until(app.clone(), cfg, async move {
+            splatd_server::push::spawn_until(app.clone(), cfg, async move {
                 let _ = stop.wait_for(|stopped| *stopped).await;
             })
         });
@@ -374,12 +376,12 @@ fn post(args: PostArgs) -> Result<()> {
                 .duration_since(std::time::UNIX_EPOCH)
                 .map_or(0, |d| d.as_nanos() as u64)
                 ^ u64::from(std::process::id());
-            splatd::synth::SplitMix64::new(seed).next_u64()
+            splatd_scenes::synth::SplitMix64::new(seed).next_u64()
         });
         if args.create {
             let first = std::fs::read(&args.passes[0])
                 .with_context(|| format!("reading {}", args.passes[0].display()))?;
-            let pass = splatd::passes::decode_pass(&first)
+            let pass = splatd_server::passes::decode_pass(&first)
                 .with_context(|| format!("decoding {}", args.passes[0].display()))?;
             let request = splatd_proto::CreateFrame::new(&args.frame, pass.width, pass.height);
             match client.create_frame(&request).await {
@@ -444,7 +446,7 @@ fn read_state(path: &Path) -> Result<(String, FrameState)> {
         .with_context(|| format!("{} is not a valid state", path.display()))?;
     let frame = dump.frame.clone();
     let state =
-        splatd::export::load(dump).with_context(|| format!("loading {}", path.display()))?;
+        splatd_server::export::load(dump).with_context(|| format!("loading {}", path.display()))?;
     Ok((frame, state))
 }
 
@@ -469,7 +471,7 @@ fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState)> {
 
 fn merge(inputs: &[PathBuf], output: &Path) -> Result<()> {
     let (frame, total) = merge_states(inputs)?;
-    let bytes = splatd::export::dump(&total, &frame, None).encode();
+    let bytes = splatd_server::export::dump(&total, &frame, None).encode();
     std::fs::write(output, bytes).with_context(|| format!("writing {}", output.display()))?;
     println!(
         "merged {} states of frame {frame:?} ({} samples) into {}",

@@ -10,11 +10,11 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use common::{free_port, runtime, Server};
-use splatd::core::{CascadeLayout, FrameState, ResolveParams};
-use splatd::image::encode_exr;
-use splatd::synth::{FireflyScene, SplitMix64};
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Client, Record, RetryPolicy};
+use splatd_scenes::synth::{FireflyScene, SplitMix64};
+use splatd_server::image::encode_exr;
 
 const WORKERS: u64 = 8;
 const BATCH: usize = 700;

@@ -16,9 +16,9 @@ use std::time::{Duration, Instant};
 
 use common::{free_port, runtime, Server};
 use serde_json::{json, Value};
-use splatd::tracer::Tracer;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Client};
+use splatd_scenes::tracer::Tracer;
 
 const FRAME: &str = "live-shot";
 const WIDTH: u32 = 200;

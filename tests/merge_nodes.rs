@@ -12,9 +12,9 @@ use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use common::{runtime, Server};
-use splatd::synth::FireflyScene;
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Origin, Record, StateDump};
+use splatd_scenes::synth::FireflyScene;
 
 const W: u32 = 40;
 const H: u32 = 28;

@@ -13,9 +13,9 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use common::{runtime, Server};
-use splatd::synth::FireflyScene;
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
+use splatd_scenes::synth::FireflyScene;
 
 const FRAMES: u32 = 6;
 const PASSES: u64 = 12;

@@ -7,8 +7,8 @@ use std::path::Path;
 use std::process::Command;
 
 use common::Server;
-use splatd::core::{CascadeLayout, FrameState, ResolveParams};
-use splatd::image::encode_exr;
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
+use splatd_server::image::encode_exr;
 
 #[test]
 fn python_client_posts_what_the_core_resolves() {

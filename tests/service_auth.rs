@@ -4,9 +4,9 @@
 mod common;
 
 use common::{runtime, Server};
-use splatd::synth::FireflyScene;
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
+use splatd_scenes::synth::FireflyScene;
 
 const WRITE: &str = "w-0123456789abcdef-secret";
 const READ: &str = "r-0123456789abcdef-secret";

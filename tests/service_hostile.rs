@@ -9,11 +9,11 @@ use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use common::{runtime, Server};
-use splatd::core::{CascadeLayout, FrameState, ResolveParams};
-use splatd::image::encode_exr;
-use splatd::synth::{FireflyScene, SplitMix64};
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, DecodeLimits, Record, StateDump};
+use splatd_scenes::synth::{FireflyScene, SplitMix64};
+use splatd_server::image::encode_exr;
 
 const W: u32 = 16;
 const H: u32 = 12;

@@ -7,11 +7,11 @@ use std::io::Write;
 
 use bytes::Bytes;
 use common::{read_exr_with_python, runtime, Server};
-use splatd::core::{CascadeLayout, FrameState, ResolveParams, Resolved};
-use splatd::image::{decode_exr_channels, encode_exr, ExtraLayer};
-use splatd::synth::FireflyScene;
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Resolved};
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Record};
+use splatd_scenes::synth::FireflyScene;
+use splatd_server::image::{decode_exr_channels, encode_exr, ExtraLayer};
 
 /// Records of one pass of the synthetic scene.
 fn pass_records(scene: &FireflyScene, pass: u64) -> Vec<Record> {
@@ -586,7 +586,7 @@ fn offline_resolve_matches_the_server() {
     let mut batches = Vec::new();
     for pass in 0..16 {
         let batch = Batch::new("off", 3, pass, pass_records(&scene, pass)).unwrap();
-        splatd::batchfile::write_batch(&mut file, &batch).unwrap();
+        splatd_proto::batchfile::write_batch(&mut file, &batch).unwrap();
         batches.push(batch);
     }
     file.flush().unwrap();

@@ -7,10 +7,10 @@ mod tev_decoder;
 use std::time::{Duration, Instant};
 
 use common::{runtime, Server};
-use splatd::core::{CascadeLayout, FrameState, ResolveParams};
-use splatd::synth::FireflyScene;
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Client, Record};
+use splatd_scenes::synth::FireflyScene;
 use tev_decoder::{assert_planes_equal, read_packet, reassemble, Packet};
 
 #[test]

@@ -1,4 +1,4 @@
-//! `splatd::tev` against an independent decoder of tev's IPC protocol.
+//! `splatd_server::tev` against an independent decoder of tev's IPC protocol.
 //!
 //! The decoder below is written from tev's own source (`src/Ipc.cpp`, `include/tev/Ipc.h`),
 //! not from `tev_client`: every packet is `u32` little-endian length (counting itself), a `u8`
@@ -19,8 +19,8 @@ use std::sync::mpsc;
 use std::thread;
 use std::time::Duration;
 
-use splatd::core::{CascadeLayout, FrameState, ResolveParams};
-use splatd::tev::{TevError, TevSink, MAX_PIXELS_PER_UPDATE};
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
+use splatd_server::tev::{TevError, TevSink, MAX_PIXELS_PER_UPDATE};
 
 mod tev_decoder;
 use tev_decoder::*;

@@ -7,30 +7,31 @@
 //! unknown fields, so a newer server can add fields without breaking older
 //! workers.
 //!
-//! Every tunable default lives in the `DEFAULT_*` constants below and
-//! nowhere else.
+//! Every tunable default is the estimator's own (`splatd-estimator`, which chose them with the
+//! quality benchmark); the `DEFAULT_*` constants below only name them for the wire.
 
 use std::fmt;
 use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
+use splatd_estimator as estimator;
 
 /// Default ratio between the brightness ranges of adjacent cascades.
-pub const DEFAULT_CASCADE_BASE: f64 = 8.0;
+pub const DEFAULT_CASCADE_BASE: f64 = estimator::DEFAULT_CASCADE_BASE;
 /// Default number of cascades.
-pub const DEFAULT_CASCADE_COUNT: u32 = 6;
+pub const DEFAULT_CASCADE_COUNT: u32 = estimator::DEFAULT_CASCADE_COUNT;
 /// Default upper luminance bound of the lowest cascade.
-pub const DEFAULT_LOWEST_SCALE: f64 = 0.125;
+pub const DEFAULT_LOWEST_SCALE: f64 = estimator::DEFAULT_LOWEST_SCALE;
 /// Default luminance weights of linear RGB (Rec. 709).
-pub const DEFAULT_LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
+pub const DEFAULT_LUMINANCE: [f64; 3] = estimator::REC709_LUMINANCE;
 /// Default resolve variant.
-pub const DEFAULT_VARIANT: Variant = Variant::Paper;
-/// Default firefly rejection threshold `kappa`.
-pub const DEFAULT_KAPPA: f64 = 4.0;
-/// Default lower bound of `kappa` when it adapts to the sample count.
-pub const DEFAULT_KAPPA_MIN: f64 = 1.0;
+pub const DEFAULT_VARIANT: Variant = Variant::from_estimator(estimator::DEFAULT_VARIANT);
+/// Default firefly threshold `kappa`: a band is trusted once about `kappa` samples support it.
+pub const DEFAULT_KAPPA: f64 = estimator::DEFAULT_KAPPA;
+/// Default `kappa_min`, subtracted from a band's support count before it is compared with `kappa`.
+pub const DEFAULT_KAPPA_MIN: f64 = estimator::DEFAULT_KAPPA_MIN;
 /// Default exponent of the sample-count adaptation of `kappa` (0 = fixed).
-pub const DEFAULT_KAPPA_EXPONENT: f64 = 0.0;
+pub const DEFAULT_KAPPA_EXPONENT: f64 = estimator::DEFAULT_KAPPA_EXPONENT;
 
 // serde's `default = "..."` wants functions; they only forward the constants.
 fn default_cascade_base() -> f64 {
@@ -102,6 +103,24 @@ pub enum Variant {
 }
 
 impl Variant {
+    /// The wire name of an estimator variant.
+    pub const fn from_estimator(v: estimator::Variant) -> Variant {
+        match v {
+            estimator::Variant::Paper => Variant::Paper,
+            estimator::Variant::Shader => Variant::Shader,
+            estimator::Variant::Off => Variant::Off,
+        }
+    }
+
+    /// The estimator variant this wire name stands for.
+    pub const fn to_estimator(self) -> estimator::Variant {
+        match self {
+            Variant::Paper => estimator::Variant::Paper,
+            Variant::Shader => estimator::Variant::Shader,
+            Variant::Off => estimator::Variant::Off,
+        }
+    }
+
     /// All variants, in documentation order.
     pub const ALL: [Variant; 3] = [Variant::Paper, Variant::Shader, Variant::Off];
 

@@ -17,7 +17,6 @@
 //! The client speaks plain HTTP/1.1 (reqwest without TLS or HTTP/2): farm
 //! traffic stays on the internal network, and the dependency tree stays small.
 
-use std::hash::{BuildHasher, RandomState};
 use std::time::Duration;
 
 use bytes::Bytes;
@@ -136,7 +135,7 @@ impl RetryPolicy {
         let nanos = u64::try_from(half.as_nanos()).unwrap_or(u64::MAX);
         let jitter = match nanos {
             0 => Duration::ZERO,
-            n => Duration::from_nanos(RandomState::new().hash_one(retry) % n),
+            n => Duration::from_nanos(crate::ids::random_u64() % n),
         };
         (half + jitter)
             .max(retry_after.unwrap_or(Duration::ZERO))

@@ -48,8 +48,10 @@
 
 pub mod api;
 pub mod batch;
+pub mod batchfile;
 #[cfg(feature = "client")]
 pub mod client;
+pub mod ids;
 pub mod state;
 
 pub use api::{

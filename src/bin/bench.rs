@@ -14,12 +14,12 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
-use splatd::core::{
+use splatd_estimator::{
     cell_len, resolve_bands, CascadeLayout, FrameState, ResolveParams, Variant, DEFAULT_KAPPA,
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
 };
-use splatd::quality::{energy_bias, rel_mse};
-use splatd::synth::{FireflyScene, SplitMix64};
+use splatd_scenes::quality::{energy_bias, rel_mse};
+use splatd_scenes::synth::{FireflyScene, SplitMix64};
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();

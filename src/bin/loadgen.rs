@@ -22,10 +22,10 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, Context, Result};
 use bytes::Bytes;
 use clap::Parser;
-use splatd::core::{CascadeLayout, FrameState};
-use splatd::synth::SplitMix64;
+use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record, BATCH_CONTENT_TYPE};
+use splatd_scenes::synth::SplitMix64;
 
 #[derive(Parser)]
 #[command(about = "HTTP ingest throughput against in-process splatting, in one run")]

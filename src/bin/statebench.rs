@@ -16,10 +16,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{bail, Context, Result};
 use clap::Parser;
-use splatd::core::{CascadeLayout, FrameState};
-use splatd::synth::FireflyScene;
+use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_proto::api::{CascadeParams, CreateFrame};
 use splatd_proto::Client;
+use splatd_scenes::synth::FireflyScene;
 
 #[derive(Parser)]
 #[command(about = "State export/transfer/import over loopback, against memcpy")]
@@ -130,7 +130,7 @@ fn main() -> Result<()> {
     for pass in 0..args.spp {
         fill.splat_all(scene.pass(pass));
     }
-    let fill_bytes = splatd::export::dump(&fill, "bench.src", None).encode();
+    let fill_bytes = splatd_server::export::dump(&fill, "bench.src", None).encode();
     drop(fill);
 
     let server = start_server()?;

@@ -1,5 +1,5 @@
 //! An independent decoder of tev's IPC protocol and a tev stand-in, shared by the tests of
-//! `splatd::tev` and of `splatd serve --tev` (see `tests/tev_protocol.rs` for the packet layouts).
+//! `splatd_server::tev` and of `splatd serve --tev` (see `tests/tev_protocol.rs` for the packet layouts).
 #![allow(dead_code)]
 
 use std::collections::HashMap;
@@ -8,7 +8,7 @@ use std::net::{TcpListener, TcpStream};
 use std::thread;
 use std::time::Duration;
 
-use splatd::core::Resolved;
+use splatd_estimator::Resolved;
 
 /// How long the stand-in waits for bytes before it gives up on a test.
 pub const READ_TIMEOUT: Duration = Duration::from_secs(20);

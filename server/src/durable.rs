@@ -42,7 +42,7 @@ use serde::{Deserialize, Serialize};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::StateDump;
 
-use crate::core::FrameState;
+use splatd_estimator::FrameState;
 
 use super::dedup::Seen;
 use super::frame::{CounterValues, FrameCut, FrameSpec, ShardedFrame};
@@ -397,8 +397,11 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
     }
     let bands = u32::from_le_bytes(take(4)?.try_into().expect("4 bytes"));
     let cells = spec.memory_bytes() / 8;
-    let mut whole =
-        crate::core::FrameState::new(spec.request.width, spec.request.height, spec.layout.clone());
+    let mut whole = splatd_estimator::FrameState::new(
+        spec.request.width,
+        spec.request.height,
+        spec.layout.clone(),
+    );
     for _ in 0..bands {
         let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
         let dump = StateDump::decode(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;

@@ -6,7 +6,7 @@
 
 use splatd_proto::{Origin, StateDump};
 
-use crate::core::{CascadeLayout, FrameState, ParamError, ShapeError, FRAC_BITS};
+use splatd_estimator::{CascadeLayout, FrameState, ParamError, ShapeError, FRAC_BITS};
 
 /// An imported state that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -110,7 +110,7 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synth::FireflyScene;
+    use splatd_scenes::synth::FireflyScene;
 
     #[test]
     fn streaming_writes_the_same_bytes_as_dump() {

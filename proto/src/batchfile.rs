@@ -7,7 +7,7 @@
 
 use std::io::{self, Read, Write};
 
-use splatd_proto::{Batch, DecodeLimits, WireError};
+use crate::{Batch, DecodeLimits, WireError};
 
 /// Why a batch file could not be read.
 #[derive(Debug, thiserror::Error)]
@@ -109,7 +109,7 @@ impl<R: Read> Iterator for BatchReader<R> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use splatd_proto::Record;
+    use crate::Record;
 
     #[test]
     fn batches_round_trip_through_a_file() {

@@ -13,9 +13,9 @@ use std::sync::{Mutex, MutexGuard, RwLock};
 use splatd_proto::api::{CreateFrame, FrameInfo};
 use splatd_proto::{Batch, Origin};
 
-use crate::core::{
-    self, cell_len, cell_spp, check_sample, resolve_bands, CascadeLayout, FrameState, MergeError,
-    ParamError, Resolved, SampleError,
+use splatd_estimator::{
+    self as estimator, cell_len, cell_spp, check_sample, resolve_bands, CascadeLayout, FrameState,
+    MergeError, ParamError, Resolved, SampleError,
 };
 
 use super::dedup::Seen;
@@ -34,7 +34,7 @@ pub struct FrameSpec {
     /// The cascade layout.
     pub layout: CascadeLayout,
     /// The default resolve parameters.
-    pub resolve: core::ResolveParams,
+    pub resolve: estimator::ResolveParams,
 }
 
 impl FrameSpec {
@@ -73,13 +73,13 @@ impl FrameSpec {
 /// The core's resolve parameters from the API's.
 pub fn core_resolve_params(
     p: &splatd_proto::api::ResolveParams,
-) -> Result<core::ResolveParams, ParamError> {
-    let variant = match p.variant {
-        splatd_proto::api::Variant::Paper => core::Variant::Paper,
-        splatd_proto::api::Variant::Shader => core::Variant::Shader,
-        splatd_proto::api::Variant::Off => core::Variant::Off,
-    };
-    core::ResolveParams::new(variant, p.kappa, p.kappa_min, p.kappa_exponent)
+) -> Result<estimator::ResolveParams, ParamError> {
+    estimator::ResolveParams::new(
+        p.variant.to_estimator(),
+        p.kappa,
+        p.kappa_min,
+        p.kappa_exponent,
+    )
 }
 
 /// Why a batch was refused. Nothing of a refused batch is applied.
@@ -190,7 +190,7 @@ impl FrameCut {
     }
 
     /// Resolves the copy on `threads` threads.
-    pub fn resolve(&self, params: &core::ResolveParams, threads: usize) -> Resolved {
+    pub fn resolve(&self, params: &estimator::ResolveParams, threads: usize) -> Resolved {
         let refs: Vec<&FrameState> = self.bands.iter().collect();
         resolve_bands(&refs, params, threads).expect("a frame's bands tile it")
     }
@@ -533,8 +533,8 @@ impl ShardedFrame {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::synth::FireflyScene;
     use splatd_proto::Record;
+    use splatd_scenes::synth::FireflyScene;
 
     fn spec(w: u32, h: u32) -> FrameSpec {
         FrameSpec::new(CreateFrame::new("f", w, h)).expect("valid")
@@ -564,7 +564,7 @@ mod tests {
                 .unwrap();
             assert_eq!(got.accepted, 13 * 70);
         }
-        let params = core::ResolveParams::with_defaults();
+        let params = estimator::ResolveParams::with_defaults();
         assert_eq!(frame.cut().resolve(&params, 2), reference.resolve(&params));
         assert_eq!(frame.cut().whole(), reference);
         let info = frame.info();

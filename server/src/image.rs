@@ -8,7 +8,7 @@
 
 use exr::prelude::*;
 
-use crate::core::Resolved;
+use splatd_estimator::Resolved;
 
 /// An extra RGB layer to write beside the resolved ones (for example a raw cascade).
 #[derive(Debug, Clone)]
@@ -20,7 +20,7 @@ pub struct ExtraLayer {
 }
 
 /// The raw cascade layers `cascade0`, `cascade1`, ... from per-cascade means
-/// ([`crate::core::FrameState::cascade_means`]), to write beside the resolved layers.
+/// ([`splatd_estimator::FrameState::cascade_means`]), to write beside the resolved layers.
 pub fn cascade_layers(means: Vec<Vec<[f32; 3]>>) -> Vec<ExtraLayer> {
     means
         .into_iter()

@@ -26,6 +26,13 @@ pub const MAX_CASCADES: u32 = 16;
 /// Rec.709 / sRGB relative luminance weights, the default brightness function.
 pub const REC709_LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
 
+/// Rec.709 relative luminance of a linear RGB colour: what previews, tone mapping and the
+/// energy metrics weigh colours by (a frame's own weights are [`CascadeLayout::luminance`]).
+#[inline]
+pub fn rec709_luminance(rgb: [f64; 3]) -> f64 {
+    REC709_LUMINANCE[0] * rgb[0] + REC709_LUMINANCE[1] * rgb[1] + REC709_LUMINANCE[2] * rgb[2]
+}
+
 /// A parameter that makes no sense, with the reason.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("invalid parameter `{name}`: {reason}")]
@@ -37,7 +44,8 @@ pub struct ParamError {
 }
 
 impl ParamError {
-    pub(crate) fn new(name: &'static str, reason: impl Into<String>) -> Self {
+    /// A refusal of parameter `name`, with the reason.
+    pub fn new(name: &'static str, reason: impl Into<String>) -> Self {
         Self {
             name,
             reason: reason.into(),
@@ -153,7 +161,13 @@ impl CascadeLayout {
 
     /// The paper's defaults (`b = 8`, `K = 6`) with splatd's default `c0` and Rec.709 weights.
     pub fn with_defaults() -> Self {
-        Self::new(8.0, 6, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE).expect("default layout is valid")
+        Self::new(
+            DEFAULT_CASCADE_BASE,
+            DEFAULT_CASCADE_COUNT,
+            DEFAULT_LOWEST_SCALE,
+            REC709_LUMINANCE,
+        )
+        .expect("default layout is valid")
     }
 
     /// `b`.
@@ -244,6 +258,12 @@ impl CascadeLayout {
         }
     }
 }
+
+/// splatd's default ratio between the brightness ranges of adjacent cascades (the paper's `b`).
+pub const DEFAULT_CASCADE_BASE: f64 = 8.0;
+
+/// splatd's default number of cascades.
+pub const DEFAULT_CASCADE_COUNT: u32 = 6;
 
 /// splatd's default scale of the lowest cascade, chosen by the quality benchmark.
 pub const DEFAULT_LOWEST_SCALE: f64 = 0.125;

@@ -53,7 +53,7 @@ pub enum PreviewError {
 /// Rec. 709 / sRGB luminance of linear RGB.
 #[inline]
 fn luminance(c: [f32; 3]) -> f32 {
-    0.2126 * c[0] + 0.7152 * c[1] + 0.0722 * c[2]
+    splatd_estimator::rec709_luminance(c.map(f64::from)) as f32
 }
 
 /// Narkowicz's ACES filmic fit, for `x >= 0`; monotonic, 0 at 0, reaching 1 near `x = 16`.

@@ -30,7 +30,7 @@ const MAX_JSON_BODY: usize = 64 * 1024;
 pub async fn index() -> impl IntoResponse {
     (
         [(header::CONTENT_TYPE, "text/html; charset=utf-8")],
-        include_str!("../web/index.html"),
+        include_str!("web/index.html"),
     )
 }
 

@@ -31,7 +31,7 @@ use std::time::Duration;
 
 use tev_client::{PacketCreateImage, PacketUpdateImage, TevClient};
 
-use crate::core::Resolved;
+use splatd_estimator::Resolved;
 
 /// How long a connection attempt to tev may take.
 pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(2);

@@ -42,6 +42,8 @@ pub struct ResolveParams {
     kappa_exponent: f64,
 }
 
+/// splatd's default resolve variant.
+pub const DEFAULT_VARIANT: Variant = Variant::Paper;
 /// splatd's default `kappa`, chosen by the quality benchmark.
 pub const DEFAULT_KAPPA: f64 = 4.0;
 /// `kappa_min` as in the paper: a band seen once is not trusted at all.
@@ -95,7 +97,7 @@ impl ResolveParams {
     /// splatd's defaults: the paper's formula with the benchmark's `kappa`.
     pub fn with_defaults() -> Self {
         Self::new(
-            Variant::Paper,
+            DEFAULT_VARIANT,
             DEFAULT_KAPPA,
             DEFAULT_KAPPA_MIN,
             DEFAULT_KAPPA_EXPONENT,
@@ -301,7 +303,7 @@ impl<'a> Resolver<'a> {
     /// Support `n_j = count_{j-1} + count_j + count_{j+1}` of every pixel of a row, and `N`.
     fn support(k: usize, cells: &[u64], out: &mut [f64]) {
         let one = 1.0 / COUNT_ONE as f64;
-        let mut counts = [0.0f64; crate::core::MAX_CASCADES as usize + 2];
+        let mut counts = [0.0f64; crate::MAX_CASCADES as usize + 2];
         for (cell, out) in cells
             .chunks_exact(cell_len(k))
             .zip(out.chunks_exact_mut(k + 1))
@@ -446,7 +448,7 @@ struct Pixel {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::layout::REC709_LUMINANCE;
+    use crate::layout::REC709_LUMINANCE;
 
     #[test]
     fn parameters_that_make_no_sense_are_refused_by_name() {

@@ -17,12 +17,12 @@ mod resolve;
 mod state;
 
 pub use layout::{
-    CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES,
-    REC709_LUMINANCE,
+    rec709_luminance, CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_CASCADE_BASE,
+    DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, REC709_LUMINANCE,
 };
 pub use resolve::{
     resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
-    DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, SHADER_E_MIN_FLOOR,
+    DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
 pub use state::{
     cell_len, cell_spp, check_sample, FrameState, MergeError, SampleError, ShapeError, SplatReport,

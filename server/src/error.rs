@@ -7,7 +7,7 @@ use axum::Json;
 use splatd_proto::{ErrorBody, StateError, WireError};
 
 use super::frame::{ImportRefused, IngestError};
-use crate::core::SampleError;
+use splatd_estimator::SampleError;
 
 /// An error answered to a client.
 #[derive(Debug, Clone, PartialEq, Eq)]

@@ -6,7 +6,7 @@
 #![allow(clippy::needless_range_loop)]
 
 use proptest::prelude::*;
-use splatd::core::{CascadeLayout, FrameState, ResolveParams, Variant, REC709_LUMINANCE};
+use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Variant, REC709_LUMINANCE};
 
 /// The reference: samples per pixel, nothing else.
 struct Reference {

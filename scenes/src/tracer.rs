@@ -611,7 +611,7 @@ mod tests {
     use super::*;
 
     fn luminance(c: [f32; 3]) -> f64 {
-        0.2126 * c[0] as f64 + 0.7152 * c[1] as f64 + 0.0722 * c[2] as f64
+        splatd_estimator::rec709_luminance(c.map(f64::from))
     }
 
     /// Per-pixel mean of `passes`, row-major.

@@ -14,7 +14,7 @@
 //!
 //! What is **not** done: values are not checked. Negative, NaN and infinite samples pass through
 //! unchanged; the server rejects and counts them with the same checks it applies to streamed
-//! samples ([`crate::core::check_sample`]), so a pass and a batch are treated identically.
+//! samples ([`splatd_estimator::check_sample`]), so a pass and a batch are treated identically.
 //!
 //! Decoding is CPU work (`exr` decompresses blocks on a thread pool it starts per call): from
 //! async code call [`decode_pass`] inside `spawn_blocking`.

@@ -3,8 +3,10 @@
 //! where samples are plentiful; convergence to the true mean.
 
 use proptest::prelude::*;
-use splatd::core::{CascadeLayout, FrameState, ResolveParams, Resolved, Variant, REC709_LUMINANCE};
-use splatd::synth::FireflyScene;
+use splatd_estimator::{
+    CascadeLayout, FrameState, ResolveParams, Resolved, Variant, REC709_LUMINANCE,
+};
+use splatd_scenes::synth::FireflyScene;
 
 const W: u32 = 5;
 const H: u32 = 4;

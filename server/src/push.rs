@@ -49,9 +49,8 @@
 
 use std::collections::{BTreeMap, HashMap};
 use std::future::Future;
-use std::hash::{BuildHasher, RandomState};
 use std::sync::{Arc, Weak};
-use std::time::{Duration, Instant, SystemTime};
+use std::time::{Duration, Instant};
 
 use bytes::Bytes;
 use splatd_proto::api::CreateFrame;
@@ -59,7 +58,7 @@ use splatd_proto::{Client, ClientError, Origin, RetryPolicy};
 
 use super::frame::ShardedFrame;
 use super::AppState;
-use crate::core::FrameState;
+use splatd_estimator::FrameState;
 
 /// How long a frame whose push the upstream refused (409, 4xx) is left alone before trying
 /// again: such errors need an operator (delete the conflicting frame upstream, raise a limit).
@@ -109,10 +108,7 @@ impl PushConfig {
 
 /// 64 random bits as 16 hex digits: a node id no other process will pick.
 pub fn random_node_id() -> String {
-    // RandomState is seeded from the OS's randomness once per process (then varied per
-    // instance); the time and pid only add to it.
-    let bits = RandomState::new().hash_one((SystemTime::now(), std::process::id()));
-    format!("{bits:016x}")
+    format!("{:016x}", splatd_proto::ids::random_u64())
 }
 
 /// A delta with its final bytes and sequence number, not yet acknowledged.

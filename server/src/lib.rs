@@ -14,11 +14,16 @@ pub mod auth;
 pub mod dedup;
 pub mod durable;
 pub mod error;
+pub mod export;
 pub mod frame;
+pub mod image;
+pub mod passes;
+pub mod preview;
 pub mod push;
 pub mod routes;
 pub mod server;
 pub mod store;
+pub mod tev;
 pub mod viewer;
 
 use std::ops::Deref;
@@ -59,7 +64,7 @@ impl Default for Limits {
             max_records: splatd_proto::batch::DEFAULT_MAX_RECORDS,
             max_frames: 64,
             max_pixels: 8192 * 8192,
-            max_cascades: crate::core::MAX_CASCADES,
+            max_cascades: splatd_estimator::MAX_CASCADES,
             max_memory_bytes: 8 << 30,
             request_timeout: Duration::from_secs(120),
             idle_timeout: Duration::from_secs(60),
@@ -171,14 +176,8 @@ impl AppState {
     }
 }
 
-/// A process id unlikely to repeat across restarts: time, pid and an address, mixed.
+/// A process id unlikely to repeat across restarts; never 0, which old servers (without the
+/// field) report.
 fn boot_id() -> u64 {
-    let nanos = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_nanos() as u64);
-    let local = 0u8;
-    let seed = nanos ^ (u64::from(std::process::id()) << 32) ^ (&local as *const u8 as u64);
-    let mut rng = crate::synth::SplitMix64::new(seed);
-    // Never 0, which old servers (without the field) report.
-    rng.next_u64().max(1)
+    splatd_proto::ids::random_u64().max(1)
 }

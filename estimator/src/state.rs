@@ -540,7 +540,7 @@ fn add_share(cascade: &mut [u64], s: [f64; 3], units: f64, count: u64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::core::layout::REC709_LUMINANCE;
+    use crate::layout::REC709_LUMINANCE;
 
     fn layout() -> CascadeLayout {
         CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap()
