@@ -10,17 +10,15 @@
 //! * [`server`]: the router, its layers (decompression, timeouts, tracing, JSON errors) and the
 //!   listener with graceful shutdown.
 
-pub mod auth;
 pub mod dedup;
 pub mod durable;
-pub mod error;
 pub mod export;
 pub mod frame;
+pub mod http;
 pub mod image;
 pub mod passes;
 pub mod preview;
 pub mod push;
-pub mod routes;
 pub mod server;
 pub mod store;
 pub mod tev;
@@ -33,10 +31,10 @@ use std::time::Duration;
 use metrics_exporter_prometheus::PrometheusHandle;
 use splatd_proto::DecodeLimits;
 
-use auth::Auth;
 use durable::Durable;
-use error::ApiError;
 use frame::ShardedFrame;
+use http::auth::Auth;
+use http::error::ApiError;
 use store::FrameStore;
 
 /// What a server refuses, so that no client can exhaust it.
@@ -141,7 +139,7 @@ impl AppState {
             return Ok(());
         };
         let frame = frame.clone();
-        routes::blocking("frame creation", move || {
+        http::routes::blocking("frame creation", move || {
             durable
                 .frame_created(&frame)
                 .map_err(|e| ApiError::internal("writing the frame to disk", e))
@@ -155,7 +153,7 @@ impl AppState {
             return Ok(());
         };
         let id = frame.id().to_owned();
-        routes::blocking("frame deletion", move || {
+        http::routes::blocking("frame deletion", move || {
             durable
                 .frame_deleted(&id)
                 .map_err(|e| ApiError::internal("removing the frame from disk", e))

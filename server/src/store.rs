@@ -6,9 +6,9 @@ use std::sync::{Arc, RwLock};
 use axum::http::StatusCode;
 use splatd_proto::api::CreateFrame;
 
-use super::error::ApiError;
 use super::frame::{FrameSpec, ShardedFrame};
 use super::Limits;
+use crate::http::error::ApiError;
 
 /// What `POST /v1/frames` did.
 #[derive(Debug, Clone)]

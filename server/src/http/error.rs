@@ -6,7 +6,7 @@ use axum::response::{IntoResponse, Response};
 use axum::Json;
 use splatd_proto::{ErrorBody, StateError, WireError};
 
-use super::frame::{ImportRefused, IngestError};
+use crate::frame::{ImportRefused, IngestError};
 use splatd_estimator::SampleError;
 
 /// An error answered to a client.

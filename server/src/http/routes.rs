@@ -17,11 +17,11 @@ use splatd_proto::api::{
 };
 use splatd_proto::{Batch, StateDump, BATCH_CONTENT_TYPE, STATE_CONTENT_TYPE};
 
-use super::error::ApiError;
-use super::frame::{core_resolve_params, ShardedFrame};
-use super::store::Created;
-use super::AppState;
+use crate::frame::{core_resolve_params, ShardedFrame};
+use crate::http::error::ApiError;
 use crate::image::{cascade_layers, encode_exr};
+use crate::store::Created;
+use crate::AppState;
 
 /// Largest JSON request body (a `CreateFrame` is a few hundred bytes).
 const MAX_JSON_BODY: usize = 64 * 1024;

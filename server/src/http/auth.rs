@@ -24,8 +24,8 @@ use axum::middleware::Next;
 use axum::response::{IntoResponse, Response};
 use subtle::ConstantTimeEq;
 
-use super::error::ApiError;
-use super::AppState;
+use crate::http::error::ApiError;
+use crate::AppState;
 
 /// What a request needs.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
