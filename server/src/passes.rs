@@ -101,6 +101,24 @@ pub enum PassError {
         /// The display window: the frame.
         display: IntegerBounds,
     },
+    /// Some pixels were decoded more than once and others never: the file's offset table points
+    /// at the same block twice (a corrupt or hostile file). Zeros in the missing pixels would
+    /// be accepted as black samples, so the pass is refused.
+    #[error(
+        "the pass's blocks do not cover it: {missing} of {pixels} pixels have no data and \
+         {repeated} were decoded more than once (first missing row: {first_missing_row}); \
+         the file's offset table is corrupt"
+    )]
+    Coverage {
+        /// Pixels never decoded.
+        missing: u64,
+        /// Pixels decoded more than once.
+        repeated: u64,
+        /// Pixels in the pass.
+        pixels: u64,
+        /// The first row with a missing pixel.
+        first_missing_row: u64,
+    },
     /// The pass does not have the frame's size.
     #[error("pass is {pass_width}x{pass_height} but the frame is {frame_width}x{frame_height}")]
     SizeMismatch {
@@ -226,11 +244,13 @@ pub fn decode_pass_with_limit(bytes: &[u8], max_pixels: u64) -> Result<Pass, Pas
             |size, _| RgbBuffer {
                 width: size.width(),
                 rgb: vec![[0.0; 3]; size.area()],
+                writes: vec![0; size.area()],
             },
             |buffer: &mut RgbBuffer, at, (r, g, b): (f32, f32, f32)| {
                 let i = at.y() * buffer.width + at.x();
-                if let Some(px) = buffer.rgb.get_mut(i) {
+                if let (Some(px), Some(n)) = (buffer.rgb.get_mut(i), buffer.writes.get_mut(i)) {
                     *px = [r, g, b];
+                    *n = n.saturating_add(1);
                 }
             },
         )
@@ -245,6 +265,7 @@ pub fn decode_pass_with_limit(bytes: &[u8], max_pixels: u64) -> Result<Pass, Pas
             "the RGB layer's size changed between the header and the pixel data".into(),
         )));
     }
+    buffer.check_coverage()?;
     Ok(Pass {
         width,
         height,
@@ -263,6 +284,36 @@ fn has_rgb(header: &Header) -> bool {
 struct RgbBuffer {
     width: usize,
     rgb: Vec<[f32; 3]>,
+    /// How often each pixel was written. `exr` decodes whatever blocks the offset table points
+    /// at, so a table that names one block twice leaves another block's pixels at their initial
+    /// zeros without an error; counting writes is what proves each pixel came from its own data
+    /// exactly once.
+    writes: Vec<u8>,
+}
+
+impl RgbBuffer {
+    fn check_coverage(&self) -> Result<(), PassError> {
+        let (mut missing, mut repeated, mut first_missing) = (0u64, 0u64, None);
+        for (i, &n) in self.writes.iter().enumerate() {
+            match n {
+                1 => {}
+                0 => {
+                    missing += 1;
+                    first_missing.get_or_insert(i / self.width.max(1));
+                }
+                _ => repeated += 1,
+            }
+        }
+        match first_missing {
+            None if repeated == 0 => Ok(()),
+            _ => Err(PassError::Coverage {
+                missing,
+                repeated,
+                pixels: self.writes.len() as u64,
+                first_missing_row: first_missing.unwrap_or(0) as u64,
+            }),
+        }
+    }
 }
 
 impl Pass {
@@ -380,6 +431,69 @@ mod tests {
         let records: Vec<Record> = pass.records().collect();
         assert_eq!(records.len(), 6);
         assert_eq!(records[4], Record::new(1, 1, [43.0, 42.0, 41.0]));
+    }
+
+    /// Where the offset table of a single-part scanline EXR with `blocks` blocks starts: the
+    /// first entry points just past the table itself.
+    fn offset_table(bytes: &[u8], blocks: usize) -> usize {
+        (8..bytes.len() - 8)
+            .find(|&at| {
+                let v = u64::from_le_bytes(bytes[at..at + 8].try_into().unwrap());
+                v == (at + 8 * blocks) as u64
+            })
+            .expect("an offset table")
+    }
+
+    fn set_offset(bytes: &mut [u8], table: usize, block: usize, value: u64) {
+        bytes[table + 8 * block..table + 8 * block + 8].copy_from_slice(&value.to_le_bytes());
+    }
+
+    fn offset(bytes: &[u8], table: usize, block: usize) -> u64 {
+        u64::from_le_bytes(bytes[table + 8 * block..][..8].try_into().unwrap())
+    }
+
+    /// Uncompressed scanline EXRs store one row per block.
+    fn uncompressed(width: usize, height: usize) -> Vec<u8> {
+        let values = |c: usize| (0..width * height).map(|i| (i * 10 + c) as f32).collect();
+        let layer = Layer::new(
+            (width, height),
+            LayerAttributes::default(),
+            Encoding::UNCOMPRESSED,
+            AnyChannels::sort(SmallVec::from_vec(vec![
+                AnyChannel::new("B", FlatSamples::F32(values(1))),
+                AnyChannel::new("G", FlatSamples::F32(values(2))),
+                AnyChannel::new("R", FlatSamples::F32(values(3))),
+            ])),
+        );
+        let mut bytes = Vec::new();
+        Image::from_layer(layer)
+            .write()
+            .to_buffered(std::io::Cursor::new(&mut bytes))
+            .unwrap();
+        bytes
+    }
+
+    #[test]
+    fn a_block_read_twice_and_a_block_missing_are_refused() {
+        let (w, h) = (5, 16);
+        let good = uncompressed(w, h);
+        assert!(decode_pass(&good).is_ok());
+        let table = offset_table(&good, h);
+
+        // Row 1's entry points at row 0's block: row 0 is decoded twice, row 1 never.
+        let mut twice = good.clone();
+        set_offset(&mut twice, table, 1, offset(&good, table, 0));
+        let err = decode_pass(&twice).unwrap_err();
+        assert!(matches!(err, PassError::Coverage { .. }), "{err:?}");
+        assert!(err.to_string().contains("5 of 80 pixels"), "{err}");
+
+        // Every entry at block 0: one row decoded 16 times, 15 rows missing.
+        let mut all_first = good.clone();
+        for block in 1..h {
+            set_offset(&mut all_first, table, block, offset(&good, table, 0));
+        }
+        let err = decode_pass(&all_first).unwrap_err();
+        assert!(err.to_string().contains("75 of 80 pixels"), "{err}");
     }
 
     #[test]
