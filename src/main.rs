@@ -351,7 +351,7 @@ fn run_server(args: ServeArgs) -> Result<()> {
             // Everything acknowledged as applied becomes durable before a clean exit.
             for frame in app.store.list() {
                 durable
-                    .snapshot(&app.store, &frame)
+                    .snapshot(&frame)
                     .await
                     .with_context(|| format!("final snapshot of frame {}", frame.id()))?;
             }

@@ -425,7 +425,27 @@ impl FrameState {
         if !nested(&ours, &theirs) && !nested(&theirs, &ours) {
             return Err(MergeError::Rows { ours, theirs });
         }
+        self.add_shared_rows(other);
+        Ok(())
+    }
+
+    /// Adds the rows this state shares with `other` (possibly none), for callers that hold a
+    /// frame as bands tiling it: merging a state into every band with this adds all of it,
+    /// whichever bands its rows fall in. Only the frame (size and layout) is checked, so once
+    /// [`FrameState::check_same_frame`] passed for one band it cannot fail for another: a
+    /// caller can check before it changes anything.
+    pub fn merge_overlap(&mut self, other: &FrameState) -> Result<(), MergeError> {
+        self.check_same_frame(other)?;
+        self.add_shared_rows(other);
+        Ok(())
+    }
+
+    fn add_shared_rows(&mut self, other: &FrameState) {
+        let (ours, theirs) = (self.rows(), other.rows());
         let shared = ours.start.max(theirs.start)..ours.end.min(theirs.end);
+        if shared.is_empty() {
+            return;
+        }
         let row_len = self.width as usize * cell_len(self.layout.cascades());
         let at = |start: u32| (shared.start - start) as usize * row_len;
         let len = shared.len() * row_len;
@@ -434,7 +454,6 @@ impl FrameState {
         for (d, s) in dst.iter_mut().zip(src) {
             *d = d.saturating_add(*s);
         }
-        Ok(())
     }
 }
 

@@ -1,4 +1,12 @@
 //! Which batches (and pushed deltas) a frame has already applied, so retries count once.
+//!
+//! A batch is identified by `(worker, seq)`, chosen by the worker. The same id arriving again is
+//! normally a retry, but it may also be a mistake: two workers that picked the same id, or a
+//! worker rerun that numbers new work from 0 again. Answering such a batch "duplicate" would drop
+//! its samples while telling the worker all is well, so every applied batch also leaves a digest
+//! of its records ([`splatd_proto::Batch::content_digest`]); an id seen before is a retry only if
+//! the digest matches, and a conflict otherwise. The digests cost 8 bytes (plus a hash map's
+//! overhead) per applied batch.
 
 use std::collections::{BTreeSet, HashMap};
 
@@ -50,12 +58,47 @@ pub struct Seen {
     pub workers: HashMap<u64, SeqSet>,
     /// Pushed deltas, by the pushing node's id.
     pub nodes: HashMap<String, SeqSet>,
+    /// The content digest of every applied batch, by worker id and sequence number. Batches
+    /// restored from snapshots written before digests were kept have none.
+    pub digests: HashMap<u64, HashMap<u64, u64>>,
+}
+
+/// What a batch id was, before [`Seen::check_batch`] or [`Seen::insert_batch`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BatchId {
+    /// Never applied.
+    New,
+    /// Applied before with the same records (or before digests were kept): a retry.
+    Retry,
+    /// Applied before with other records: the id was reused for a different batch.
+    Conflict {
+        /// Digest of the records applied under this id.
+        applied: u64,
+    },
 }
 
 impl Seen {
-    /// Records batch `seq` of `worker`; false for a duplicate.
-    pub fn insert_batch(&mut self, worker: u64, seq: u64) -> bool {
-        self.workers.entry(worker).or_default().insert(seq)
+    /// What batch `seq` of `worker` with records of digest `digest` would be, without recording
+    /// anything.
+    pub fn check_batch(&self, worker: u64, seq: u64, digest: u64) -> BatchId {
+        if !self.workers.get(&worker).is_some_and(|s| s.contains(seq)) {
+            return BatchId::New;
+        }
+        match self.digests.get(&worker).and_then(|d| d.get(&seq)) {
+            Some(&applied) if applied != digest => BatchId::Conflict { applied },
+            _ => BatchId::Retry,
+        }
+    }
+
+    /// Records batch `seq` of `worker` with content digest `digest` when it is new; returns
+    /// what it was.
+    pub fn insert_batch(&mut self, worker: u64, seq: u64, digest: u64) -> BatchId {
+        let id = self.check_batch(worker, seq, digest);
+        if id == BatchId::New {
+            self.workers.entry(worker).or_default().insert(seq);
+            self.digests.entry(worker).or_default().insert(seq, digest);
+        }
+        id
     }
 
     /// Records delta `seq` of `node`; false for a duplicate.
@@ -94,11 +137,26 @@ mod tests {
     }
 
     #[test]
+    fn an_id_reused_for_other_records_is_a_conflict_not_a_retry() {
+        let mut seen = Seen::default();
+        assert_eq!(seen.insert_batch(7, 0, 0xAAAA), BatchId::New);
+        assert_eq!(seen.insert_batch(7, 0, 0xAAAA), BatchId::Retry);
+        assert_eq!(
+            seen.insert_batch(7, 0, 0xBBBB),
+            BatchId::Conflict { applied: 0xAAAA }
+        );
+        assert_eq!(seen.check_batch(7, 1, 0xBBBB), BatchId::New);
+        // Ids restored without digests (old snapshots) can only be taken for retries.
+        seen.workers.entry(8).or_default().insert(0);
+        assert_eq!(seen.check_batch(8, 0, 1), BatchId::Retry);
+    }
+
+    #[test]
     fn senders_are_independent() {
         let mut seen = Seen::default();
-        assert!(seen.insert_batch(1, 0));
-        assert!(seen.insert_batch(2, 0));
-        assert!(!seen.insert_batch(1, 0));
+        assert_eq!(seen.insert_batch(1, 0, 5), BatchId::New);
+        assert_eq!(seen.insert_batch(2, 0, 5), BatchId::New);
+        assert_eq!(seen.insert_batch(1, 0, 5), BatchId::Retry);
         assert!(seen.insert_delta("a", 0));
         assert!(!seen.insert_delta("a", 0));
         assert!(seen.insert_delta("b", 0));

@@ -49,7 +49,9 @@ use super::frame::{CounterValues, FrameCut, FrameSpec, ShardedFrame};
 use super::store::FrameStore;
 
 const SNAPSHOT_MAGIC: [u8; 4] = *b"SPLC";
-const SNAPSHOT_VERSION: u16 = 1;
+/// 2 added the content digest of every applied batch (see `dedup`); version 1 snapshots are
+/// still read, their batches without digests.
+const SNAPSHOT_VERSION: u16 = 2;
 const SNAPSHOT_FILE: &str = "snapshot.bin";
 const SNAPSHOT_TMP: &str = "snapshot.tmp";
 const FRAME_FILE: &str = "frame.json";
@@ -65,6 +67,31 @@ struct SnapshotMeta {
     version: u64,
     counters: CounterValues,
     seen: Seen,
+}
+
+/// [`SnapshotMeta`] as version 1 wrote it, before batches had digests.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct SnapshotMetaV1 {
+    frame: String,
+    version: u64,
+    counters: CounterValues,
+    workers: HashMap<u64, crate::dedup::SeqSet>,
+    nodes: HashMap<String, crate::dedup::SeqSet>,
+}
+
+impl From<SnapshotMetaV1> for SnapshotMeta {
+    fn from(v1: SnapshotMetaV1) -> SnapshotMeta {
+        SnapshotMeta {
+            frame: v1.frame,
+            version: v1.version,
+            counters: v1.counters,
+            seen: Seen {
+                workers: v1.workers,
+                nodes: v1.nodes,
+                digests: HashMap::new(),
+            },
+        }
+    }
 }
 
 /// Why the data directory could not be used.
@@ -170,26 +197,46 @@ impl Durable {
     }
 
     /// Makes a new frame durable (its parameters; its cascades are empty).
-    pub fn frame_created(&self, frame: &ShardedFrame) -> Result<(), DurableError> {
-        let dir = self.frame_dir(frame.id());
-        fs::create_dir_all(&dir).map_err(io_err("creating", &dir))?;
-        let json = serde_json::to_vec_pretty(&frame.spec().request).expect("serialisable");
-        write_atomically(&dir, FRAME_FILE, "frame.json.tmp", |w| w.write_all(&json))
+    ///
+    /// Creation, deletion and snapshots of one frame id take turns (one lock per id), so a
+    /// snapshot of a deleted frame can never land in the directory of a new frame of the same
+    /// id; and files a failed deletion left behind are removed first, so a new frame starts
+    /// empty on disk as in memory.
+    pub async fn frame_created(
+        self: &Arc<Self>,
+        frame: &Arc<ShardedFrame>,
+    ) -> Result<(), DurableError> {
+        let lock = self.lock_for(frame.id());
+        let _turn = lock.lock().await;
+        let this = self.clone();
+        let frame = frame.clone();
+        run_blocking(self.frame_dir(frame.id()), move || {
+            let dir = this.frame_dir(frame.id());
+            fs::create_dir_all(&dir).map_err(io_err("creating", &dir))?;
+            for stale in [SNAPSHOT_FILE, SNAPSHOT_TMP] {
+                let path = dir.join(stale);
+                match fs::remove_file(&path) {
+                    Ok(()) => sync_dir(&dir)?,
+                    Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+                    Err(e) => return Err(io_err("removing", &path)(e)),
+                }
+            }
+            let json = serde_json::to_vec_pretty(&frame.spec().request).expect("serialisable");
+            write_atomically(&dir, FRAME_FILE, "frame.json.tmp", |w| w.write_all(&json))
+        })
+        .await
     }
 
-    /// Forgets a deleted frame.
-    pub fn frame_deleted(&self, id: &str) -> Result<(), DurableError> {
-        let dir = self.frame_dir(id);
-        // Remove the marker first: a directory without it is ignored (and cleaned) on recovery.
-        let meta = dir.join(FRAME_FILE);
-        match fs::remove_file(&meta) {
-            Ok(()) => {}
-            Err(e) if e.kind() == io::ErrorKind::NotFound => {}
-            Err(e) => return Err(io_err("removing", &meta)(e)),
-        }
-        sync_dir(&dir)?;
-        let _ = fs::remove_dir_all(&dir);
-        Ok(())
+    /// Forgets a deleted frame: once this returns, the frame is not recovered at the next start.
+    /// Call it after [`ShardedFrame::retire`], so no snapshot of the frame is written after.
+    pub async fn frame_deleted(
+        self: &Arc<Self>,
+        frame: &Arc<ShardedFrame>,
+    ) -> Result<(), DurableError> {
+        let lock = self.lock_for(frame.id());
+        let _turn = lock.lock().await;
+        let dir = self.frame_dir(frame.id());
+        run_blocking(dir.clone(), move || remove_frame_dir(&dir)).await
     }
 
     fn lock_for(&self, id: &str) -> Arc<tokio::sync::Mutex<()>> {
@@ -199,14 +246,11 @@ impl Durable {
 
     /// Writes a snapshot of `frame` if it changed since its last one; returns once everything
     /// applied to the frame before the call is on disk.
-    pub async fn snapshot(
-        self: &Arc<Self>,
-        store: &FrameStore,
-        frame: &Arc<ShardedFrame>,
-    ) -> Result<(), DurableError> {
+    pub async fn snapshot(self: &Arc<Self>, frame: &Arc<ShardedFrame>) -> Result<(), DurableError> {
         let lock = self.lock_for(frame.id());
-        let _guard = lock.lock().await;
-        if frame.durable_version() == frame.version() {
+        let _turn = lock.lock().await;
+        if frame.is_retired() || frame.durable_version() == frame.version() {
+            // A retired frame is deleted, or being deleted: writing it would bring it back.
             return Ok(());
         }
         let this = self.clone();
@@ -221,10 +265,6 @@ impl Durable {
             path: self.frame_dir(frame.id()),
             source: io::Error::other(e.to_string()),
         })??;
-        if store.get(frame.id()).is_err() {
-            // Deleted while we wrote: do not leave a snapshot behind.
-            let _ = self.frame_deleted(frame.id());
-        }
         frame.mark_durable(&cut.seen, cut.version);
         metrics::counter!("splatd_snapshots_total").increment(1);
         Ok(())
@@ -277,7 +317,7 @@ impl Durable {
             }
             let started = std::time::Instant::now();
             for frame in app.store.list() {
-                if let Err(e) = self.snapshot(&app.store, &frame).await {
+                if let Err(e) = self.snapshot(&frame).await {
                     tracing::error!(frame = frame.id(), error = %e, "snapshot failed");
                     metrics::counter!("splatd_snapshot_failures_total").increment(1);
                 }
@@ -285,6 +325,34 @@ impl Durable {
             wait = self.interval.max(started.elapsed() * 4);
         }
     }
+}
+
+/// Removes a frame's directory; the frame marker goes first (and durably), because a directory
+/// without it is ignored, and cleaned, on recovery.
+fn remove_frame_dir(dir: &Path) -> Result<(), DurableError> {
+    let meta = dir.join(FRAME_FILE);
+    match fs::remove_file(&meta) {
+        Ok(()) => {}
+        Err(e) if e.kind() == io::ErrorKind::NotFound => {}
+        Err(e) => return Err(io_err("removing", &meta)(e)),
+    }
+    sync_dir(dir)?;
+    let _ = fs::remove_dir_all(dir);
+    Ok(())
+}
+
+/// Runs file work on the blocking pool; a panic there is reported as an I/O error on `path`.
+async fn run_blocking(
+    path: PathBuf,
+    work: impl FnOnce() -> Result<(), DurableError> + Send + 'static,
+) -> Result<(), DurableError> {
+    tokio::task::spawn_blocking(work)
+        .await
+        .map_err(|e| DurableError::Io {
+            what: "writing",
+            path,
+            source: io::Error::other(e.to_string()),
+        })?
 }
 
 /// Bytes of a band's state encoding, without encoding it.
@@ -367,7 +435,8 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
     if crc32fast::hash(body) != crc {
         return Err(damaged("checksum mismatch".into()));
     }
-    if body[..4] != SNAPSHOT_MAGIC || body[4..6] != SNAPSHOT_VERSION.to_le_bytes() {
+    let version = u16::from_le_bytes([body[4], body[5]]);
+    if body[..4] != SNAPSHOT_MAGIC || !(1..=SNAPSHOT_VERSION).contains(&version) {
         return Err(damaged("not a splatd snapshot of a known version".into()));
     }
     let mut at = 6;
@@ -384,10 +453,14 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
     if meta_len > MAX_META_BYTES {
         return Err(damaged(format!("metadata of {meta_len} bytes")));
     }
-    let (meta, _): (SnapshotMeta, usize) = bincode::serde::decode_from_slice(
-        take(meta_len)?,
-        bincode::config::legacy().with_limit::<{ MAX_META_BYTES as usize }>(),
-    )
+    let config = bincode::config::legacy().with_limit::<{ MAX_META_BYTES as usize }>();
+    let meta_bytes = take(meta_len)?;
+    let meta: SnapshotMeta = if version == 1 {
+        bincode::serde::decode_from_slice::<SnapshotMetaV1, _>(meta_bytes, config)
+            .map(|(v1, _)| v1.into())
+    } else {
+        bincode::serde::decode_from_slice(meta_bytes, config).map(|(meta, _)| meta)
+    }
     .map_err(|e| damaged(e.to_string()))?;
     if meta.frame != spec.request.id {
         return Err(damaged(format!(
@@ -410,4 +483,123 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
     }
     ShardedFrame::restore(spec, &whole, meta.seen, meta.counters, meta.version)
         .map_err(|e| damaged(e.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::FrameSpec;
+    use crate::Limits;
+    use splatd_proto::{Batch, Record};
+
+    fn open(dir: &Path) -> Arc<Durable> {
+        Arc::new(Durable::open(dir, Duration::from_secs(3600)).unwrap())
+    }
+
+    fn frame(id: &str) -> Arc<ShardedFrame> {
+        Arc::new(ShardedFrame::new(
+            FrameSpec::new(CreateFrame::new(id, 8, 20)).unwrap(),
+        ))
+    }
+
+    fn post(frame: &ShardedFrame, worker: u64, seq: u64) {
+        let records = (0..20)
+            .map(|y| Record::new(3, y, [1.0, 2.0, 3.0]))
+            .collect();
+        let batch = Batch::new(frame.id(), worker, seq, records).unwrap();
+        assert!(!frame.ingest(&batch).unwrap().duplicate);
+    }
+
+    fn recover(dir: &Path) -> FrameStore {
+        let store = FrameStore::new(Limits::default());
+        open(dir).recover(&store).unwrap();
+        store
+    }
+
+    /// The writer of a snapshot of a frame that is deleted, and re-created under the same id,
+    /// while the snapshot is on its way must not put the old frame's samples and batch ids into
+    /// the new frame's directory (they came back at the next start, and the new frame's first
+    /// batch was answered "duplicate").
+    #[tokio::test]
+    async fn a_late_snapshot_of_a_deleted_frame_does_not_resurrect_it() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        let old = frame("f");
+        durable.frame_created(&old).await.unwrap();
+        post(&old, 1, 0);
+        // The snapshot task took `old` from the store, then the frame was deleted and created
+        // again before the task got to write it.
+        old.retire();
+        durable.frame_deleted(&old).await.unwrap();
+        let new = frame("f");
+        durable.frame_created(&new).await.unwrap();
+        durable.snapshot(&old).await.unwrap();
+
+        let store = recover(dir.path());
+        let back = store.get("f").unwrap();
+        assert_eq!(back.info().samples, 0, "the new frame is empty");
+        post(&back, 1, 0);
+    }
+
+    /// A create over files that a failed deletion left behind starts from an empty frame.
+    #[tokio::test]
+    async fn a_new_frame_ignores_a_stale_snapshot_in_its_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        let old = frame("f");
+        durable.frame_created(&old).await.unwrap();
+        post(&old, 1, 0);
+        durable.snapshot(&old).await.unwrap();
+        assert_eq!(recover(dir.path()).get("f").unwrap().info().samples, 20);
+        durable.frame_created(&frame("f")).await.unwrap();
+        assert_eq!(recover(dir.path()).get("f").unwrap().info().samples, 0);
+    }
+
+    /// Snapshots written before batches had digests are still read; their batches count as
+    /// applied, and new batches get digests.
+    #[tokio::test]
+    async fn version_1_snapshots_are_read() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        let f = frame("f");
+        durable.frame_created(&f).await.unwrap();
+        post(&f, 4, 0);
+        durable.snapshot(&f).await.unwrap();
+
+        // Rewrite the snapshot as version 1 wrote it: the same cells, metadata without digests.
+        let path = dir.path().join("frames/f").join(SNAPSHOT_FILE);
+        let bytes = fs::read(&path).unwrap();
+        let body = &bytes[..bytes.len() - 4];
+        let meta_len = u64::from_le_bytes(body[6..14].try_into().unwrap()) as usize;
+        let (meta, _): (SnapshotMeta, usize) =
+            bincode::serde::decode_from_slice(&body[14..14 + meta_len], bincode::config::legacy())
+                .unwrap();
+        let v1 = SnapshotMetaV1 {
+            frame: meta.frame,
+            version: meta.version,
+            counters: meta.counters,
+            workers: meta.seen.workers,
+            nodes: meta.seen.nodes,
+        };
+        let v1 = bincode::serde::encode_to_vec(&v1, bincode::config::legacy()).unwrap();
+        let mut old = Vec::new();
+        old.extend_from_slice(&SNAPSHOT_MAGIC);
+        old.extend_from_slice(&1u16.to_le_bytes());
+        old.extend_from_slice(&(v1.len() as u64).to_le_bytes());
+        old.extend_from_slice(&v1);
+        old.extend_from_slice(&body[14 + meta_len..]);
+        let crc = crc32fast::hash(&old);
+        old.extend_from_slice(&crc.to_le_bytes());
+        fs::write(&path, old).unwrap();
+
+        let store = recover(dir.path());
+        let back = store.get("f").unwrap();
+        assert_eq!(back.info().samples, 20);
+        let retry = Batch::new("f", 4, 0, vec![Record::new(0, 0, [9.0; 3])]).unwrap();
+        assert!(
+            back.ingest(&retry).unwrap().duplicate,
+            "old ids stay applied"
+        );
+        post(&back, 4, 1);
+    }
 }

@@ -7,7 +7,7 @@
 //! cut (resolve, export, snapshot) takes the gate exclusively for the moment it takes to copy the
 //! bands. So a resolve never sees half a batch, and an applied batch is never half-durable.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Mutex, MutexGuard, RwLock};
 
 use splatd_proto::api::{CreateFrame, FrameInfo};
@@ -18,7 +18,7 @@ use splatd_estimator::{
     MergeError, ParamError, Resolved, SampleError,
 };
 
-use super::dedup::Seen;
+use super::dedup::{BatchId, Seen};
 
 /// Most bands a frame is split into. Contention falls with the number of bands, and 32 is far
 /// more than the cores of any one render head; each band costs one lock and one `Vec`.
@@ -106,6 +106,28 @@ pub enum IngestError {
         /// Frame id of the URL.
         url: String,
     },
+    /// A batch with this `(worker, seq)` but other records was applied before.
+    #[error(
+        "batch (worker {worker}, seq {seq}) was already applied with other records \
+         (digest {applied:016x}, this one {digest:016x}); ids must not be reused for \
+         different batches"
+    )]
+    IdReused {
+        /// The worker id.
+        worker: u64,
+        /// The sequence number.
+        seq: u64,
+        /// Digest of the records applied under this id.
+        applied: u64,
+        /// Digest of the records of this batch.
+        digest: u64,
+    },
+    /// The frame was deleted while the batch was on its way.
+    #[error("frame {frame:?} was deleted")]
+    Deleted {
+        /// The frame.
+        frame: String,
+    },
 }
 
 /// What an applied (or recognised) batch did.
@@ -135,6 +157,12 @@ pub enum ImportRefused {
         state: String,
         /// Frame id of the URL.
         url: String,
+    },
+    /// The frame was deleted while the state was on its way.
+    #[error("frame {frame:?} was deleted")]
+    Deleted {
+        /// The frame.
+        frame: String,
     },
 }
 
@@ -219,6 +247,8 @@ pub struct ShardedFrame {
     band_of_row: Vec<u16>,
     /// Shared while a batch is applied, exclusive while a consistent copy is taken.
     gate: RwLock<()>,
+    /// Set (under the exclusive gate) when the frame is deleted: nothing is applied after.
+    retired: AtomicBool,
     seen: Mutex<Seen>,
     counters: Counters,
     /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
@@ -304,6 +334,7 @@ impl ShardedFrame {
             bands: bands.into_iter().map(Mutex::new).collect(),
             band_of_row,
             gate: RwLock::new(()),
+            retired: AtomicBool::new(false),
             seen: Mutex::new(seen),
             counters: Counters::default(),
             version: AtomicU64::new(0),
@@ -412,12 +443,30 @@ impl ShardedFrame {
             buckets[band].push((r.x, r.y, r.rgb));
         }
 
+        // Outside the gate: a pass over the records, as long as a copy of them.
+        let digest = batch.content_digest();
         let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
-        if !lock(&self.seen).insert_batch(batch.worker, batch.seq) {
-            return Ok(Ingested {
-                accepted: 0,
-                duplicate: true,
+        if self.retired.load(Ordering::Acquire) {
+            return Err(IngestError::Deleted {
+                frame: self.id().to_owned(),
             });
+        }
+        match lock(&self.seen).insert_batch(batch.worker, batch.seq, digest) {
+            BatchId::New => {}
+            BatchId::Retry => {
+                return Ok(Ingested {
+                    accepted: 0,
+                    duplicate: true,
+                })
+            }
+            BatchId::Conflict { applied } => {
+                return Err(IngestError::IdReused {
+                    worker: batch.worker,
+                    seq: batch.seq,
+                    applied,
+                    digest,
+                })
+            }
         }
         for (band, samples) in self.bands.iter().zip(buckets) {
             if samples.is_empty() {
@@ -443,6 +492,10 @@ impl ShardedFrame {
 
     /// Adds an exported state (or a pushed delta) to this frame. A delta carrying an origin
     /// that was applied before is recognised and not applied again (returns `Ok(false)`).
+    ///
+    /// All or nothing: everything that can refuse the state is checked before the origin is
+    /// recorded or any band changes. The state may hold any rows of the frame (a band of
+    /// another node's frame, say): each band adds the rows it shares with it.
     pub fn import(
         &self,
         frame: &str,
@@ -461,16 +514,21 @@ impl ShardedFrame {
         };
         self.check_fits(state).map_err(mismatch)?;
         let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
+        if self.retired.load(Ordering::Acquire) {
+            return Err(ImportRefused::Deleted {
+                frame: self.id().to_owned(),
+            });
+        }
         if let Some(o) = origin {
             if !lock(&self.seen).insert_delta(&o.node, o.seq) {
                 return Ok(false);
             }
         }
         for band in &self.bands {
-            // Cannot fail: size and layout were checked, and a whole-frame state contains
-            // every band's rows. Bands of a state (rows other than 0..height) fail here before
-            // anything is added only if they straddle a band boundary.
-            lock(band).merge(state).map_err(mismatch)?;
+            // Every band has the frame's size and layout, checked above for band 0.
+            lock(band)
+                .merge_overlap(state)
+                .expect("a band has its frame's size and layout");
         }
         self.counters
             .samples
@@ -478,6 +536,24 @@ impl ShardedFrame {
         self.counters.imports.fetch_add(1, Ordering::Relaxed);
         self.version.fetch_add(1, Ordering::AcqRel);
         Ok(true)
+    }
+
+    /// Marks the frame deleted. Returns once no batch or import is being applied, and from then
+    /// on none is: whatever was acknowledged before is in the frame, and nothing is acknowledged
+    /// after.
+    pub fn retire(&self) {
+        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
+        self.retired.store(true, Ordering::Release);
+    }
+
+    /// Undoes [`ShardedFrame::retire`], for a deletion that failed.
+    pub fn unretire(&self) {
+        self.retired.store(false, Ordering::Release);
+    }
+
+    /// Whether [`ShardedFrame::retire`] was called (and not undone).
+    pub fn is_retired(&self) -> bool {
+        self.retired.load(Ordering::Acquire)
     }
 
     /// A consistent copy of the whole frame. Writers wait only for the copy (a memcpy of the
@@ -673,5 +749,115 @@ mod tests {
             .unwrap_err()
             .to_string()
             .contains("kappa"));
+    }
+
+    /// A batch id reused for other records is refused by name, applies nothing and is counted;
+    /// the original batch's retry is still a plain duplicate.
+    #[test]
+    fn an_id_reused_for_other_records_is_refused() {
+        let frame = ShardedFrame::new(spec(4, 4));
+        let first = vec![Record::new(0, 0, [2.0; 3])];
+        let other = vec![Record::new(1, 1, [3.0; 3])];
+        frame.ingest(&batch(9, 0, first.clone())).unwrap();
+        let before = frame.cut().whole();
+        let err = frame.ingest(&batch(9, 0, other)).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                IngestError::IdReused {
+                    worker: 9,
+                    seq: 0,
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert!(
+            err.to_string()
+                .contains("already applied with other records"),
+            "{err}"
+        );
+        assert_eq!(
+            frame.cut().whole(),
+            before,
+            "nothing of the refused batch applied"
+        );
+        let info = frame.info();
+        assert_eq!(
+            (info.samples, info.rejected_batches, info.rejected_samples),
+            (1, 1, 1)
+        );
+        assert!(frame.ingest(&batch(9, 0, first)).unwrap().duplicate);
+    }
+
+    /// A state holding only some rows of the frame (legal in the state format) is added whole,
+    /// into whichever bands its rows fall in; a state that does not fit changes nothing: not the
+    /// cells, not the origins seen, not the version.
+    #[test]
+    fn imports_are_all_or_nothing() {
+        let scene = FireflyScene::new(16, 64, 8);
+        let frame = ShardedFrame::new(spec(16, 64));
+        assert!(frame.bands.len() >= 8, "the test needs several bands");
+        let layout = CascadeLayout::with_defaults();
+        // Rows 4..20 straddle band boundaries.
+        let mut part = FrameState::band(16, 64, 4..20, layout.clone());
+        let mut whole = FrameState::new(16, 64, layout.clone());
+        for pass in 0..6 {
+            let rows = part.rows();
+            part.splat_all(scene.pass(pass).filter(|s| rows.contains(&s.1)));
+        }
+        whole.merge(&part).unwrap();
+        let origin = Origin {
+            node: "n".into(),
+            seq: 0,
+        };
+        assert!(frame.import("f", &part, Some(&origin)).unwrap());
+        assert_eq!(frame.cut().whole(), whole);
+        assert_eq!(frame.version(), 1);
+
+        let other_layout = CascadeLayout::new(
+            layout.base(),
+            5,
+            layout.lowest_scale(),
+            layout.luminance_weights(),
+        )
+        .unwrap();
+        let misfit = FrameState::band(16, 64, 0..8, other_layout);
+        let retry = Origin {
+            node: "m".into(),
+            seq: 0,
+        };
+        let err = frame.import("f", &misfit, Some(&retry)).unwrap_err();
+        assert!(matches!(err, ImportRefused::Mismatch { .. }), "{err}");
+        assert_eq!(frame.cut().whole(), whole);
+        assert_eq!(frame.version(), 1);
+        assert!(
+            !frame.cut().seen.nodes.contains_key("m"),
+            "a refused import's origin is not recorded"
+        );
+    }
+
+    /// After `retire` returns, nothing is applied: batches and imports are refused by name.
+    #[test]
+    fn a_retired_frame_takes_nothing() {
+        let frame = ShardedFrame::new(spec(4, 4));
+        frame
+            .ingest(&batch(1, 0, vec![Record::new(0, 0, [1.0; 3])]))
+            .unwrap();
+        frame.retire();
+        let err = frame
+            .ingest(&batch(1, 1, vec![Record::new(0, 0, [1.0; 3])]))
+            .unwrap_err();
+        assert!(matches!(err, IngestError::Deleted { .. }), "{err}");
+        let state = frame.cut().whole();
+        assert!(matches!(
+            frame.import("f", &state, None),
+            Err(ImportRefused::Deleted { .. })
+        ));
+        assert_eq!(frame.info().samples, 1);
+        frame.unretire();
+        assert!(frame
+            .ingest(&batch(1, 1, vec![Record::new(0, 0, [1.0; 3])]))
+            .is_ok());
     }
 }

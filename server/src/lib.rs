@@ -135,30 +135,46 @@ impl AppState {
 
     /// Called once a new frame is in the store, before the client hears of it.
     pub async fn on_created(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
-        let Some(durable) = self.durable.clone() else {
-            return Ok(());
-        };
-        let frame = frame.clone();
-        http::routes::blocking("frame creation", move || {
-            durable
-                .frame_created(&frame)
-                .map_err(|e| ApiError::internal("writing the frame to disk", e))
-        })
-        .await
+        match &self.durable {
+            Some(durable) => durable
+                .frame_created(frame)
+                .await
+                .map_err(|e| ApiError::internal("writing the frame to disk", e)),
+            None => Ok(()),
+        }
     }
 
-    /// Called once a frame has left the store.
-    pub async fn on_deleted(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
-        let Some(durable) = self.durable.clone() else {
+    /// Deletes a frame, in an order that keeps every promise made about it:
+    ///
+    /// 1. the frame is retired: batches being applied finish, later ones are refused, so no
+    ///    batch is acknowledged after the deletion is;
+    /// 2. it leaves the store, so a new frame of the same id can be created;
+    /// 3. its files are removed (after any snapshot being written), so it is not recovered.
+    ///
+    /// If step 3 fails, the frame is put back as it was and the deletion is refused: a deletion
+    /// is durable before it is acknowledged, and a failed one changes nothing.
+    pub async fn delete_frame(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+        let retiring = frame.clone();
+        http::routes::blocking("frame deletion", move || {
+            retiring.retire();
+            Ok(())
+        })
+        .await?;
+        self.store.remove_frame(frame);
+        let Some(durable) = &self.durable else {
             return Ok(());
         };
-        let id = frame.id().to_owned();
-        http::routes::blocking("frame deletion", move || {
-            durable
-                .frame_deleted(&id)
-                .map_err(|e| ApiError::internal("removing the frame from disk", e))
-        })
-        .await
+        if let Err(e) = durable.frame_deleted(frame).await {
+            frame.unretire();
+            if !self.store.reinsert(frame.clone()) {
+                tracing::error!(
+                    frame = frame.id(),
+                    "a frame of the same id was created while the deletion failed"
+                );
+            }
+            return Err(ApiError::internal("removing the frame from disk", e));
+        }
+        Ok(())
     }
 
     /// Returns once everything applied to `frame` so far is on disk (at once when the server
@@ -166,7 +182,7 @@ impl AppState {
     pub async fn sync(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
         match &self.durable {
             Some(durable) => durable
-                .snapshot(&self.store, frame)
+                .snapshot(frame)
                 .await
                 .map_err(|e| ApiError::internal("writing a snapshot", e)),
             None => Ok(()),

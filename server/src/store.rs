@@ -86,6 +86,27 @@ impl FrameStore {
         Ok(Created::New(frame))
     }
 
+    /// Removes `frame` (this very frame, not another of the same id).
+    pub fn remove_frame(&self, frame: &Arc<ShardedFrame>) {
+        let mut frames = self.frames.write().unwrap_or_else(|e| e.into_inner());
+        if frames
+            .get(frame.id())
+            .is_some_and(|f| Arc::ptr_eq(f, frame))
+        {
+            frames.remove(frame.id());
+        }
+    }
+
+    /// Puts back a frame whose deletion failed; false if its id was taken meanwhile.
+    pub fn reinsert(&self, frame: Arc<ShardedFrame>) -> bool {
+        let mut frames = self.frames.write().unwrap_or_else(|e| e.into_inner());
+        if frames.contains_key(frame.id()) {
+            return false;
+        }
+        frames.insert(frame.id().to_owned(), frame);
+        true
+    }
+
     /// Puts a frame restored from disk back (no limits: it was admitted before).
     pub fn insert_restored(&self, frame: ShardedFrame) {
         let mut frames = self.frames.write().unwrap_or_else(|e| e.into_inner());

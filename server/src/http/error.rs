@@ -99,6 +99,12 @@ impl From<IngestError> for ApiError {
             IngestError::WrongFrame { .. } => {
                 return ApiError::bad_request("frame_mismatch", e.to_string())
             }
+            IngestError::IdReused { .. } => {
+                return ApiError::new(StatusCode::CONFLICT, "batch_id_reused", e.to_string())
+            }
+            IngestError::Deleted { .. } => {
+                return ApiError::new(StatusCode::NOT_FOUND, "unknown_frame", e.to_string())
+            }
             IngestError::Sample { error, .. } => match error {
                 SampleError::OutOfFrame { .. } => "pixel_out_of_range",
                 SampleError::NonFinite => "non_finite_sample",
@@ -117,6 +123,9 @@ impl From<ImportRefused> for ApiError {
             }
             ImportRefused::Mismatch { .. } => {
                 ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string())
+            }
+            ImportRefused::Deleted { .. } => {
+                ApiError::new(StatusCode::NOT_FOUND, "unknown_frame", e.to_string())
             }
         }
     }

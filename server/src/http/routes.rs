@@ -89,8 +89,8 @@ pub async fn delete_frame(
     State(app): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ApiError> {
-    let frame = app.store.remove(&id)?;
-    app.on_deleted(&frame).await?;
+    let frame = app.store.get(&id)?;
+    app.delete_frame(&frame).await?;
     metrics::gauge!("splatd_frames").set(app.store.list().len() as f64);
     tracing::info!(frame = id, "frame deleted");
     Ok(StatusCode::NO_CONTENT)
