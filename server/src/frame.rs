@@ -8,7 +8,7 @@
 //! bands. So a resolve never sees half a batch, and an applied batch is never half-durable.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
-use std::sync::{Mutex, MutexGuard, RwLock};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 use splatd_proto::api::{CreateFrame, FrameInfo};
 use splatd_proto::{Batch, Origin};
@@ -249,6 +249,10 @@ pub struct ShardedFrame {
     gate: RwLock<()>,
     /// Set (under the exclusive gate) when the frame is deleted: nothing is applied after.
     retired: AtomicBool,
+    /// Held shared by every request that changes the frame, from before it looks at the frame
+    /// until its answer is ready ([`ShardedFrame::lease`]); a deletion takes it exclusively, so
+    /// it is answered only after every such answer.
+    requests: Arc<tokio::sync::RwLock<()>>,
     seen: Mutex<Seen>,
     counters: Counters,
     /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
@@ -258,6 +262,13 @@ pub struct ShardedFrame {
     durable_version: AtomicU64,
     /// Per worker, the sequence number below which every batch is in that snapshot.
     durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
+}
+
+/// Held by a request that changes a frame until its answer is ready (see
+/// [`ShardedFrame::lease`]).
+#[derive(Debug)]
+pub struct Lease {
+    _guard: tokio::sync::OwnedRwLockReadGuard<()>,
 }
 
 /// Locks a mutex, ignoring poisoning: every mutation of the guarded values is a sequence of
@@ -335,6 +346,7 @@ impl ShardedFrame {
             band_of_row,
             gate: RwLock::new(()),
             retired: AtomicBool::new(false),
+            requests: Arc::new(tokio::sync::RwLock::new(())),
             seen: Mutex::new(seen),
             counters: Counters::default(),
             version: AtomicU64::new(0),
@@ -538,12 +550,35 @@ impl ShardedFrame {
         Ok(true)
     }
 
+    /// A lease for a request that will change the frame and answer for it; `None` once the frame
+    /// is retired. Hold it until the answer is ready.
+    pub async fn lease(&self) -> Option<Lease> {
+        // Checked first as well: a deletion queues for the lock only after retiring the frame,
+        // so this never waits behind one.
+        if self.is_retired() {
+            return None;
+        }
+        let lease = Lease {
+            _guard: self.requests.clone().read_owned().await,
+        };
+        (!self.is_retired()).then_some(lease)
+    }
+
     /// Marks the frame deleted. Returns once no batch or import is being applied, and from then
     /// on none is: whatever was acknowledged before is in the frame, and nothing is acknowledged
     /// after.
     pub fn retire(&self) {
         let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
         self.retired.store(true, Ordering::Release);
+    }
+
+    /// [`ShardedFrame::retire`], then waits until every request holding a [`Lease`] has its
+    /// answer: after this returns, no request that changed the frame is still to be answered.
+    pub async fn retire_and_drain(self: &Arc<Self>) {
+        let frame = self.clone();
+        // The gate is a blocking lock, held by batches while they are applied.
+        let _ = tokio::task::spawn_blocking(move || frame.retire()).await;
+        drop(self.requests.write().await);
     }
 
     /// Undoes [`ShardedFrame::retire`], for a deletion that failed.
@@ -859,5 +894,32 @@ mod tests {
         assert!(frame
             .ingest(&batch(1, 1, vec![Record::new(0, 0, [1.0; 3])]))
             .is_ok());
+    }
+
+    /// A deletion waits for the answers of requests that hold a lease, and no lease is given
+    /// after it began.
+    #[tokio::test]
+    async fn a_deletion_drains_leased_requests_first() {
+        let frame = Arc::new(ShardedFrame::new(spec(4, 4)));
+        let lease = frame.lease().await.expect("a live frame leases");
+        let deleting = tokio::spawn({
+            let frame = frame.clone();
+            async move { frame.retire_and_drain().await }
+        });
+        for _ in 0..10_000 {
+            if frame.is_retired() {
+                break;
+            }
+            tokio::task::yield_now().await;
+        }
+        assert!(frame.is_retired());
+        assert!(frame.lease().await.is_none(), "no lease after retiring");
+        tokio::task::yield_now().await;
+        assert!(
+            !deleting.is_finished(),
+            "the deletion waits for the leased request"
+        );
+        drop(lease);
+        deleting.await.unwrap();
     }
 }

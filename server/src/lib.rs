@@ -146,20 +146,15 @@ impl AppState {
 
     /// Deletes a frame, in an order that keeps every promise made about it:
     ///
-    /// 1. the frame is retired: batches being applied finish, later ones are refused, so no
-    ///    batch is acknowledged after the deletion is;
+    /// 1. the frame is retired: batches being applied finish and are answered, later ones are
+    ///    refused, so no batch is acknowledged after the deletion is;
     /// 2. it leaves the store, so a new frame of the same id can be created;
     /// 3. its files are removed (after any snapshot being written), so it is not recovered.
     ///
     /// If step 3 fails, the frame is put back as it was and the deletion is refused: a deletion
     /// is durable before it is acknowledged, and a failed one changes nothing.
     pub async fn delete_frame(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
-        let retiring = frame.clone();
-        http::routes::blocking("frame deletion", move || {
-            retiring.retire();
-            Ok(())
-        })
-        .await?;
+        frame.retire_and_drain().await;
         self.store.remove_frame(frame);
         let Some(durable) = &self.durable else {
             return Ok(());

@@ -180,6 +180,11 @@ async fn ingest(
     frame: Arc<ShardedFrame>,
     make_batch: impl FnOnce(&ShardedFrame) -> Result<Batch, ApiError> + Send + 'static,
 ) -> Result<Json<BatchAck>, ApiError> {
+    // Held until the acknowledgement is ready, so a deletion is answered after it.
+    let _lease = frame
+        .lease()
+        .await
+        .ok_or_else(|| ApiError::unknown_frame(frame.id()))?;
     let worker_frame = frame.clone();
     let (batch_id, ingested) = blocking("ingest", move || {
         let batch = make_batch(&worker_frame)?;
@@ -349,6 +354,11 @@ pub async fn import_state(
     let cells = frame.spec().memory_bytes() / 8;
     let limit = frame.spec().memory_bytes() as usize + 64 * 1024;
     let bytes = read_body(body, limit).await?;
+    // Held until the acknowledgement is ready, so a deletion is answered after it.
+    let _lease = frame
+        .lease()
+        .await
+        .ok_or_else(|| ApiError::unknown_frame(frame.id()))?;
     let (samples, applied) = blocking("import", move || {
         let dump = StateDump::decode(&bytes, cells).map_err(|e| ApiError::from(&e))?;
         let origin = dump.origin.clone();
