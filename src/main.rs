@@ -160,14 +160,15 @@ struct PostArgs {
     /// Create the frame (default parameters, the size of the first pass) if it does not exist.
     #[arg(long)]
     create: bool,
-    /// Worker id identifying these passes (random by default). Rerunning the same command with
-    /// the same `--worker` and files posts nothing twice.
+    /// Worker id the passes are sent under. Each pass is numbered by a digest of its file, so
+    /// posting a file again (a rerun, or from another machine) adds nothing twice, and new files
+    /// are never mistaken for old ones; a different `--worker` makes the same files count again.
     #[arg(long)]
     worker: Option<u64>,
     /// Bearer token (also read from SPLATD_TOKEN).
     #[arg(long, env = "SPLATD_TOKEN", hide_env_values = true)]
     token: Option<String>,
-    /// Pass files, one sample per pixel each; their order numbers them.
+    /// Pass files, one sample per pixel each.
     #[arg(required = true)]
     passes: Vec<PathBuf>,
 }
@@ -371,13 +372,7 @@ fn post(args: PostArgs) -> Result<()> {
         if let Some(token) = &args.token {
             client = client.with_token(token.clone());
         }
-        let worker = args.worker.unwrap_or_else(|| {
-            let seed = std::time::SystemTime::now()
-                .duration_since(std::time::UNIX_EPOCH)
-                .map_or(0, |d| d.as_nanos() as u64)
-                ^ u64::from(std::process::id());
-            splatd_scenes::synth::SplitMix64::new(seed).next_u64()
-        });
+        let worker = args.worker.unwrap_or(POST_WORKER);
         if args.create {
             let first = std::fs::read(&args.passes[0])
                 .with_context(|| format!("reading {}", args.passes[0].display()))?;
@@ -401,11 +396,12 @@ fn post(args: PostArgs) -> Result<()> {
             .expect("valid template"),
         );
         let (mut samples, mut duplicates) = (0u64, 0u64);
-        for (seq, path) in args.passes.iter().enumerate() {
+        for path in &args.passes {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+            let seq = pass_seq(&bytes);
             let ack = client
-                .post_pass(&args.frame, worker, seq as u64, bytes.into())
+                .post_pass(&args.frame, worker, seq, bytes.into())
                 .await
                 .with_context(|| format!("posting {}", path.display()))?;
             samples += ack.accepted;
@@ -414,6 +410,11 @@ fn post(args: PostArgs) -> Result<()> {
             bar.inc(1);
         }
         bar.finish();
+        // On a server with a data directory, exit only once the passes are on disk.
+        client
+            .sync(&args.frame)
+            .await
+            .context("waiting for the passes to be on disk")?;
         let info = client.frame_info(&args.frame).await?;
         println!(
             "posted {} passes ({samples} samples{}) to frame {:?} as worker {worker}; it now has \
@@ -429,6 +430,17 @@ fn post(args: PostArgs) -> Result<()> {
         );
         Ok(())
     })
+}
+
+/// The worker id `splatd post` sends passes under unless `--worker` is given.
+const POST_WORKER: u64 = 0x5350_4C41_5450_4F53; // "SPLATPOS"
+
+/// A pass's sequence number: a digest of the file. The same file posted again, by a rerun or
+/// from another machine, is the same batch and counts once; a different file never takes the
+/// number of an earlier one (which, with numbers from file positions, a rerun on new files did,
+/// and the server answered "duplicate" and dropped them).
+fn pass_seq(bytes: &[u8]) -> u64 {
+    xxhash_rust::xxh3::xxh3_64(bytes)
 }
 
 /// What an input file is, from its first bytes.

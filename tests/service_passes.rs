@@ -68,16 +68,27 @@ fn passes_posted_as_exr_equal_the_same_samples_posted_as_records() {
         .status()
         .unwrap();
     assert!(status.success(), "splatd post failed");
-    // Rerunning with the same worker id posts nothing twice.
+    let post = |frame: &str, worker: Option<&str>, files: &[PathBuf]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_splatd"));
+        cmd.args(["post", "--url", &server.url, "--frame", frame, "--create"]);
+        if let Some(worker) = worker {
+            cmd.args(["--worker", worker]);
+        }
+        assert!(
+            cmd.args(files).status().unwrap().success(),
+            "splatd post failed"
+        );
+    };
+    // Rerunning posts nothing twice, with or without a worker id.
     for _ in 0..2 {
-        let status = Command::new(env!("CARGO_BIN_EXE_splatd"))
-            .args(["post", "--url", &server.url, "--frame", "again", "--create"])
-            .args(["--worker", "77"])
-            .args(&files)
-            .status()
-            .unwrap();
-        assert!(status.success());
+        post("again", Some("77"), &files);
+        post("again-default", None, &files);
     }
+    // A rerun with the same worker id on other files adds them all: passes are numbered by
+    // their content, not by their position on the command line.
+    let (first, rest) = files.split_at(files.len() / 2);
+    post("split", Some("78"), first);
+    post("split", Some("78"), rest);
 
     // The same values as records, into a second frame. Half files hold the values rounded to
     // half precision; uint files hold integers.
@@ -109,10 +120,19 @@ fn passes_posted_as_exr_equal_the_same_samples_posted_as_records() {
     };
     let from_records = image("records");
     assert!(image("passes") == from_records, "passes and records differ");
-    assert!(
-        image("again") == from_records,
-        "a rerun counted passes twice"
-    );
+    for (frame, what) in [
+        ("again", "a rerun counted passes twice"),
+        (
+            "again-default",
+            "a rerun without --worker counted passes twice",
+        ),
+        (
+            "split",
+            "a second run with the same worker dropped new passes",
+        ),
+    ] {
+        assert!(image(frame) == from_records, "{what}");
+    }
     let info = rt.block_on(client.frame_info("passes")).unwrap();
     let n = files.len() as u64;
     assert_eq!((info.spp_min, info.spp_max, info.batches), (n, n, n));
