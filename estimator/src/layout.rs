@@ -23,6 +23,9 @@ pub const COUNT_ONE: u64 = 1 << FRAC_BITS;
 /// Largest cascade count accepted; 16 cascades of base 8 span 8^15 ≈ 3.5e13 in brightness.
 pub const MAX_CASCADES: u32 = 16;
 
+/// Smallest luminance weight a layout accepts; the largest is 1.
+pub const MIN_LUMINANCE_WEIGHT: f64 = 1.0 / 32.0;
+
 /// Rec.709 / sRGB relative luminance weights, the default brightness function.
 pub const REC709_LUMINANCE: [f64; 3] = [0.2126, 0.7152, 0.0722];
 
@@ -102,8 +105,10 @@ impl CascadeLayout {
     /// * `base` (`b`): ratio between neighbouring cascades, `1 < b <= 1024`. Paper default 8.
     /// * `cascades` (`K`): `2..=16`. Paper default 6.
     /// * `lowest_scale` (`c0`): scale of cascade 0, `> 0`; every `c_j` must stay a normal `f64`.
-    /// * `luminance`: brightness weights, each finite and `> 0` (a zero weight would let a
-    ///   channel grow without bound in cascade 0, where its brightness says it belongs).
+    /// * `luminance`: brightness weights, each in `[1/32, 1]` ([`MIN_LUMINANCE_WEIGHT`]). A
+    ///   zero or tiny weight would let one channel grow far beyond the brightness that picks its
+    ///   cascade (bounding a channel by `luminance / w_min` is what bounds every sum), and a huge
+    ///   one would make every sample look like a firefly.
     pub fn new(
         base: f64,
         cascades: u32,
@@ -128,10 +133,16 @@ impl CascadeLayout {
                 format!("must be a positive number, got {lowest_scale}"),
             ));
         }
-        if let Some(w) = luminance.iter().find(|w| !(w.is_finite() && **w > 0.0)) {
+        if let Some(w) = luminance
+            .iter()
+            .find(|w| !(MIN_LUMINANCE_WEIGHT..=1.0).contains(*w))
+        {
             return Err(ParamError::new(
                 "luminance",
-                format!("every weight must be a positive number, got {w} in {luminance:?}"),
+                format!(
+                    "every weight must be in [1/32, 1] (Rec. 709 is [0.2126, 0.7152, 0.0722]), \
+                     got {w} in {luminance:?}"
+                ),
             ));
         }
         let scales: Vec<f64> = (0..cascades)

@@ -18,7 +18,8 @@ mod state;
 
 pub use layout::{
     rec709_luminance, CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_CASCADE_BASE,
-    DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, REC709_LUMINANCE,
+    DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, MIN_LUMINANCE_WEIGHT,
+    REC709_LUMINANCE,
 };
 pub use resolve::{
     resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
