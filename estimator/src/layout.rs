@@ -417,4 +417,25 @@ mod tests {
             assert_eq!(err.name, name, "{err}");
         }
     }
+
+    #[test]
+    fn luminance_weights_are_bounded() {
+        for bad in [
+            [1e308, 0.7, 0.07],
+            [0.2, 0.7, 0.0],
+            [0.2, 0.7, 0.03],
+            [0.2, 1.01, 0.1],
+        ] {
+            let err = CascadeLayout::new(8.0, 6, 1.0, bad).unwrap_err();
+            assert_eq!(err.name, "luminance", "{bad:?}");
+            assert!(err.reason.contains("[1/32, 1]"), "{err}");
+        }
+        for good in [
+            REC709_LUMINANCE,
+            [0.2722, 0.6741, 0.0537],
+            [1.0 / 32.0, 1.0, 1.0],
+        ] {
+            assert!(CascadeLayout::new(8.0, 6, 1.0, good).is_ok(), "{good:?}");
+        }
+    }
 }
