@@ -55,6 +55,11 @@ const SNAPSHOT_VERSION: u16 = 2;
 const SNAPSHOT_FILE: &str = "snapshot.bin";
 const SNAPSHOT_TMP: &str = "snapshot.tmp";
 const FRAME_FILE: &str = "frame.json";
+/// Written (durably) before a frame's first snapshot: from then on a missing `snapshot.bin`
+/// means a lost file, not a frame that never had samples.
+const SNAPSHOT_MARKER: &str = "snapshotted";
+/// Where damaged frames are moved at recovery, beside `frames/`.
+const QUARANTINE_DIR: &str = "quarantine";
 /// Largest snapshot metadata section accepted when reading one back.
 const MAX_META_BYTES: u64 = 1 << 30;
 
@@ -134,6 +139,22 @@ pub struct Durable {
     pub interval: Duration,
     /// Serializes snapshots of one frame (the periodic ones and `sync`).
     locks: std::sync::Mutex<HashMap<String, Arc<tokio::sync::Mutex<()>>>>,
+    /// Frames found damaged at recovery and moved aside.
+    quarantined: std::sync::Mutex<Vec<Quarantined>>,
+    /// Frames whose last snapshot failed (a full disk, say): their acknowledged batches are
+    /// not becoming durable.
+    failing: std::sync::Mutex<std::collections::BTreeSet<String>>,
+}
+
+/// A frame that could not be recovered, moved out of the way so the others could be.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Quarantined {
+    /// The frame id (its directory's name).
+    pub frame: String,
+    /// Why it could not be read.
+    pub reason: String,
+    /// Where its files are now.
+    pub moved_to: PathBuf,
 }
 
 impl Durable {
@@ -146,7 +167,27 @@ impl Durable {
             root,
             interval,
             locks: std::sync::Mutex::new(HashMap::new()),
+            quarantined: std::sync::Mutex::new(Vec::new()),
+            failing: std::sync::Mutex::new(Default::default()),
         })
+    }
+
+    /// Frames found damaged at the last recovery, and where their files went.
+    pub fn quarantined(&self) -> Vec<Quarantined> {
+        self.quarantined
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// Frames whose last snapshot attempt failed: acknowledged batches of theirs are not
+    /// becoming durable, which `/healthz` reports.
+    pub fn failing(&self) -> Vec<String> {
+        self.failing_set().iter().cloned().collect()
+    }
+
+    fn failing_set(&self) -> std::sync::MutexGuard<'_, std::collections::BTreeSet<String>> {
+        self.failing.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     fn frame_dir(&self, id: &str) -> PathBuf {
@@ -155,45 +196,74 @@ impl Durable {
     }
 
     /// Reads every frame back into `store`; returns how many frames were recovered.
+    ///
+    /// A frame whose files are damaged or missing is never read as empty: its directory is
+    /// moved to `DIR/quarantine/` (listed by [`Durable::quarantined`], logged as an error) and
+    /// the other frames are served. Only a data directory that cannot be listed, or a damaged
+    /// frame that cannot be moved aside, stops the start.
     pub fn recover(&self, store: &FrameStore) -> Result<usize, DurableError> {
         let frames = self.root.join("frames");
         let mut recovered = 0;
         let entries = fs::read_dir(&frames).map_err(io_err("listing", &frames))?;
         for entry in entries {
             let dir = entry.map_err(io_err("listing", &frames))?.path();
-            let meta_path = dir.join(FRAME_FILE);
-            if !meta_path.exists() {
-                // A frame deleted while a snapshot of it was being written: not a frame.
+            if !dir.join(FRAME_FILE).exists() {
+                // A frame deleted (its marker goes first) or never fully created: not a frame.
                 let _ = fs::remove_dir_all(&dir);
                 continue;
             }
-            let _ = fs::remove_file(dir.join(SNAPSHOT_TMP));
-            let json = fs::read(&meta_path).map_err(io_err("reading", &meta_path))?;
-            let request: CreateFrame =
-                serde_json::from_slice(&json).map_err(|e| DurableError::Damaged {
-                    path: meta_path.clone(),
-                    reason: e.to_string(),
-                })?;
-            let spec = FrameSpec::new(request).map_err(|e| DurableError::Damaged {
-                path: meta_path.clone(),
-                reason: e.to_string(),
-            })?;
-            let snapshot = dir.join(SNAPSHOT_FILE);
-            let frame = if snapshot.exists() {
-                read_snapshot(&snapshot, spec)?
-            } else {
-                ShardedFrame::new(spec)
-            };
-            tracing::info!(
-                frame = frame.id(),
-                samples = frame.info().samples,
-                "frame recovered"
-            );
-            frame.mark_durable(&frame.cut().seen, frame.version());
-            store.insert_restored(frame);
-            recovered += 1;
+            match recover_frame(&dir) {
+                Ok(frame) => {
+                    tracing::info!(
+                        frame = frame.id(),
+                        samples = frame.info().samples,
+                        "frame recovered"
+                    );
+                    frame.mark_durable(&frame.cut().seen, frame.version());
+                    store.insert_restored(frame);
+                    recovered += 1;
+                }
+                Err(e) => self.quarantine(&dir, e)?,
+            }
         }
+        metrics::gauge!("splatd_frames_quarantined").set(self.quarantined().len() as f64);
         Ok(recovered)
+    }
+
+    /// Moves a damaged frame's directory aside.
+    fn quarantine(&self, dir: &Path, error: DurableError) -> Result<(), DurableError> {
+        let name = dir
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_default();
+        let aside = self.root.join(QUARANTINE_DIR);
+        fs::create_dir_all(&aside).map_err(io_err("creating", &aside))?;
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        let mut moved_to = aside.join(format!("{name}.{stamp}"));
+        let mut n = 1;
+        while moved_to.exists() {
+            moved_to = aside.join(format!("{name}.{stamp}.{n}"));
+            n += 1;
+        }
+        fs::rename(dir, &moved_to).map_err(io_err("moving a damaged frame aside", dir))?;
+        sync_dir(&self.root.join("frames"))?;
+        tracing::error!(
+            frame = name,
+            error = %error,
+            moved_to = %moved_to.display(),
+            "frame damaged: moved aside, not served"
+        );
+        self.quarantined
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .push(Quarantined {
+                frame: name,
+                reason: error.to_string(),
+                moved_to,
+            });
+        Ok(())
     }
 
     /// Makes a new frame durable (its parameters; its cascades are empty).
@@ -213,7 +283,7 @@ impl Durable {
         run_blocking(self.frame_dir(frame.id()), move || {
             let dir = this.frame_dir(frame.id());
             fs::create_dir_all(&dir).map_err(io_err("creating", &dir))?;
-            for stale in [SNAPSHOT_FILE, SNAPSHOT_TMP] {
+            for stale in [SNAPSHOT_FILE, SNAPSHOT_TMP, SNAPSHOT_MARKER] {
                 let path = dir.join(stale);
                 match fs::remove_file(&path) {
                     Ok(()) => sync_dir(&dir)?,
@@ -236,7 +306,9 @@ impl Durable {
         let lock = self.lock_for(frame.id());
         let _turn = lock.lock().await;
         let dir = self.frame_dir(frame.id());
-        run_blocking(dir.clone(), move || remove_frame_dir(&dir)).await
+        run_blocking(dir.clone(), move || remove_frame_dir(&dir)).await?;
+        self.failing_set().remove(frame.id());
+        Ok(())
     }
 
     fn lock_for(&self, id: &str) -> Arc<tokio::sync::Mutex<()>> {
@@ -264,7 +336,17 @@ impl Durable {
             what: "snapshotting",
             path: self.frame_dir(frame.id()),
             source: io::Error::other(e.to_string()),
-        })??;
+        })
+        .and_then(|written| written);
+        let cut = match cut {
+            Ok(cut) => cut,
+            Err(e) => {
+                self.failing_set().insert(frame.id().to_owned());
+                metrics::counter!("splatd_snapshot_failures_total").increment(1);
+                return Err(e);
+            }
+        };
+        self.failing_set().remove(frame.id());
         frame.mark_durable(&cut.seen, cut.version);
         metrics::counter!("splatd_snapshots_total").increment(1);
         Ok(())
@@ -280,6 +362,13 @@ impl Durable {
         };
         let meta = bincode::serde::encode_to_vec(&meta, bincode::config::legacy())
             .expect("snapshot metadata serialises");
+        let marker = dir.join(SNAPSHOT_MARKER);
+        if !marker.exists() {
+            File::create(&marker)
+                .and_then(|f| f.sync_all())
+                .map_err(io_err("creating", &marker))?;
+            sync_dir(&dir)?;
+        }
         write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, |w| {
             let mut w = CrcWriter::new(w);
             w.write_all(&SNAPSHOT_MAGIC)?;
@@ -319,11 +408,37 @@ impl Durable {
             for frame in app.store.list() {
                 if let Err(e) = self.snapshot(&frame).await {
                     tracing::error!(frame = frame.id(), error = %e, "snapshot failed");
-                    metrics::counter!("splatd_snapshot_failures_total").increment(1);
                 }
             }
             wait = self.interval.max(started.elapsed() * 4);
         }
+    }
+}
+
+/// Reads one frame directory back.
+fn recover_frame(dir: &Path) -> Result<ShardedFrame, DurableError> {
+    let _ = fs::remove_file(dir.join(SNAPSHOT_TMP));
+    let meta_path = dir.join(FRAME_FILE);
+    let json = fs::read(&meta_path).map_err(io_err("reading", &meta_path))?;
+    let request: CreateFrame =
+        serde_json::from_slice(&json).map_err(|e| DurableError::Damaged {
+            path: meta_path.clone(),
+            reason: e.to_string(),
+        })?;
+    let spec = FrameSpec::new(request).map_err(|e| DurableError::Damaged {
+        path: meta_path.clone(),
+        reason: e.to_string(),
+    })?;
+    let snapshot = dir.join(SNAPSHOT_FILE);
+    if snapshot.exists() {
+        read_snapshot(&snapshot, spec)
+    } else if dir.join(SNAPSHOT_MARKER).exists() {
+        Err(DurableError::Damaged {
+            path: snapshot,
+            reason: "missing, although the frame was snapshotted before".into(),
+        })
+    } else {
+        Ok(ShardedFrame::new(spec))
     }
 }
 
@@ -399,13 +514,21 @@ fn write_atomically(
 ) -> Result<(), DurableError> {
     let tmp_path = dir.join(tmp);
     let final_path = dir.join(name);
-    let file = File::create(&tmp_path).map_err(io_err("creating", &tmp_path))?;
-    let mut w = BufWriter::with_capacity(1 << 20, &file);
-    write(&mut w).map_err(io_err("writing", &tmp_path))?;
-    w.flush().map_err(io_err("writing", &tmp_path))?;
-    drop(w);
-    file.sync_all().map_err(io_err("syncing", &tmp_path))?;
-    fs::rename(&tmp_path, &final_path).map_err(io_err("renaming", &tmp_path))?;
+    let written = (|| {
+        let file = File::create(&tmp_path).map_err(io_err("creating", &tmp_path))?;
+        let mut w = BufWriter::with_capacity(1 << 20, &file);
+        write(&mut w).map_err(io_err("writing", &tmp_path))?;
+        w.flush().map_err(io_err("writing", &tmp_path))?;
+        drop(w);
+        file.sync_all().map_err(io_err("syncing", &tmp_path))?;
+        fs::rename(&tmp_path, &final_path).map_err(io_err("renaming", &tmp_path))
+    })();
+    if written.is_err() {
+        // A failed write (a full disk, a file-size limit) must not leave a partial file that
+        // keeps the space: other frames' snapshots need it.
+        let _ = fs::remove_file(&tmp_path);
+    }
+    written?;
     sync_dir(dir)
 }
 
@@ -601,5 +724,82 @@ mod tests {
             "old ids stay applied"
         );
         post(&back, 4, 1);
+    }
+
+    /// A damaged or missing file never reads as an empty frame: the frame is moved aside and
+    /// listed, and every other frame is served.
+    #[tokio::test]
+    async fn damaged_frames_are_quarantined_and_the_rest_recovered() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        for id in ["good", "lost", "torn", "garbled"] {
+            let f = frame(id);
+            durable.frame_created(&f).await.unwrap();
+            post(&f, 1, 0);
+            durable.snapshot(&f).await.unwrap();
+        }
+        let frames = dir.path().join("frames");
+        fs::remove_file(frames.join("lost").join(SNAPSHOT_FILE)).unwrap();
+        let torn = frames.join("torn").join(SNAPSHOT_FILE);
+        let len = fs::metadata(&torn).unwrap().len();
+        File::options()
+            .write(true)
+            .open(&torn)
+            .unwrap()
+            .set_len(len / 2)
+            .unwrap();
+        fs::write(frames.join("garbled").join(FRAME_FILE), b"{not json").unwrap();
+
+        let store = FrameStore::new(Limits::default());
+        let durable = open(dir.path());
+        assert_eq!(durable.recover(&store).unwrap(), 1);
+        assert_eq!(store.get("good").unwrap().info().samples, 20);
+        let mut q = durable.quarantined();
+        q.sort_by(|a, b| a.frame.cmp(&b.frame));
+        let names: Vec<&str> = q.iter().map(|q| q.frame.as_str()).collect();
+        assert_eq!(names, ["garbled", "lost", "torn"]);
+        assert!(q[1].reason.contains("missing"), "{}", q[1].reason);
+        for entry in &q {
+            assert!(entry.moved_to.join(FRAME_FILE).exists(), "{entry:?}");
+            assert!(
+                store.get(&entry.frame).is_err(),
+                "{} is not served",
+                entry.frame
+            );
+        }
+        // The next start serves what is left, and the quarantined files stay put.
+        let again = open(dir.path());
+        assert_eq!(
+            again.recover(&FrameStore::new(Limits::default())).unwrap(),
+            1
+        );
+        assert!(again.quarantined().is_empty());
+    }
+
+    /// A frame created but never snapshotted is legitimately empty after a restart.
+    #[tokio::test]
+    async fn a_frame_never_snapshotted_recovers_empty() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        durable.frame_created(&frame("f")).await.unwrap();
+        let store = recover(dir.path());
+        assert_eq!(store.get("f").unwrap().info().samples, 0);
+    }
+
+    /// A write that fails part way leaves no temporary file behind to hold the space.
+    #[test]
+    fn a_failed_write_removes_its_temporary_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let err = write_atomically(dir.path(), "out", "out.tmp", |w| {
+            w.write_all(&[7u8; 4 << 20])?;
+            Err(io::Error::new(
+                io::ErrorKind::StorageFull,
+                "no space left on device",
+            ))
+        })
+        .unwrap_err();
+        assert!(err.to_string().contains("no space left"), "{err}");
+        assert!(!dir.path().join("out.tmp").exists());
+        assert!(!dir.path().join("out").exists());
     }
 }
