@@ -242,6 +242,9 @@ impl FrameCut {
 #[derive(Debug)]
 pub struct ShardedFrame {
     spec: FrameSpec,
+    /// Unique among the frames of this process, so that a frame deleted and created again
+    /// under the same id is never taken for the old one by anything that remembers frames.
+    serial: u64,
     bands: Vec<Mutex<FrameState>>,
     /// Band index of each row.
     band_of_row: Vec<u16>,
@@ -340,8 +343,10 @@ impl ShardedFrame {
                 band_of_row[y as usize] = i as u16;
             }
         }
+        static NEXT_SERIAL: AtomicU64 = AtomicU64::new(1);
         let frame = ShardedFrame {
             spec,
+            serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),
             bands: bands.into_iter().map(Mutex::new).collect(),
             band_of_row,
             gate: RwLock::new(()),
@@ -382,6 +387,11 @@ impl ShardedFrame {
     /// The frame id.
     pub fn id(&self) -> &str {
         &self.spec.request.id
+    }
+
+    /// This frame's serial number, unique in the process.
+    pub fn serial(&self) -> u64 {
+        self.serial
     }
 
     /// The frame's parameters.

@@ -19,10 +19,12 @@ pub mod image;
 pub mod passes;
 pub mod preview;
 pub mod push;
+pub mod renders;
 pub mod server;
 pub mod store;
 pub mod tev;
 pub mod viewer;
+pub mod work;
 
 use std::ops::Deref;
 use std::sync::Arc;

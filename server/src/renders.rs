@@ -1,0 +1,206 @@
+//! Resolved images shared between requests: one resolve per frame version and query.
+//!
+//! A resolve copies the frame's state (hundreds of megabytes for a 1080p frame) and writes its
+//! layers; twelve dashboards asking for the same frame at once used to do that twelve times.
+//! Here concurrent requests for the same frame version and query wait for one render and share
+//! its encoded bytes (a `Bytes` is reference-counted, so a slow reader pins no copy of its own),
+//! and the latest render of each query stays cached until the frame changes.
+//!
+//! The render reserves its working memory from the [`WorkBudget`] first; a request that cannot
+//! get it in time fails with [`Busy`] and leaves nothing cached.
+
+use std::collections::VecDeque;
+use std::sync::{Arc, Mutex};
+
+use bytes::Bytes;
+use tokio::sync::OnceCell;
+
+use crate::frame::ShardedFrame;
+use crate::work::{Busy, WorkBudget};
+
+/// Which render of a frame: the frame's serial (so a deleted and re-created frame never hits
+/// the old one's renders), its version, and the query in a canonical form.
+#[derive(Debug, Clone, PartialEq, Eq)]
+struct Key {
+    frame: u64,
+    version: u64,
+    query: String,
+}
+
+type Slot = Arc<OnceCell<Bytes>>;
+
+/// Why a render failed.
+#[derive(Debug, thiserror::Error)]
+pub enum RenderError<E> {
+    /// The working-memory budget stayed spent.
+    #[error(transparent)]
+    Busy(#[from] Busy),
+    /// The render itself failed.
+    #[error("{0}")]
+    Failed(E),
+}
+
+/// Renders in progress and the latest finished one per frame and query.
+#[derive(Debug)]
+pub struct Renders {
+    slots: Mutex<VecDeque<(Key, Slot)>>,
+    /// Most renders kept; the oldest go first.
+    max_slots: usize,
+    budget: Arc<WorkBudget>,
+}
+
+impl Renders {
+    /// An empty cache keeping at most `max_slots` renders, reserving from `budget`.
+    pub fn new(max_slots: usize, budget: Arc<WorkBudget>) -> Renders {
+        Renders {
+            slots: Mutex::new(VecDeque::new()),
+            max_slots: max_slots.max(1),
+            budget,
+        }
+    }
+
+    /// The budget renders reserve from.
+    pub fn budget(&self) -> &Arc<WorkBudget> {
+        &self.budget
+    }
+
+    fn slot(&self, key: Key) -> Slot {
+        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, slot)) = slots.iter().find(|(k, _)| *k == key) {
+            return slot.clone();
+        }
+        // Older versions of the same render are stale from now on.
+        slots.retain(|(k, _)| !(k.frame == key.frame && k.query == key.query));
+        let slot = Slot::default();
+        slots.push_back((key, slot.clone()));
+        while slots.len() > self.max_slots {
+            slots.pop_front();
+        }
+        slot
+    }
+
+    /// Forgets every render of `frame` (when it is deleted).
+    pub fn forget(&self, frame: &ShardedFrame) {
+        let serial = frame.serial();
+        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        slots.retain(|(k, _)| k.frame != serial);
+    }
+
+    /// The bytes of `query` rendered from `frame` as it is now: shared with every concurrent or
+    /// earlier request for the same version and query, or rendered by `render` on the blocking
+    /// pool after reserving `cost` bytes of working memory.
+    ///
+    /// The version is read before rendering; if samples arrive meanwhile, the bytes may show a
+    /// slightly newer state than the version they are filed under, never an older one.
+    pub async fn get_or_render<E: Send + 'static>(
+        &self,
+        frame: &Arc<ShardedFrame>,
+        query: String,
+        cost: u64,
+        render: impl FnOnce(&ShardedFrame) -> Result<Bytes, E> + Send + 'static,
+    ) -> Result<Bytes, RenderError<E>> {
+        let key = Key {
+            frame: frame.serial(),
+            version: frame.version(),
+            query,
+        };
+        let slot = self.slot(key);
+        let frame = frame.clone();
+        let budget = self.budget.clone();
+        slot.get_or_try_init(|| async move {
+            let reservation = budget.reserve(cost).await?;
+            let rendered = tokio::task::spawn_blocking(move || {
+                let bytes = render(&frame);
+                drop(reservation);
+                bytes
+            })
+            .await
+            .expect("a render does not panic");
+            rendered.map_err(RenderError::Failed)
+        })
+        .await
+        .cloned()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::FrameSpec;
+    use splatd_proto::api::CreateFrame;
+    use splatd_proto::{Batch, Record};
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    use std::time::Duration;
+
+    fn frame() -> Arc<ShardedFrame> {
+        Arc::new(ShardedFrame::new(
+            FrameSpec::new(CreateFrame::new("f", 4, 4)).unwrap(),
+        ))
+    }
+
+    fn counting(
+        calls: &Arc<AtomicUsize>,
+    ) -> impl FnOnce(&ShardedFrame) -> Result<Bytes, String> + Send + 'static {
+        let calls = calls.clone();
+        move |f: &ShardedFrame| {
+            calls.fetch_add(1, Ordering::SeqCst);
+            Ok(Bytes::from(format!("v{}", f.version())))
+        }
+    }
+
+    #[tokio::test]
+    async fn concurrent_requests_for_one_version_share_one_render() {
+        let renders = Arc::new(Renders::new(8, WorkBudget::new(1 << 20, Duration::ZERO)));
+        let f = frame();
+        let calls = Arc::new(AtomicUsize::new(0));
+        let mut tasks = Vec::new();
+        for _ in 0..16 {
+            let (renders, f, render) = (renders.clone(), f.clone(), counting(&calls));
+            tasks.push(tokio::spawn(async move {
+                renders
+                    .get_or_render(&f, "q".into(), 100, render)
+                    .await
+                    .unwrap()
+            }));
+        }
+        for t in tasks {
+            assert_eq!(t.await.unwrap(), "v0");
+        }
+        assert_eq!(calls.load(Ordering::SeqCst), 1);
+
+        // Another query renders on its own; a new version renders again.
+        renders
+            .get_or_render(&f, "other".into(), 100, counting(&calls))
+            .await
+            .unwrap();
+        assert_eq!(calls.load(Ordering::SeqCst), 2);
+        let batch = Batch::new("f", 1, 0, vec![Record::new(0, 0, [1.0; 3])]).unwrap();
+        f.ingest(&batch).unwrap();
+        let again = renders
+            .get_or_render(&f, "q".into(), 100, counting(&calls))
+            .await;
+        assert_eq!(again.unwrap(), "v1");
+        assert_eq!(calls.load(Ordering::SeqCst), 3);
+    }
+
+    #[tokio::test(start_paused = true)]
+    async fn a_render_without_memory_is_refused_and_not_cached() {
+        let budget = WorkBudget::new(100, Duration::from_secs(3));
+        let renders = Renders::new(8, budget.clone());
+        let f = frame();
+        let held = budget.reserve(80).await.unwrap();
+        let calls = Arc::new(AtomicUsize::new(0));
+        let err = renders
+            .get_or_render(&f, "q".into(), 50, counting(&calls))
+            .await
+            .unwrap_err();
+        assert!(matches!(err, RenderError::Busy(_)), "{err}");
+        assert_eq!(calls.load(Ordering::SeqCst), 0);
+        drop(held);
+        let ok = renders
+            .get_or_render(&f, "q".into(), 50, counting(&calls))
+            .await;
+        assert_eq!(ok.unwrap(), "v0");
+        assert_eq!(budget.used(), 0, "the reservation ends with the render");
+    }
+}
