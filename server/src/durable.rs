@@ -415,6 +415,25 @@ impl Durable {
     }
 }
 
+/// Makes a file-size limit (`ulimit -f`) a write error instead of death.
+///
+/// Past the limit the kernel sends SIGXFSZ, whose default action ends the process without a
+/// log line, losing every frame's unsnapshotted samples. With a handler installed the write
+/// fails with `EFBIG` instead, and the snapshot fails like any other write: reported, counted,
+/// retried, while the server goes on. Call once, inside the runtime, before any snapshot.
+#[cfg(unix)]
+pub fn survive_file_size_limit() -> io::Result<()> {
+    use tokio::signal::unix::{signal, SignalKind};
+    const SIGXFSZ: i32 = 25; // the same on Linux, macOS and the BSDs
+    let mut received = signal(SignalKind::from_raw(SIGXFSZ))?;
+    tokio::spawn(async move {
+        while received.recv().await.is_some() {
+            tracing::error!("a write went past the file-size limit (SIGXFSZ); it fails as EFBIG");
+        }
+    });
+    Ok(())
+}
+
 /// Reads one frame directory back.
 fn recover_frame(dir: &Path) -> Result<ShardedFrame, DurableError> {
     let _ = fs::remove_file(dir.join(SNAPSHOT_TMP));
