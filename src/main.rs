@@ -433,7 +433,8 @@ fn post(args: PostArgs) -> Result<()> {
 }
 
 /// The worker id `splatd post` sends passes under unless `--worker` is given.
-const POST_WORKER: u64 = 0x5350_4C41_5450_4F53; // "SPLATPOS"
+// "SPLATPOS" in ASCII, cut to 53 bits so it stays exact in JSON numbers read as doubles.
+const POST_WORKER: u64 = 0x5350_4C41_5450_4F53 >> 11;
 
 /// A pass's sequence number: a digest of the file. The same file posted again, by a rerun or
 /// from another machine, is the same batch and counts once; a different file never takes the

@@ -96,7 +96,7 @@ def main(argv):
         scene = builtin_scene(mi, args.res)
     film = scene.sensors()[0].film()
     width, height = (int(v) for v in film.crop_size())
-    worker = args.worker if args.worker is not None else random.getrandbits(63)
+    worker = args.worker if args.worker is not None else random.getrandbits(53)
     client = sc.Client(args.url, token=args.token)
     try:
         client.create_frame(args.frame, width, height)

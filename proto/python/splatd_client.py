@@ -18,8 +18,9 @@ Python loop, so encoding millions of samples is cheap.
 Retries: ``(worker, seq)`` identifies a batch. ``Client.post_batch`` encodes
 once and resends exactly the same bytes on connection errors, timeouts, 5xx,
 408 and 429, so that the server can drop a duplicate if an earlier attempt
-did arrive. Choose a worker id unique per process (e.g. ``random.getrandbits(64)``)
-and never reuse a (worker, seq) pair for different samples.
+did arrive. Choose a worker id unique per process and below 2**53 (e.g.
+``random.getrandbits(53)``), so that JSON readers that use doubles keep it
+exact, and never reuse a (worker, seq) pair for different samples.
 
 Example::
 

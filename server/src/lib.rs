@@ -188,7 +188,7 @@ impl AppState {
 }
 
 /// A process id unlikely to repeat across restarts; never 0, which old servers (without the
-/// field) report.
+/// field) report, and below 2^53 so JavaScript clients read it exactly.
 fn boot_id() -> u64 {
-    splatd_proto::ids::random_u64().max(1)
+    splatd_proto::ids::random_id()
 }
