@@ -65,9 +65,9 @@ pub use api::{
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};
+pub use state::{Origin, StateDump, StateError, STATE_CONTENT_TYPE};
 #[cfg(feature = "client")]
 pub use writer::BatchWriter;
-pub use state::{Origin, StateDump, StateError, STATE_CONTENT_TYPE};
 
 /// `Content-Type` of a sample batch body.
 pub const BATCH_CONTENT_TYPE: &str = "application/x-splatd-batch";
