@@ -193,19 +193,20 @@ struct ResolveArgs {
     /// Number of cascades (batch files only).
     #[arg(long, default_value_t = splatd_proto::api::DEFAULT_CASCADE_COUNT)]
     cascades: u32,
-    /// Scale of the lowest cascade (batch files only).
+    /// Scale c0 of the lowest cascade; cascade j has c0 * base^j (batch files only).
     #[arg(long, default_value_t = splatd_proto::api::DEFAULT_LOWEST_SCALE)]
     lowest_scale: f64,
     /// Resolve variant: paper, shader or off.
     #[arg(long, default_value = "paper")]
     variant: splatd_proto::Variant,
-    /// Firefly threshold.
+    /// Support (samples, beyond kappa-min) at which a brightness band gets full weight; bands
+    /// with less are down-weighted.
     #[arg(long, default_value_t = splatd_proto::api::DEFAULT_KAPPA)]
     kappa: f64,
-    /// Lower bound of kappa.
+    /// Support (samples) subtracted from a band's support count before dividing by kappa.
     #[arg(long, default_value_t = splatd_proto::api::DEFAULT_KAPPA_MIN)]
     kappa_min: f64,
-    /// Sample-count exponent of kappa.
+    /// Growth of kappa with the pixel's sample count N: kappa * N^exponent, in [0, 1).
     #[arg(long, default_value_t = splatd_proto::api::DEFAULT_KAPPA_EXPONENT)]
     kappa_exponent: f64,
     /// Also write one raw layer per cascade.

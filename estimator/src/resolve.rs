@@ -4,7 +4,7 @@
 //! For every pixel the cascades are visited from dim to bright, building the estimate `F`; the
 //! contribution `B_j` of cascade `j` is added with a weight `w_j in [0, 1]` that is below 1 only
 //! where too few samples support the band (count term) and the band is much brighter than the
-//! estimate built from the dimmer bands so far (value term). See ALGORITHM.md.
+//! estimate built from the dimmer bands so far (value term). See docs/ALGORITHM.md.
 //!
 //! Decisions, each backed by the quality benchmark (`cargo run --release --bin bench -- quality`):
 //! * Support counts are the explicit fixed-point counts kept per cascade (exact for samples

@@ -1,6 +1,6 @@
-//! Algebraic and statistical properties of the estimator core (ALGORITHM.md, "Properties to
-//! test"): exact, order-independent merging; weights that only ever remove energy; nothing removed
-//! where samples are plentiful; convergence to the true mean.
+//! Algebraic and statistical properties of the estimator core (docs/ALGORITHM.md, "Where it is
+//! tested"): exact, order-independent merging; weights that only ever remove energy; nothing
+//! removed where samples are plentiful; convergence to the true mean.
 
 use proptest::prelude::*;
 use splatd_estimator::{

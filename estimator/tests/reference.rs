@@ -1,4 +1,4 @@
-//! The optimized estimator against a deliberately simple reference written from ALGORITHM.md:
+//! The optimized estimator against a deliberately simple reference written from docs/ALGORITHM.md:
 //! it keeps every sample, works in `f64` throughout, finds cascades with logarithms, and resolves
 //! with plain 3x3 loops. Disagreement beyond fixed-point rounding is a bug in one of them.
 

@@ -277,7 +277,15 @@ class Client:
         cascades: Optional[dict] = None,
         resolve: Optional[dict] = None,
     ) -> dict:
-        """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults."""
+        """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults.
+
+        ``cascades``: ``base``, ``cascades``, ``lowest_scale`` (the scale c0 of cascade 0; cascade j
+        has scale c0 * base**j), ``luminance``. ``resolve``: ``variant`` (paper, shader, off),
+        ``kappa`` (support, in samples beyond ``kappa_min``, at which a brightness band gets full
+        weight; bands with less are down-weighted, not rejected), ``kappa_min`` (subtracted from a
+        band's support count; not a bound on kappa), ``kappa_exponent`` (kappa grows as
+        kappa * N**kappa_exponent). See proto/PROTOCOL.md and docs/ALGORITHM.md.
+        """
         validate_frame_id(id)
         req: dict = {"id": id, "width": int(width), "height": int(height)}
         if cascades is not None:

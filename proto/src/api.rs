@@ -20,13 +20,15 @@ use splatd_estimator as estimator;
 pub const DEFAULT_CASCADE_BASE: f64 = estimator::DEFAULT_CASCADE_BASE;
 /// Default number of cascades.
 pub const DEFAULT_CASCADE_COUNT: u32 = estimator::DEFAULT_CASCADE_COUNT;
-/// Default upper luminance bound of the lowest cascade.
+/// Default scale `c0` of the lowest cascade (cascade `j` has scale `c0 * base^j`; samples with
+/// luminance at or below `c0` go entirely to cascade 0).
 pub const DEFAULT_LOWEST_SCALE: f64 = estimator::DEFAULT_LOWEST_SCALE;
 /// Default luminance weights of linear RGB (Rec. 709).
 pub const DEFAULT_LUMINANCE: [f64; 3] = estimator::REC709_LUMINANCE;
 /// Default resolve variant.
 pub const DEFAULT_VARIANT: Variant = Variant::from_estimator(estimator::DEFAULT_VARIANT);
-/// Default firefly threshold `kappa`: a band is trusted once about `kappa` samples support it.
+/// Default `kappa`: a brightness band is fully trusted once about `kappa + kappa_min` samples
+/// support it, and down-weighted in proportion below that.
 pub const DEFAULT_KAPPA: f64 = estimator::DEFAULT_KAPPA;
 /// Default `kappa_min`, subtracted from a band's support count before it is compared with `kappa`.
 pub const DEFAULT_KAPPA_MIN: f64 = estimator::DEFAULT_KAPPA_MIN;
@@ -69,8 +71,10 @@ pub struct CascadeParams {
     /// Number of cascades.
     #[serde(default = "default_cascade_count")]
     pub cascades: u32,
-    /// Scale `c0` of the lowest cascade: cascade `j` has scale `c0 * base^j`, and samples
-    /// dimmer than `c0` go entirely to cascade 0.
+    /// Scale `c0` of the lowest cascade: cascade `j` has scale `c0 * base^j`. A sample whose
+    /// luminance is at most `c0` goes entirely to cascade 0; one between `c_j` and `c_{j+1}` is
+    /// split between cascades `j` and `j + 1`. `c0` is not an upper bound of cascade 0, which
+    /// also takes shares of samples up to `c0 * base`.
     #[serde(default = "default_lowest_scale")]
     pub lowest_scale: f64,
     /// Weights turning linear RGB into the luminance that picks a cascade.
@@ -164,13 +168,18 @@ pub struct ResolveParams {
     /// Which recombination to run.
     #[serde(default = "default_variant")]
     pub variant: Variant,
-    /// Firefly rejection threshold.
+    /// Support (in samples) at which a brightness band gets full weight, beyond `kappa_min`:
+    /// the count term is `(support - kappa_min) / kappa`. Bands with less support are
+    /// down-weighted, not rejected.
     #[serde(default = "default_kappa")]
     pub kappa: f64,
-    /// Lower bound of `kappa` when it adapts to the sample count.
+    /// Support (in samples) that counts for nothing: it is subtracted from a band's support
+    /// count before the count term divides by `kappa` (1: a band seen once gets no weight from
+    /// the count term).
     #[serde(default = "default_kappa_min")]
     pub kappa_min: f64,
-    /// Exponent of the sample-count adaptation of `kappa`.
+    /// Growth of `kappa` with the pixel's sample count `N`: the effective kappa is
+    /// `kappa * N^kappa_exponent`, `0 <= kappa_exponent < 1` (0: fixed).
     #[serde(default = "default_kappa_exponent")]
     pub kappa_exponent: f64,
 }

@@ -16,8 +16,10 @@
 //!   frame state, batch acknowledgements and error bodies.
 //!
 //! With the default `client` feature the crate also has an async HTTP
-//! client for workers (`client` module, reqwest + tokio) with retries that
-//! keep batches exactly-once. `default-features = false` leaves only serde,
+//! client for workers (reqwest + tokio): [`Client`] (module `client`) sends
+//! requests and retries transient failures with the same bytes, and
+//! [`BatchWriter`] (module `writer`) numbers batches and keeps them until
+//! the server has them on disk, so every sample counts exactly once. `default-features = false` leaves only serde,
 //! bincode and thiserror.
 //!
 //! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
@@ -53,6 +55,8 @@ pub mod batchfile;
 pub mod client;
 pub mod ids;
 pub mod state;
+#[cfg(feature = "client")]
+pub mod writer;
 
 pub use api::{
     BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
@@ -60,8 +64,10 @@ pub use api::{
 };
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
-pub use client::{BatchWriter, Client, ClientError, RetryPolicy};
+pub use client::{Client, ClientError, RetryPolicy};
 pub use state::{Origin, StateDump, StateError, STATE_CONTENT_TYPE};
+#[cfg(feature = "client")]
+pub use writer::BatchWriter;
 
 /// `Content-Type` of a sample batch body.
 pub const BATCH_CONTENT_TYPE: &str = "application/x-splatd-batch";

@@ -1,4 +1,4 @@
-//! Image error metrics used by the demo, the tests and the quality benchmark (ALGORITHM.md).
+//! Image error metrics used by the demo, the tests and the quality benchmark (docs/ALGORITHM.md).
 
 /// Relative MSE, `mean((x - gt)^2 / (gt^2 + 0.01))` over every pixel and channel.
 pub fn rel_mse(x: &[[f32; 3]], gt: &[[f32; 3]]) -> f64 {
