@@ -53,7 +53,7 @@ pub async fn create_frame(
             if let Err(e) = app.on_created(&frame).await {
                 // Not durable: take it back, so the client's retry creates it properly.
                 let _ = app.store.remove(frame.id());
-                return Err(e);
+                return Err(e.into());
             }
             tracing::info!(frame = frame.id(), "frame created");
             (StatusCode::CREATED, frame)
