@@ -1,11 +1,25 @@
 //! The HTTP surface: the router, its layers, the handlers and the JSON errors they answer.
 //!
-//! * [`routes`]: one handler per endpoint; [`error`]: the JSON errors;
+//! Handlers are small and grouped by concept; each takes typed extractors ([`extract`]) and
+//! answers [`error::ApiError`]s. The domain below them (`store`, `frame`, `durable`) knows
+//! nothing of HTTP: its errors become statuses and codes in [`error`] alone.
+//!
+//! * [`frames`]: create, list, inspect, delete; [`ingest`]: samples and passes;
+//!   [`images`]: EXR and PNG; [`states`]: export and import; [`operations`]: the page, health,
+//!   metrics, sync;
+//! * [`extract`]: request extractors with JSON refusals; [`error`]: the one error type;
+//!   [`blocking`]: heavy work off the reactor;
 //! * [`auth`]: bearer tokens and roles.
 
 pub mod auth;
+pub mod blocking;
 pub mod error;
-pub mod routes;
+pub mod extract;
+pub mod frames;
+pub mod images;
+pub mod ingest;
+pub mod operations;
+pub mod states;
 
 use axum::extract::Request;
 use axum::http::{header, StatusCode};
@@ -25,30 +39,24 @@ use error::ApiError;
 pub fn router(app: AppState) -> Router {
     let timeout = app.store.limits().request_timeout;
     let v1 = Router::new()
-        .route(
-            "/frames",
-            post(routes::create_frame).get(routes::list_frames),
-        )
-        .route(
-            "/frames/{id}",
-            get(routes::frame_info).delete(routes::delete_frame),
-        )
-        .route("/frames/{id}/samples", post(routes::post_samples))
-        .route("/frames/{id}/image.exr", get(routes::get_image))
-        .route("/frames/{id}/sync", post(routes::sync_frame))
-        .route("/frames/{id}/passes", post(routes::post_pass))
-        .route("/frames/{id}/preview.png", get(routes::get_preview))
+        .route("/frames", post(frames::create).get(frames::list))
+        .route("/frames/{id}", get(frames::info).delete(frames::delete))
+        .route("/frames/{id}/samples", post(ingest::post_samples))
+        .route("/frames/{id}/image.exr", get(images::get_image))
+        .route("/frames/{id}/sync", post(operations::sync))
+        .route("/frames/{id}/passes", post(ingest::post_pass))
+        .route("/frames/{id}/preview.png", get(images::get_preview))
         .route(
             "/frames/{id}/state",
             // States are mostly small integers and zeros: compress them for clients that ask.
-            get(routes::export_state)
+            get(states::export)
                 .layer(CompressionLayer::new().gzip(true).zstd(true))
-                .post(routes::import_state),
+                .post(states::import),
         );
     Router::new()
-        .route("/", get(routes::index))
-        .route("/healthz", get(routes::healthz))
-        .route("/metrics", get(routes::metrics_text))
+        .route("/", get(operations::index))
+        .route("/healthz", get(operations::healthz))
+        .route("/metrics", get(operations::metrics))
         .nest("/v1", v1)
         .fallback(unknown_route)
         .layer(RequestDecompressionLayer::new().gzip(true).zstd(true))
