@@ -123,6 +123,25 @@ pub enum DurableError {
     },
 }
 
+/// A change to a frame (its creation, its deletion, what was applied to it) that could not be
+/// made durable. The change is then not acknowledged: the client is told it failed and retries.
+#[derive(Debug, thiserror::Error)]
+#[error("{action}: {source}")]
+pub struct DurabilityError {
+    /// What was being made durable, e.g. "writing a snapshot".
+    pub action: &'static str,
+    /// Why the data directory refused it.
+    #[source]
+    pub source: DurableError,
+}
+
+impl DurabilityError {
+    /// Wraps `source` with what was being done when it happened.
+    pub fn new(action: &'static str) -> impl FnOnce(DurableError) -> DurabilityError {
+        move |source| DurabilityError { action, source }
+    }
+}
+
 fn io_err<'a>(what: &'static str, path: &'a Path) -> impl FnOnce(io::Error) -> DurableError + 'a {
     move |source| DurableError::Io {
         what,

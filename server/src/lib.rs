@@ -33,10 +33,9 @@ use std::time::Duration;
 use metrics_exporter_prometheus::PrometheusHandle;
 use splatd_proto::DecodeLimits;
 
-use durable::Durable;
+use durable::{DurabilityError, Durable};
 use frame::ShardedFrame;
 use http::auth::Auth;
-use http::error::ApiError;
 use store::FrameStore;
 
 /// What a server refuses, so that no client can exhaust it.
@@ -136,12 +135,12 @@ impl AppState {
     }
 
     /// Called once a new frame is in the store, before the client hears of it.
-    pub async fn on_created(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+    pub async fn on_created(&self, frame: &Arc<ShardedFrame>) -> Result<(), DurabilityError> {
         match &self.durable {
             Some(durable) => durable
                 .frame_created(frame)
                 .await
-                .map_err(|e| ApiError::internal("writing the frame to disk", e)),
+                .map_err(DurabilityError::new("writing the frame to disk")),
             None => Ok(()),
         }
     }
@@ -155,7 +154,7 @@ impl AppState {
     ///
     /// If step 3 fails, the frame is put back as it was and the deletion is refused: a deletion
     /// is durable before it is acknowledged, and a failed one changes nothing.
-    pub async fn delete_frame(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+    pub async fn delete_frame(&self, frame: &Arc<ShardedFrame>) -> Result<(), DurabilityError> {
         frame.retire_and_drain().await;
         self.store.remove_frame(frame);
         let Some(durable) = &self.durable else {
@@ -169,19 +168,19 @@ impl AppState {
                     "a frame of the same id was created while the deletion failed"
                 );
             }
-            return Err(ApiError::internal("removing the frame from disk", e));
+            return Err(DurabilityError::new("removing the frame from disk")(e));
         }
         Ok(())
     }
 
     /// Returns once everything applied to `frame` so far is on disk (at once when the server
     /// is not durable).
-    pub async fn sync(&self, frame: &Arc<ShardedFrame>) -> Result<(), ApiError> {
+    pub async fn sync(&self, frame: &Arc<ShardedFrame>) -> Result<(), DurabilityError> {
         match &self.durable {
             Some(durable) => durable
                 .snapshot(frame)
                 .await
-                .map_err(|e| ApiError::internal("writing a snapshot", e)),
+                .map_err(DurabilityError::new("writing a snapshot")),
             None => Ok(()),
         }
     }

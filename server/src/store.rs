@@ -3,12 +3,11 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, RwLock};
 
-use axum::http::StatusCode;
+use splatd_estimator::ParamError;
 use splatd_proto::api::CreateFrame;
 
 use super::frame::{FrameSpec, ShardedFrame};
 use super::Limits;
-use crate::http::error::ApiError;
 
 /// What `POST /v1/frames` did.
 #[derive(Debug, Clone)]
@@ -17,6 +16,70 @@ pub enum Created {
     New(Arc<ShardedFrame>),
     /// A frame with this id and exactly these parameters existed (a retried create).
     Existing(Arc<ShardedFrame>),
+}
+
+/// Why the store refused a request. The store says what is wrong; how that is answered (a status,
+/// a code) is the caller's business, so the same store can sit behind any interface.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum StoreError {
+    /// The create request's parameters break their own rules.
+    #[error(transparent)]
+    InvalidParameters(#[from] ParamError),
+    /// The frame would have more pixels than this server allows.
+    #[error("a {width}x{height} frame has {pixels} pixels; this server allows at most {max}")]
+    TooManyPixels {
+        /// Requested width.
+        width: u32,
+        /// Requested height.
+        height: u32,
+        /// `width * height`.
+        pixels: u64,
+        /// The server's limit.
+        max: u64,
+    },
+    /// The frame would have more cascades than this server allows.
+    #[error("{requested} cascades requested; this server allows at most {max}")]
+    TooManyCascades {
+        /// Requested cascades.
+        requested: u32,
+        /// The server's limit.
+        max: u32,
+    },
+    /// A frame of this id exists with other parameters.
+    #[error("frame {id:?} exists with different parameters ({difference})")]
+    Exists {
+        /// The frame id.
+        id: String,
+        /// Which parameters differ.
+        difference: String,
+    },
+    /// The store holds as many frames as it may.
+    #[error("this server holds {held} frames, its limit; delete one first")]
+    TooManyFrames {
+        /// Frames held.
+        held: usize,
+    },
+    /// The frame's cascades would not fit in the memory left.
+    #[error(
+        "frame {id:?} needs {wanted_mib} MiB of cascades; {used_mib} MiB of this server's \
+         {max_mib} MiB are in use"
+    )]
+    MemoryLimit {
+        /// The frame id.
+        id: String,
+        /// MiB the frame needs (rounded up).
+        wanted_mib: u64,
+        /// MiB in use (rounded up).
+        used_mib: u64,
+        /// The server's limit in MiB.
+        max_mib: u64,
+    },
+    /// No frame of this id.
+    #[error("no frame {id:?} on this server")]
+    UnknownFrame {
+        /// The frame id asked for.
+        id: String,
+    },
 }
 
 /// All frames of a server, by id.
@@ -41,44 +104,38 @@ impl FrameStore {
     }
 
     /// Checks a create request against the parameters' own rules and this server's limits.
-    pub fn check(&self, request: CreateFrame) -> Result<FrameSpec, ApiError> {
-        let spec = FrameSpec::new(request)
-            .map_err(|e| ApiError::bad_request("invalid_parameters", e.to_string()))?;
+    pub fn check(&self, request: CreateFrame) -> Result<FrameSpec, StoreError> {
+        let spec = FrameSpec::new(request)?;
         let r = &spec.request;
         let pixels = r.width as u64 * r.height as u64;
-        let too_large =
-            |what: String| ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "frame_too_large", what);
         if pixels > self.limits.max_pixels {
-            return Err(too_large(format!(
-                "a {}x{} frame has {pixels} pixels; this server allows at most {}",
-                r.width, r.height, self.limits.max_pixels
-            )));
+            return Err(StoreError::TooManyPixels {
+                width: r.width,
+                height: r.height,
+                pixels,
+                max: self.limits.max_pixels,
+            });
         }
         if r.cascades.cascades > self.limits.max_cascades {
-            return Err(too_large(format!(
-                "{} cascades requested; this server allows at most {}",
-                r.cascades.cascades, self.limits.max_cascades
-            )));
+            return Err(StoreError::TooManyCascades {
+                requested: r.cascades.cascades,
+                max: self.limits.max_cascades,
+            });
         }
         Ok(spec)
     }
 
     /// Creates a frame, or returns the existing one if it has exactly the same parameters.
-    pub fn create(&self, spec: FrameSpec) -> Result<Created, ApiError> {
+    pub fn create(&self, spec: FrameSpec) -> Result<Created, StoreError> {
         let mut frames = self.frames.write().unwrap_or_else(|e| e.into_inner());
         if let Some(existing) = frames.get(&spec.request.id) {
             if existing.spec().request == spec.request {
                 return Ok(Created::Existing(existing.clone()));
             }
-            return Err(ApiError::new(
-                StatusCode::CONFLICT,
-                "frame_exists",
-                format!(
-                    "frame {:?} exists with different parameters ({})",
-                    spec.request.id,
-                    describe_difference(&existing.spec().request, &spec.request)
-                ),
-            ));
+            return Err(StoreError::Exists {
+                id: spec.request.id.clone(),
+                difference: describe_difference(&existing.spec().request, &spec.request),
+            });
         }
         self.admit(&frames, &spec)?;
         let frame = Arc::new(ShardedFrame::new(spec));
@@ -117,42 +174,27 @@ impl FrameStore {
         &self,
         frames: &BTreeMap<String, Arc<ShardedFrame>>,
         spec: &FrameSpec,
-    ) -> Result<(), ApiError> {
+    ) -> Result<(), StoreError> {
         if frames.len() >= self.limits.max_frames {
-            return Err(ApiError::new(
-                StatusCode::CONFLICT,
-                "too_many_frames",
-                format!(
-                    "this server holds {} frames, its limit; delete one first",
-                    frames.len()
-                ),
-            ));
+            return Err(StoreError::TooManyFrames { held: frames.len() });
         }
         let used: u64 = frames.values().map(|f| f.spec().memory_bytes()).sum();
         let wanted = spec.memory_bytes();
         if used + wanted > self.limits.max_memory_bytes {
-            return Err(ApiError::new(
-                StatusCode::CONFLICT,
-                "memory_limit",
-                format!(
-                    "frame {:?} needs {} MiB of cascades; {} MiB of this server's {} MiB are in use",
-                    spec.request.id,
-                    wanted.div_ceil(1 << 20),
-                    used.div_ceil(1 << 20),
-                    self.limits.max_memory_bytes >> 20
-                ),
-            ));
+            return Err(StoreError::MemoryLimit {
+                id: spec.request.id.clone(),
+                wanted_mib: wanted.div_ceil(1 << 20),
+                used_mib: used.div_ceil(1 << 20),
+                max_mib: self.limits.max_memory_bytes >> 20,
+            });
         }
         Ok(())
     }
 
     /// The frame `id`.
-    pub fn get(&self, id: &str) -> Result<Arc<ShardedFrame>, ApiError> {
+    pub fn get(&self, id: &str) -> Result<Arc<ShardedFrame>, StoreError> {
         let frames = self.frames.read().unwrap_or_else(|e| e.into_inner());
-        frames
-            .get(id)
-            .cloned()
-            .ok_or_else(|| ApiError::unknown_frame(id))
+        frames.get(id).cloned().ok_or_else(|| unknown(id))
     }
 
     /// Every frame, ordered by id.
@@ -162,10 +204,14 @@ impl FrameStore {
     }
 
     /// Removes frame `id`.
-    pub fn remove(&self, id: &str) -> Result<Arc<ShardedFrame>, ApiError> {
+    pub fn remove(&self, id: &str) -> Result<Arc<ShardedFrame>, StoreError> {
         let mut frames = self.frames.write().unwrap_or_else(|e| e.into_inner());
-        frames.remove(id).ok_or_else(|| ApiError::unknown_frame(id))
+        frames.remove(id).ok_or_else(|| unknown(id))
     }
+}
+
+fn unknown(id: &str) -> StoreError {
+    StoreError::UnknownFrame { id: id.to_owned() }
 }
 
 /// Names the first parameters that differ between two create requests.

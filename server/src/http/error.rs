@@ -1,13 +1,21 @@
 //! Errors of the HTTP API: a status, a stable machine-readable code and a sentence naming the
 //! problem, sent as the JSON `ErrorBody` every client understands.
+//!
+//! This is the one place where the domain's errors (the store's, the frame's, the data
+//! directory's, the wire formats') become statuses and codes: the domain modules say what went
+//! wrong, and only the HTTP layer decides how that is answered.
 
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use splatd_estimator::{ParamError, SampleError};
 use splatd_proto::{ErrorBody, StateError, WireError};
 
+use crate::durable::DurabilityError;
+use crate::export::ImportError;
 use crate::frame::{ImportRefused, IngestError};
-use splatd_estimator::SampleError;
+use crate::passes::PassError;
+use crate::store::StoreError;
 
 /// An error answered to a client.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -51,6 +59,15 @@ impl ApiError {
             StatusCode::INTERNAL_SERVER_ERROR,
             "internal_error",
             format!("{what} failed on the server; see its log"),
+        )
+    }
+
+    /// 422 for a pass that cannot be read or does not fit `frame`.
+    pub fn invalid_pass(frame: &str, e: &PassError) -> ApiError {
+        ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid_pass",
+            format!("pass for frame {frame:?}: {e}"),
         )
     }
 }
@@ -128,5 +145,60 @@ impl From<ImportRefused> for ApiError {
                 ApiError::new(StatusCode::NOT_FOUND, "unknown_frame", e.to_string())
             }
         }
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> ApiError {
+        let message = e.to_string();
+        match e {
+            StoreError::InvalidParameters(e) => e.into(),
+            StoreError::TooManyPixels { .. } | StoreError::TooManyCascades { .. } => {
+                ApiError::new(StatusCode::PAYLOAD_TOO_LARGE, "frame_too_large", message)
+            }
+            StoreError::Exists { .. } => {
+                ApiError::new(StatusCode::CONFLICT, "frame_exists", message)
+            }
+            StoreError::TooManyFrames { .. } => {
+                ApiError::new(StatusCode::CONFLICT, "too_many_frames", message)
+            }
+            StoreError::MemoryLimit { .. } => {
+                ApiError::new(StatusCode::CONFLICT, "memory_limit", message)
+            }
+            StoreError::UnknownFrame { id } => ApiError::unknown_frame(&id),
+        }
+    }
+}
+
+/// Parameters that break their own rules (a create request's, an image query's overrides).
+impl From<ParamError> for ApiError {
+    fn from(e: ParamError) -> ApiError {
+        ApiError::bad_request("invalid_parameters", e.to_string())
+    }
+}
+
+/// A change that could not be made durable is the server's fault: 500, details in the log.
+impl From<DurabilityError> for ApiError {
+    fn from(e: DurabilityError) -> ApiError {
+        ApiError::internal(e.action, e.source)
+    }
+}
+
+/// A state that decodes but does not describe a frame this build can hold.
+impl From<ImportError> for ApiError {
+    fn from(e: ImportError) -> ApiError {
+        ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string())
+    }
+}
+
+impl From<WireError> for ApiError {
+    fn from(e: WireError) -> ApiError {
+        ApiError::from(&e)
+    }
+}
+
+impl From<StateError> for ApiError {
+    fn from(e: StateError) -> ApiError {
+        ApiError::from(&e)
     }
 }

@@ -1,0 +1,174 @@
+//! Extractors that turn a request into what a handler needs, refusing it with the project's JSON
+//! errors ([`ApiError`]) rather than axum's plain-text rejections, so every handler takes typed
+//! arguments and none parses headers, bodies or query strings by hand.
+//!
+//! Order matters for what a client is told and for what the server spends: extractors run in the
+//! order of a handler's arguments, and [`FrameBody`] checks the Content-Type and finds the frame
+//! before it reads a byte of the body.
+
+use std::marker::PhantomData;
+use std::sync::Arc;
+
+use axum::body::{Body, Bytes};
+use axum::extract::{FromRequest, FromRequestParts, Path, Request};
+use axum::http::request::Parts;
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::{IntoResponse, Response};
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+
+use crate::frame::ShardedFrame;
+use crate::http::error::ApiError;
+use crate::AppState;
+
+/// Largest JSON request body (a `CreateFrame` is a few hundred bytes).
+pub const MAX_JSON_BODY: usize = 64 * 1024;
+
+/// A JSON body in (`application/json`, at most [`MAX_JSON_BODY`] bytes, unknown fields refused
+/// where the type says so), or a JSON response out.
+///
+/// Unlike `axum::Json`, a refusal is an [`ApiError`]: 415 `unsupported_content_type`, 413
+/// `body_too_large` or 400 `bad_request` naming what serde found wrong.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Json<T>(pub T);
+
+impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
+    type Rejection = ApiError;
+
+    async fn from_request(request: Request, _: &S) -> Result<Self, ApiError> {
+        let (parts, body) = request.into_parts();
+        check_content_type(&parts.headers, "application/json")?;
+        let bytes = read_body(body, MAX_JSON_BODY).await?;
+        serde_json::from_slice(&bytes)
+            .map(Json)
+            .map_err(|e| ApiError::bad_request("bad_request", format!("invalid JSON body: {e}")))
+    }
+}
+
+impl<T: Serialize> IntoResponse for Json<T> {
+    fn into_response(self) -> Response {
+        axum::Json(self.0).into_response()
+    }
+}
+
+/// A query string parsed strictly into `T` (give `T` `deny_unknown_fields` so a misspelt
+/// parameter is an error, not silently ignored). A refusal is 400 `bad_query`.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Query<T>(pub T);
+
+impl<T: DeserializeOwned, S: Send + Sync> FromRequestParts<S> for Query<T> {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, _: &S) -> Result<Self, ApiError> {
+        serde_urlencoded::from_str(parts.uri.query().unwrap_or(""))
+            .map(Query)
+            .map_err(|e| ApiError::bad_request("bad_query", format!("invalid query string: {e}")))
+    }
+}
+
+/// The frame named by the route's `{id}`; 404 `unknown_frame` when the server has none.
+#[derive(Debug, Clone)]
+pub struct Frame(pub Arc<ShardedFrame>);
+
+impl FromRequestParts<AppState> for Frame {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, app: &AppState) -> Result<Self, ApiError> {
+        let Path(id) = Path::<String>::from_request_parts(parts, app)
+            .await
+            .map_err(|e| ApiError::new(e.status(), "http_error", e.body_text()))?;
+        Ok(Frame(app.store.get(&id)?))
+    }
+}
+
+/// A kind of body posted to a frame: what it must be labelled, how large it may be.
+pub trait Upload {
+    /// The Content-Type the body must declare (parameters such as `charset` are ignored).
+    const CONTENT_TYPE: &'static str;
+
+    /// Most bytes (after decompression) accepted for `frame`; beyond it, 413.
+    fn limit(app: &AppState, frame: &ShardedFrame) -> usize;
+
+    /// Called when the body could not be read (too large, cut off, badly compressed), so the
+    /// refusal can be counted where the kind's other refusals are.
+    fn refused(_frame: &ShardedFrame) {}
+}
+
+/// The body of a `POST` to a frame, of kind `K`.
+///
+/// Checks, in this order: the Content-Type (415), that the frame exists (404), then reads the
+/// body within `K`'s limit for that frame (413, or 400 `unreadable_body`). So a client learns of
+/// a wrong label or an unknown frame without the server reading, let alone decompressing, the
+/// body.
+pub struct FrameBody<K> {
+    /// The frame posted to.
+    pub frame: Arc<ShardedFrame>,
+    /// The whole body, decompressed.
+    pub bytes: Bytes,
+    kind: PhantomData<fn() -> K>,
+}
+
+impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
+    type Rejection = ApiError;
+
+    async fn from_request(request: Request, app: &AppState) -> Result<Self, ApiError> {
+        let (mut parts, body) = request.into_parts();
+        check_content_type(&parts.headers, K::CONTENT_TYPE)?;
+        let Frame(frame) = Frame::from_request_parts(&mut parts, app).await?;
+        let bytes = read_body(body, K::limit(app, &frame))
+            .await
+            .inspect_err(|_| K::refused(&frame))?;
+        Ok(FrameBody {
+            frame,
+            bytes,
+            kind: PhantomData,
+        })
+    }
+}
+
+/// Refuses a body of the wrong type before reading it: 415 `unsupported_content_type`.
+fn check_content_type(headers: &HeaderMap, expected: &str) -> Result<(), ApiError> {
+    let found = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .map(|v| {
+            v.split(';')
+                .next()
+                .unwrap_or("")
+                .trim()
+                .to_ascii_lowercase()
+        });
+    if found.as_deref() == Some(expected) {
+        return Ok(());
+    }
+    Err(ApiError::new(
+        StatusCode::UNSUPPORTED_MEDIA_TYPE,
+        "unsupported_content_type",
+        format!(
+            "expected Content-Type {expected}, got {}",
+            found.map_or_else(|| "none".to_owned(), |f| format!("{f:?}"))
+        ),
+    ))
+}
+
+/// Reads a whole (already decompressed) body, refusing more than `limit` bytes with 413.
+async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
+    axum::body::to_bytes(body, limit).await.map_err(|e| {
+        let inner = e.into_inner();
+        let mut source: Option<&(dyn std::error::Error + 'static)> = Some(inner.as_ref());
+        while let Some(err) = source {
+            if err.is::<http_body_util::LengthLimitError>() {
+                return ApiError::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "body_too_large",
+                    format!("request body exceeds this endpoint's limit of {limit} bytes"),
+                );
+            }
+            source = err.source();
+        }
+        ApiError::bad_request(
+            "unreadable_body",
+            format!("could not read the request body: {inner}"),
+        )
+    })
+}

@@ -1,0 +1,66 @@
+//! Frames as resources: create, list, inspect, delete.
+
+use axum::extract::State;
+use axum::http::StatusCode;
+use splatd_proto::api::{CreateFrame, FrameInfo, FrameList};
+
+use crate::http::blocking::blocking;
+use crate::http::error::ApiError;
+use crate::http::extract::{Frame, Json};
+use crate::store::Created;
+use crate::AppState;
+
+/// `POST /v1/frames`: creates a frame (201), or finds the one a retried create made (200).
+pub async fn create(
+    State(app): State<AppState>,
+    Json(request): Json<CreateFrame>,
+) -> Result<(StatusCode, Json<FrameInfo>), ApiError> {
+    let spec = app.store.check(request)?;
+    let (status, frame) = match app.store.create(spec)? {
+        Created::New(frame) => {
+            if let Err(e) = app.on_created(&frame).await {
+                // Not durable: take it back, so the client's retry creates it properly.
+                app.store.remove_frame(&frame);
+                return Err(e.into());
+            }
+            tracing::info!(frame = frame.id(), "frame created");
+            (StatusCode::CREATED, frame)
+        }
+        Created::Existing(frame) => (StatusCode::OK, frame),
+    };
+    set_frames_gauge(&app);
+    Ok((status, Json(frame.info())))
+}
+
+/// `GET /v1/frames`: every frame, ordered by id.
+pub async fn list(State(app): State<AppState>) -> Result<Json<FrameList>, ApiError> {
+    let frames = app.store.list();
+    let frames = blocking("frame list", move || {
+        Ok(frames.iter().map(|f| f.info()).collect())
+    })
+    .await?;
+    Ok(Json(FrameList { frames }))
+}
+
+/// `GET /v1/frames/{id}`.
+pub async fn info(Frame(frame): Frame) -> Result<Json<FrameInfo>, ApiError> {
+    blocking("frame info", move || Ok(frame.info()))
+        .await
+        .map(Json)
+}
+
+/// `DELETE /v1/frames/{id}`: answered once the frame is gone, from disk too (see
+/// [`AppState::delete_frame`] for the order that keeps every acknowledgement honest).
+pub async fn delete(
+    State(app): State<AppState>,
+    Frame(frame): Frame,
+) -> Result<StatusCode, ApiError> {
+    app.delete_frame(&frame).await?;
+    set_frames_gauge(&app);
+    tracing::info!(frame = frame.id(), "frame deleted");
+    Ok(StatusCode::NO_CONTENT)
+}
+
+fn set_frames_gauge(app: &AppState) {
+    metrics::gauge!("splatd_frames").set(app.store.list().len() as f64);
+}

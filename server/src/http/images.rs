@@ -1,0 +1,112 @@
+//! Images out: the resolved OpenEXR (`image.exr`) and the live page's PNG preview.
+
+use std::time::Instant;
+
+use axum::extract::State;
+use axum::http::header;
+use axum::response::IntoResponse;
+use serde::{Deserialize, Deserializer};
+use splatd_proto::api::ImageQuery;
+
+use crate::frame::core_resolve_params;
+use crate::http::blocking::blocking;
+use crate::http::error::ApiError;
+use crate::http::extract::{Frame, Query};
+use crate::image::{cascade_layers, encode_exr};
+use crate::AppState;
+
+/// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now.
+pub async fn get_image(
+    State(app): State<AppState>,
+    Query(query): Query<ImageQuery>,
+    Frame(frame): Frame,
+) -> Result<impl IntoResponse, ApiError> {
+    let params = core_resolve_params(&query.apply(&frame.spec().request.resolve))?;
+    let threads = app.resolve_threads;
+    let started = Instant::now();
+    let exr = blocking("resolve", move || {
+        let cut = frame.cut();
+        let resolved = cut.resolve(&params, threads);
+        let extra = if query.cascades {
+            cascade_layers(cut.cascade_means())
+        } else {
+            Vec::new()
+        };
+        encode_exr(&resolved, &extra).map_err(|e| ApiError::internal("EXR encoding", e))
+    })
+    .await?;
+    metrics::histogram!("splatd_resolve_seconds").record(started.elapsed().as_secs_f64());
+    Ok(([(header::CONTENT_TYPE, "image/x-exr")], exr))
+}
+
+/// Which layer a preview shows.
+#[derive(Debug, Clone, Copy, Default, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PreviewLayer {
+    /// The reweighted image.
+    #[default]
+    Reweighted,
+    /// The plain mean.
+    Mean,
+    /// The energy removed as fireflies.
+    Removed,
+}
+
+/// Query of `GET /v1/frames/{id}/preview.png`.
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PreviewQuery {
+    /// The layer (default reweighted).
+    #[serde(default)]
+    pub layer: PreviewLayer,
+    /// Exposure multiplier; by default chosen from the reweighted image, so that every layer
+    /// of a frame is shown with the same exposure and compares fairly. Must be positive.
+    #[serde(default, deserialize_with = "positive_exposure")]
+    pub exposure: Option<f32>,
+    /// Ignored: lets pages defeat caches by naming the sample count they expect.
+    pub samples: Option<u64>,
+}
+
+/// Refuses an exposure that would give a black or meaningless image, as part of parsing the
+/// query, so that it is refused (400 `bad_query`) before the frame is even looked up.
+fn positive_exposure<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f32>, D::Error> {
+    let exposure = Option::<f32>::deserialize(d)?;
+    match exposure {
+        Some(e) if !(e.is_finite() && e > 0.0) => Err(serde::de::Error::custom(format!(
+            "exposure must be a positive number, got {e}"
+        ))),
+        _ => Ok(exposure),
+    }
+}
+
+/// `GET /v1/frames/{id}/preview.png`: a tone-mapped 8-bit view of a layer, for the live page.
+pub async fn get_preview(
+    State(app): State<AppState>,
+    Query(query): Query<PreviewQuery>,
+    Frame(frame): Frame,
+) -> Result<impl IntoResponse, ApiError> {
+    let params = frame.spec().resolve;
+    let threads = app.resolve_threads;
+    let png = blocking("preview", move || {
+        let resolved = frame.cut().resolve(&params, threads);
+        let exposure = query
+            .exposure
+            .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted));
+        let layer = match query.layer {
+            PreviewLayer::Reweighted => &resolved.reweighted,
+            PreviewLayer::Mean => &resolved.mean,
+            PreviewLayer::Removed => &resolved.removed,
+        };
+        let pixels = crate::preview::tonemap(layer, exposure);
+        crate::preview::encode_png(resolved.width, resolved.height, &pixels)
+            .map_err(|e| ApiError::internal("PNG encoding", e))
+    })
+    .await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, "image/png"),
+            (header::CACHE_CONTROL, "no-store"),
+        ],
+        png,
+    ))
+}

@@ -1,0 +1,163 @@
+//! Samples in: batches of records (`POST .../samples`) and rendered passes (`POST .../passes`).
+//!
+//! Both are applied whole or not at all, once per `(worker, seq)`, and acknowledged with a
+//! [`BatchAck`]; decoding and splatting run on the blocking pool.
+
+use std::sync::Arc;
+
+use axum::extract::State;
+use splatd_proto::api::BatchAck;
+use splatd_proto::{Batch, BATCH_CONTENT_TYPE};
+
+use crate::frame::ShardedFrame;
+use crate::http::blocking::blocking;
+use crate::http::error::ApiError;
+use crate::http::extract::{FrameBody, Json, Query, Upload};
+use crate::AppState;
+
+/// Content type of EXR bodies.
+pub const EXR_CONTENT_TYPE: &str = "image/x-exr";
+
+/// A batch of records in the wire format ([`BATCH_CONTENT_TYPE`]).
+pub struct Samples;
+
+impl Upload for Samples {
+    const CONTENT_TYPE: &'static str = BATCH_CONTENT_TYPE;
+
+    /// The largest batch the decode limits allow.
+    fn limit(app: &AppState, _: &ShardedFrame) -> usize {
+        app.decode_limits.max_body_len()
+    }
+
+    fn refused(frame: &ShardedFrame) {
+        reject(frame, 0, "body");
+    }
+}
+
+/// One rendered pass as an OpenEXR file ([`EXR_CONTENT_TYPE`]).
+pub struct Pass;
+
+impl Upload for Pass {
+    const CONTENT_TYPE: &'static str = EXR_CONTENT_TYPE;
+
+    /// An EXR of the frame's size: its floats, plus generous room for headers and poor
+    /// compression.
+    fn limit(_: &AppState, frame: &ShardedFrame) -> usize {
+        (pass_pixels(frame) as usize)
+            .saturating_mul(4 * 16)
+            .saturating_add(1 << 20)
+    }
+
+    fn refused(frame: &ShardedFrame) {
+        reject(frame, 0, "body");
+    }
+}
+
+fn pass_pixels(frame: &ShardedFrame) -> u64 {
+    let spec = &frame.spec().request;
+    spec.width as u64 * spec.height as u64
+}
+
+/// `POST /v1/frames/{id}/samples`: one batch, applied whole or not at all.
+pub async fn post_samples(
+    State(app): State<AppState>,
+    FrameBody { frame, bytes, .. }: FrameBody<Samples>,
+) -> Result<Json<BatchAck>, ApiError> {
+    metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    let limits = app.decode_limits;
+    ingest(&app, frame, move |frame| {
+        Batch::decode(&bytes, &limits).map_err(|e| {
+            reject(frame, 0, e.code());
+            ApiError::from(&e)
+        })
+    })
+    .await
+}
+
+/// Query of `POST /v1/frames/{id}/passes`: the pass's identity, for exactly-once.
+#[derive(Debug, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PassQuery {
+    /// The worker that rendered the pass.
+    pub worker: u64,
+    /// The worker's number for this pass (a retry resends the same number).
+    pub seq: u64,
+}
+
+/// `POST /v1/frames/{id}/passes?worker=W&seq=S`: one rendered pass as an EXR; each pixel is one
+/// sample. Applied whole or not at all, and once per `(worker, seq)`, like a batch.
+pub async fn post_pass(
+    State(app): State<AppState>,
+    Query(query): Query<PassQuery>,
+    FrameBody { frame, bytes, .. }: FrameBody<Pass>,
+) -> Result<Json<BatchAck>, ApiError> {
+    metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    ingest(&app, frame, move |frame| {
+        let refuse = |e: crate::passes::PassError| {
+            reject(frame, 0, "pass");
+            ApiError::invalid_pass(frame.id(), &e)
+        };
+        let spec = &frame.spec().request;
+        let pass =
+            crate::passes::decode_pass_with_limit(&bytes, pass_pixels(frame)).map_err(refuse)?;
+        pass.check(spec.width, spec.height).map_err(refuse)?;
+        Ok(Batch {
+            frame: frame.id().to_owned(),
+            worker: query.worker,
+            seq: query.seq,
+            records: pass.records().collect(),
+        })
+    })
+    .await
+}
+
+/// Builds a batch (decoding it on the blocking pool), applies it and acknowledges it.
+async fn ingest(
+    app: &AppState,
+    frame: Arc<ShardedFrame>,
+    make_batch: impl FnOnce(&ShardedFrame) -> Result<Batch, ApiError> + Send + 'static,
+) -> Result<Json<BatchAck>, ApiError> {
+    // Held until the acknowledgement is ready, so a deletion is answered after it.
+    let _lease = frame
+        .lease()
+        .await
+        .ok_or_else(|| ApiError::unknown_frame(frame.id()))?;
+    let worker_frame = frame.clone();
+    let (batch_id, ingested) = blocking("ingest", move || {
+        let batch = make_batch(&worker_frame)?;
+        let ingested = worker_frame.ingest(&batch).map_err(|e| {
+            reject_counted(batch.records.len() as u64, "samples");
+            ApiError::from(e)
+        })?;
+        Ok(((batch.worker, batch.seq), ingested))
+    })
+    .await?;
+    let (worker, seq) = batch_id;
+    let durable_floor = app.durable.as_ref().map(|_| frame.durable_floor(worker));
+    if ingested.duplicate {
+        metrics::counter!("splatd_batches_duplicate_total").increment(1);
+    } else {
+        metrics::counter!("splatd_batches_ingested_total").increment(1);
+        metrics::counter!("splatd_samples_ingested_total").increment(ingested.accepted);
+    }
+    Ok(Json(BatchAck {
+        frame: frame.id().to_owned(),
+        worker,
+        seq,
+        accepted: ingested.accepted,
+        duplicate: ingested.duplicate,
+        boot: app.boot,
+        durable_floor,
+    }))
+}
+
+/// Counts a batch refused before the frame saw it (body or decode errors).
+fn reject(frame: &ShardedFrame, samples: u64, reason: &'static str) {
+    frame.count_rejected(samples);
+    reject_counted(samples, reason);
+}
+
+fn reject_counted(samples: u64, reason: &'static str) {
+    metrics::counter!("splatd_batches_rejected_total", "reason" => reason).increment(1);
+    metrics::counter!("splatd_samples_rejected_total").increment(samples);
+}

@@ -1,0 +1,73 @@
+//! Frame states: export (`GET .../state`) for merging elsewhere, and import (`POST .../state`)
+//! of another node's state or a pushed delta.
+
+use axum::extract::State;
+use axum::http::header;
+use axum::response::IntoResponse;
+use splatd_proto::api::ImportAck;
+use splatd_proto::{StateDump, STATE_CONTENT_TYPE};
+
+use crate::frame::ShardedFrame;
+use crate::http::blocking::blocking;
+use crate::http::error::ApiError;
+use crate::http::extract::{Frame, FrameBody, Json, Upload};
+use crate::AppState;
+
+/// A frame state in the wire format ([`STATE_CONTENT_TYPE`]).
+pub struct StateBody;
+
+impl Upload for StateBody {
+    const CONTENT_TYPE: &'static str = STATE_CONTENT_TYPE;
+
+    /// A state of this frame is its cells plus a header; allow a generous header.
+    fn limit(_: &AppState, frame: &ShardedFrame) -> usize {
+        frame.spec().memory_bytes() as usize + 64 * 1024
+    }
+}
+
+/// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
+pub async fn export(Frame(frame): Frame) -> Result<impl IntoResponse, ApiError> {
+    let bytes = blocking("export", move || {
+        let cut = frame.cut();
+        let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
+        crate::export::write_bands(&cut.bands, frame.id(), None, &mut out)
+            .expect("writing into a Vec<u8> is infallible");
+        Ok(out)
+    })
+    .await?;
+    metrics::counter!("splatd_exports_total").increment(1);
+    Ok(([(header::CONTENT_TYPE, STATE_CONTENT_TYPE)], bytes))
+}
+
+/// `POST /v1/frames/{id}/state`: adds another node's state (or pushed delta) to the frame,
+/// exactly once per origin, and answers once the result is durable.
+pub async fn import(
+    State(app): State<AppState>,
+    FrameBody { frame, bytes, .. }: FrameBody<StateBody>,
+) -> Result<Json<ImportAck>, ApiError> {
+    let cells = frame.spec().memory_bytes() / 8;
+    // Held until the acknowledgement is ready, so a deletion is answered after it.
+    let _lease = frame
+        .lease()
+        .await
+        .ok_or_else(|| ApiError::unknown_frame(frame.id()))?;
+    let target = frame.clone();
+    let (samples, applied) = blocking("import", move || {
+        let dump = StateDump::decode(&bytes, cells)?;
+        let origin = dump.origin.clone();
+        let name = dump.frame.clone();
+        let state = crate::export::load(dump)?;
+        let applied = target.import(&name, &state, origin.as_ref())?;
+        Ok((state.total_samples(), applied))
+    })
+    .await?;
+    // A pusher forgets a delta once it is acknowledged, so make it durable first.
+    app.sync(&frame).await?;
+    metrics::counter!("splatd_imports_total", "result" => if applied { "applied" } else { "duplicate" })
+        .increment(1);
+    Ok(Json(ImportAck {
+        frame: frame.id().to_owned(),
+        samples: if applied { samples } else { 0 },
+        duplicate: !applied,
+    }))
+}

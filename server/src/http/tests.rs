@@ -1,0 +1,296 @@
+//! The router in process: every route declares its role, the guards enforce exactly those roles,
+//! and nothing a read token sends can change anything or get its body read.
+
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use axum::body::{Body, Bytes};
+use axum::http::{header, Method, Request, StatusCode};
+use http_body_util::{BodyExt, Full};
+use splatd_proto::api::CreateFrame;
+use tower::ServiceExt;
+
+use super::auth::{Auth, Role};
+use super::{router, routes, Endpoint};
+use crate::{AppState, Limits};
+
+const READ: &str = "read-token-0123456789";
+const WRITE: &str = "write-token-0123456789";
+const ADMIN: &str = "admin-token-0123456789";
+
+/// A server with one token per role, `--public-read` as given, and an 8x8 frame `f`.
+fn app(public_read: bool) -> AppState {
+    let auth = Auth::parse(
+        &format!("read {READ}\nwrite {WRITE}\nadmin {ADMIN}"),
+        public_read,
+    )
+    .unwrap();
+    let app = AppState::with_auth(Limits::default(), None, None, auth);
+    let spec = app.store.check(CreateFrame::new("f", 8, 8)).unwrap();
+    app.store.create(spec).unwrap();
+    app
+}
+
+/// A body that records whether anything polled it (read or decompressed it).
+fn tripwire() -> (Body, Arc<AtomicBool>) {
+    let read = Arc::new(AtomicBool::new(false));
+    let flag = read.clone();
+    let body = Full::new(Bytes::from_static(b"\x1f\x8b not really gzip")).map_frame(move |f| {
+        flag.store(true, Ordering::SeqCst);
+        f
+    });
+    (Body::new(body), read)
+}
+
+/// Sends one request; returns the status, the `error` code of a JSON error (or "", and always
+/// for `HEAD`, whose answers have no body) and the response headers.
+async fn send(
+    app: &AppState,
+    method: Method,
+    path: &str,
+    token: Option<&str>,
+    body: Body,
+) -> (StatusCode, String, axum::http::HeaderMap) {
+    let head = method == Method::HEAD;
+    let mut request = Request::builder()
+        .method(method)
+        .uri(path)
+        .header(header::CONTENT_TYPE, "application/json")
+        .header(header::CONTENT_ENCODING, "gzip");
+    if let Some(token) = token {
+        request = request.header(header::AUTHORIZATION, format!("Bearer {token}"));
+    }
+    let response = router(app.clone())
+        .oneshot(request.body(body).unwrap())
+        .await
+        .unwrap();
+    let status = response.status();
+    let headers = response.headers().clone();
+    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
+        .await
+        .unwrap();
+    let code = if !head && (status.is_client_error() || status.is_server_error()) {
+        let error: serde_json::Value = serde_json::from_slice(&bytes)
+            .unwrap_or_else(|e| panic!("{status} without a JSON body ({e}): {bytes:?}"));
+        error["error"].as_str().unwrap().to_owned()
+    } else {
+        String::new()
+    };
+    (status, code, headers)
+}
+
+fn concrete(path: &str) -> String {
+    path.replace("{id}", "f")
+}
+
+/// The documented table (`auth` module docs, README, PROTOCOL): adding a route without a role,
+/// or changing a role, fails here until the table (and the docs) say so too.
+#[test]
+fn every_route_declares_the_documented_role() {
+    use Method as M;
+    use Role::{Admin, Read, Write};
+    let documented = [
+        (M::GET, "/", None),
+        (M::GET, "/healthz", None),
+        (M::GET, "/metrics", Some(Read)),
+        (M::POST, "/v1/frames", Some(Admin)),
+        (M::GET, "/v1/frames", Some(Read)),
+        (M::GET, "/v1/frames/{id}", Some(Read)),
+        (M::DELETE, "/v1/frames/{id}", Some(Admin)),
+        (M::POST, "/v1/frames/{id}/samples", Some(Write)),
+        (M::POST, "/v1/frames/{id}/passes", Some(Write)),
+        (M::POST, "/v1/frames/{id}/sync", Some(Write)),
+        (M::GET, "/v1/frames/{id}/image.exr", Some(Read)),
+        (M::GET, "/v1/frames/{id}/preview.png", Some(Read)),
+        (M::GET, "/v1/frames/{id}/state", Some(Read)),
+        (M::POST, "/v1/frames/{id}/state", Some(Admin)),
+    ];
+    let key = |e: &Endpoint| (e.path, e.method.to_string());
+    let mut want: Vec<Endpoint> = documented
+        .into_iter()
+        .map(|(method, path, role)| Endpoint { method, path, role })
+        .collect();
+    let mut declared = routes(&app(false)).endpoints;
+    want.sort_by_key(key);
+    declared.sort_by_key(key);
+    assert_eq!(declared, want);
+    for e in &declared {
+        if e.method != Method::GET {
+            assert!(
+                matches!(e.role, Some(Role::Write | Role::Admin)),
+                "{} {} changes the server but does not need write or admin",
+                e.method,
+                e.path
+            );
+        }
+    }
+}
+
+/// Each route's guard enforces the role it was declared with, and only that role.
+#[tokio::test]
+async fn guards_enforce_the_declared_roles() {
+    for e in routes(&app(false)).endpoints {
+        let path = concrete(e.path);
+        let what = format!("{} {path}", e.method);
+        let (allowed, refused): (&[&str], &[&str]) = match e.role {
+            None => (&[], &[]),
+            Some(Role::Read) => (&[READ, ADMIN], &[WRITE]),
+            Some(Role::Write) => (&[WRITE, ADMIN], &[READ]),
+            Some(Role::Admin) => (&[ADMIN], &[READ, WRITE]),
+        };
+        // A fresh server each time, so a DELETE does not hide the next request's answer.
+        let server = app(false);
+        let (status, code, headers) =
+            send(&server, e.method.clone(), &path, None, Body::empty()).await;
+        if e.role.is_some() {
+            assert_eq!(
+                (status, code.as_str()),
+                (StatusCode::UNAUTHORIZED, "unauthorized"),
+                "{what}"
+            );
+            assert_eq!(headers[header::WWW_AUTHENTICATE], "Bearer", "{what}");
+        } else {
+            assert_eq!(status, StatusCode::OK, "{what}");
+        }
+        let (status, _, _) = send(
+            &server,
+            e.method.clone(),
+            &path,
+            Some("not-a-token-of-this-server"),
+            Body::empty(),
+        )
+        .await;
+        assert_eq!(
+            status,
+            if e.role.is_some() {
+                StatusCode::UNAUTHORIZED
+            } else {
+                StatusCode::OK
+            },
+            "{what} with an unknown token"
+        );
+        for token in refused {
+            let (status, code, _) =
+                send(&server, e.method.clone(), &path, Some(token), Body::empty()).await;
+            assert_eq!(
+                (status, code.as_str()),
+                (StatusCode::FORBIDDEN, "forbidden"),
+                "{what}"
+            );
+        }
+        for token in allowed {
+            let server = app(false);
+            let (status, code, _) =
+                send(&server, e.method.clone(), &path, Some(token), Body::empty()).await;
+            assert!(
+                !matches!(status, StatusCode::UNAUTHORIZED | StatusCode::FORBIDDEN),
+                "{what} refused a token with its role: {status} {code}"
+            );
+        }
+    }
+}
+
+/// A read token (or no token) sending any changing method to any route is refused before a
+/// byte of its body is read, and the server is unchanged afterwards.
+#[tokio::test]
+async fn a_read_token_cannot_change_anything_nor_get_a_body_read() {
+    let server = app(false);
+    let endpoints = routes(&server).endpoints;
+    let mut paths: Vec<&str> = endpoints.iter().map(|e| e.path).collect();
+    paths.sort();
+    paths.dedup();
+    for path in paths {
+        for method in [Method::POST, Method::PUT, Method::PATCH, Method::DELETE] {
+            let declared = endpoints
+                .iter()
+                .any(|e| e.path == path && e.method == method);
+            for token in [Some(READ), None] {
+                let what = format!("{method} {path} with {token:?}");
+                let (body, read) = tripwire();
+                let (status, code, _) =
+                    send(&server, method.clone(), &concrete(path), token, body).await;
+                let want = match (declared, token) {
+                    (false, _) => (StatusCode::METHOD_NOT_ALLOWED, "method_not_allowed"),
+                    (true, Some(_)) => (StatusCode::FORBIDDEN, "forbidden"),
+                    (true, None) => (StatusCode::UNAUTHORIZED, "unauthorized"),
+                };
+                assert_eq!((status, code.as_str()), want, "{what}");
+                assert!(!read.load(Ordering::SeqCst), "{what}: the body was read");
+            }
+        }
+    }
+    let frames = server.store.list();
+    assert_eq!(frames.len(), 1);
+    assert_eq!(frames[0].info().samples, 0);
+
+    // The tripwire works: a request the guard lets through does get its body read (here it is
+    // not valid gzip, so the read fails).
+    let (body, read) = tripwire();
+    let (status, code, _) = send(&server, Method::POST, "/v1/frames", Some(ADMIN), body).await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "unreadable_body")
+    );
+    assert!(read.load(Ordering::SeqCst));
+}
+
+/// Unknown routes and methods answer JSON errors whatever the token; `HEAD` is guarded like
+/// the `GET` it runs.
+#[tokio::test]
+async fn unknown_routes_and_methods_answer_json() {
+    let server = app(false);
+    let (status, code, _) = send(&server, Method::GET, "/v2/whatever", None, Body::empty()).await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::NOT_FOUND, "unknown_route")
+    );
+    let (status, code, headers) = send(
+        &server,
+        Method::PUT,
+        "/v1/frames",
+        Some(ADMIN),
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::METHOD_NOT_ALLOWED, "method_not_allowed")
+    );
+    let allow = headers[header::ALLOW].to_str().unwrap();
+    assert!(allow.contains("GET") && allow.contains("POST"), "{allow}");
+    let (status, _, _) = send(&server, Method::HEAD, "/v1/frames", None, Body::empty()).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+    let (status, _, _) = send(
+        &server,
+        Method::HEAD,
+        "/v1/frames",
+        Some(READ),
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK);
+}
+
+/// `--public-read` opens the read routes and nothing else; a server without tokens is open.
+#[tokio::test]
+async fn public_read_and_open_servers() {
+    let server = app(true);
+    let (status, _, _) = send(&server, Method::GET, "/v1/frames/f", None, Body::empty()).await;
+    assert_eq!(status, StatusCode::OK);
+    let (body, read) = tripwire();
+    let (status, _, _) = send(&server, Method::POST, "/v1/frames/f/samples", None, body).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+    assert!(!read.load(Ordering::SeqCst));
+
+    let open = AppState::new(Limits::default(), None, None);
+    let create = br#"{"id":"g","width":4,"height":4}"#;
+    let request = Request::builder()
+        .method(Method::POST)
+        .uri("/v1/frames")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(&create[..]))
+        .unwrap();
+    let response = router(open.clone()).oneshot(request).await.unwrap();
+    assert_eq!(response.status(), StatusCode::CREATED);
+    assert!(open.store.get("g").is_ok());
+}
