@@ -110,6 +110,14 @@ struct ServeArgs {
     /// Longest a connection may idle or take to send its headers, in seconds.
     #[arg(long, default_value_t = 60)]
     idle_timeout: u64,
+    /// MiB that requests may hold at once beyond the frames: state copies being resolved or
+    /// exported, encoded images. A request that cannot get its share within
+    /// --work-wait-secs is answered 503 with Retry-After.
+    #[arg(long, default_value_t = 2048)]
+    work_memory_mib: u64,
+    /// Longest a request waits for working memory, in seconds.
+    #[arg(long, default_value_t = 10)]
+    work_wait_secs: u64,
     /// Keep frames on disk here so they survive restarts and crashes (see PROTOCOL.md,
     /// "Exactly-once and durability"). Without it frames live in memory only.
     #[arg(long)]
@@ -255,6 +263,8 @@ fn run_server(args: ServeArgs) -> Result<()> {
         max_memory_bytes: args.max_memory_mib << 20,
         request_timeout: Duration::from_secs(args.request_timeout),
         idle_timeout: Duration::from_secs(args.idle_timeout),
+        work_memory_bytes: args.work_memory_mib << 20,
+        work_wait: Duration::from_secs(args.work_wait_secs),
     };
     let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
         .set_buckets(&[
@@ -313,6 +323,9 @@ fn run_server(args: ServeArgs) -> Result<()> {
         .build()
         .context("starting the async runtime")?;
     runtime.block_on(async move {
+        if durable.is_some() {
+            splatd_server::durable::survive_file_size_limit().context("handling SIGXFSZ")?;
+        }
         let (listener, local) = bind(&args.addr)
             .await
             .with_context(|| format!("binding {}", args.addr))?;

@@ -262,6 +262,21 @@ pub struct FrameInfo {
 pub struct FrameList {
     /// All frames, in no particular order.
     pub frames: Vec<FrameInfo>,
+    /// Frames whose files were found damaged or missing when the server started: not served,
+    /// their files moved aside for an operator to look at. Empty on a healthy server.
+    #[serde(default)]
+    pub quarantined: Vec<QuarantinedFrame>,
+}
+
+/// A frame set aside at start because its files could not be read (see [`FrameList`]).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct QuarantinedFrame {
+    /// The frame id.
+    pub id: String,
+    /// Why it could not be read.
+    pub reason: String,
+    /// Where its files are now, on the server.
+    pub moved_to: String,
 }
 
 /// Response of `POST /v1/frames/{id}/samples`.

@@ -142,6 +142,23 @@ impl DurabilityError {
     }
 }
 
+impl DurableError {
+    /// Whether the disk (or a file-size limit) has no room: full, over quota, or `ulimit -f`.
+    pub fn is_out_of_space(&self) -> bool {
+        const EDQUOT: i32 = 122; // Linux
+        const EFBIG: i32 = 27;
+        match self {
+            DurableError::Io { source, .. } => {
+                source.kind() == io::ErrorKind::StorageFull
+                    || source.kind() == io::ErrorKind::QuotaExceeded
+                    || source.kind() == io::ErrorKind::FileTooLarge
+                    || matches!(source.raw_os_error(), Some(EDQUOT | EFBIG))
+            }
+            DurableError::Damaged { .. } => false,
+        }
+    }
+}
+
 fn io_err<'a>(what: &'static str, path: &'a Path) -> impl FnOnce(io::Error) -> DurableError + 'a {
     move |source| DurableError::Io {
         what,

@@ -55,6 +55,11 @@ pub struct Limits {
     pub request_timeout: Duration,
     /// Longest a connection may sit idle between requests, or take to send its headers.
     pub idle_timeout: Duration,
+    /// Bytes that requests may hold at once beyond the frames themselves: copies being
+    /// resolved or exported, encoded images, imported states ([`work::WorkBudget`]).
+    pub work_memory_bytes: u64,
+    /// Longest a request waits for working memory before it is answered 503.
+    pub work_wait: Duration,
 }
 
 impl Default for Limits {
@@ -67,6 +72,8 @@ impl Default for Limits {
             max_memory_bytes: 8 << 30,
             request_timeout: Duration::from_secs(120),
             idle_timeout: Duration::from_secs(60),
+            work_memory_bytes: 2 << 30,
+            work_wait: Duration::from_secs(10),
         }
     }
 }
@@ -88,7 +95,14 @@ pub struct Shared {
     pub boot: u64,
     /// Who may do what.
     pub auth: Auth,
+    /// Resolved images shared between requests, and the working-memory budget they and
+    /// every other large request reserve from.
+    pub renders: renders::Renders,
 }
+
+/// Finished renders kept for requests that ask again before the frame changes: enough for a
+/// few viewers each looking at a few layers.
+const RENDERS_KEPT: usize = 16;
 
 /// A cheap handle on [`Shared`], the state of every handler.
 #[derive(Debug, Clone)]
@@ -123,7 +137,9 @@ impl AppState {
             ..DecodeLimits::default()
         };
         let resolve_threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let budget = work::WorkBudget::new(limits.work_memory_bytes, limits.work_wait);
         AppState(Arc::new(Shared {
+            renders: renders::Renders::new(RENDERS_KEPT, budget),
             store: FrameStore::new(limits),
             decode_limits,
             resolve_threads,
@@ -156,6 +172,7 @@ impl AppState {
     /// is durable before it is acknowledged, and a failed one changes nothing.
     pub async fn delete_frame(&self, frame: &Arc<ShardedFrame>) -> Result<(), DurabilityError> {
         frame.retire_and_drain().await;
+        self.renders.forget(frame);
         self.store.remove_frame(frame);
         let Some(durable) = &self.durable else {
             return Ok(());

@@ -47,6 +47,8 @@ pub struct Renders {
     /// Most renders kept; the oldest go first.
     max_slots: usize,
     budget: Arc<WorkBudget>,
+    /// Renders run so far (shared ones count once).
+    rendered: std::sync::atomic::AtomicU64,
 }
 
 impl Renders {
@@ -56,7 +58,13 @@ impl Renders {
             slots: Mutex::new(VecDeque::new()),
             max_slots: max_slots.max(1),
             budget,
+            rendered: Default::default(),
         }
+    }
+
+    /// How many renders ran so far; requests that shared one count once.
+    pub fn rendered(&self) -> u64 {
+        self.rendered.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     /// The budget renders reserve from.
@@ -109,6 +117,8 @@ impl Renders {
         let budget = self.budget.clone();
         slot.get_or_try_init(|| async move {
             let reservation = budget.reserve(cost).await?;
+            self.rendered
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             let rendered = tokio::task::spawn_blocking(move || {
                 let bytes = render(&frame);
                 drop(reservation);
@@ -120,6 +130,26 @@ impl Renders {
         })
         .await
         .cloned()
+        .inspect(|_| self.trim())
+    }
+
+    /// Drops the oldest finished renders while the kept ones hold more than a quarter of the
+    /// working budget: cached bytes are memory too. Renders still in progress stay.
+    fn trim(&self) {
+        let cap = self.budget.capacity() / 4;
+        let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
+        let held = |slots: &VecDeque<(Key, Slot)>| -> u64 {
+            slots
+                .iter()
+                .filter_map(|(_, s)| s.get().map(|b| b.len() as u64))
+                .sum()
+        };
+        while held(&slots) > cap {
+            match slots.iter().position(|(_, s)| s.initialized()) {
+                Some(oldest) => drop(slots.remove(oldest)),
+                None => break,
+            }
+        }
     }
 }
 
@@ -181,6 +211,32 @@ mod tests {
             .await;
         assert_eq!(again.unwrap(), "v1");
         assert_eq!(calls.load(Ordering::SeqCst), 3);
+    }
+
+    #[tokio::test]
+    async fn cached_bytes_stay_within_a_quarter_of_the_budget() {
+        let renders = Renders::new(8, WorkBudget::new(400, Duration::ZERO));
+        let f = frame();
+        for q in 0..5 {
+            let bytes = renders
+                .get_or_render(&f, format!("q{q}"), 1, |_| {
+                    Ok::<_, String>(Bytes::from(vec![0u8; 40]))
+                })
+                .await
+                .unwrap();
+            assert_eq!(
+                bytes.len(),
+                40,
+                "the caller gets its bytes even if they are not kept"
+            );
+        }
+        let slots = renders.slots.lock().unwrap();
+        let held: usize = slots
+            .iter()
+            .filter_map(|(_, s)| s.get().map(Bytes::len))
+            .sum();
+        assert_eq!(held, 80, "two renders of 40 bytes fit 100");
+        assert_eq!(slots.back().unwrap().0.query, "q4", "the newest is kept");
     }
 
     #[tokio::test(start_paused = true)]

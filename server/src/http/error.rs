@@ -26,6 +26,8 @@ pub struct ApiError {
     pub code: &'static str,
     /// What went wrong, for people.
     pub message: String,
+    /// Seconds after which a retry may succeed (`Retry-After`), for 503s.
+    pub retry_after: Option<u64>,
 }
 
 impl ApiError {
@@ -35,6 +37,15 @@ impl ApiError {
             status,
             code,
             message: message.into(),
+            retry_after: None,
+        }
+    }
+
+    /// 503 with `Retry-After`: the server is short of working memory for now.
+    pub fn busy(busy: &crate::work::Busy) -> ApiError {
+        ApiError {
+            retry_after: Some(busy.retry_after.as_secs().max(1)),
+            ..ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "busy", busy.to_string())
         }
     }
 
@@ -86,7 +97,14 @@ impl std::fmt::Display for ApiError {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        (self.status, Json(ErrorBody::new(self.code, self.message))).into_response()
+        let mut response =
+            (self.status, Json(ErrorBody::new(self.code, self.message))).into_response();
+        if let Some(secs) = self.retry_after {
+            response
+                .headers_mut()
+                .insert(axum::http::header::RETRY_AFTER, secs.into());
+        }
+        response
     }
 }
 
@@ -180,7 +198,29 @@ impl From<ParamError> for ApiError {
 /// A change that could not be made durable is the server's fault: 500, details in the log.
 impl From<DurabilityError> for ApiError {
     fn from(e: DurabilityError) -> ApiError {
+        if e.source.is_out_of_space() {
+            // Not the client's fault and not a bug: the operator has to free space. Say so.
+            tracing::error!(error = %e.source, "{}", e.action);
+            return ApiError::new(
+                StatusCode::INSUFFICIENT_STORAGE,
+                "insufficient_storage",
+                format!(
+                    "{} failed: the data directory is full or over a size limit; \
+                     acknowledged samples are not becoming durable",
+                    e.action
+                ),
+            );
+        }
         ApiError::internal(e.action, e.source)
+    }
+}
+
+impl<E: Into<ApiError>> From<crate::renders::RenderError<E>> for ApiError {
+    fn from(e: crate::renders::RenderError<E>) -> ApiError {
+        match e {
+            crate::renders::RenderError::Busy(busy) => ApiError::busy(&busy),
+            crate::renders::RenderError::Failed(e) => e.into(),
+        }
     }
 }
 

@@ -2,7 +2,7 @@
 
 use axum::extract::State;
 use axum::http::StatusCode;
-use splatd_proto::api::{CreateFrame, FrameInfo, FrameList};
+use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, QuarantinedFrame};
 
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
@@ -39,7 +39,22 @@ pub async fn list(State(app): State<AppState>) -> Result<Json<FrameList>, ApiErr
         Ok(frames.iter().map(|f| f.info()).collect())
     })
     .await?;
-    Ok(Json(FrameList { frames }))
+    let quarantined = app
+        .durable
+        .as_ref()
+        .map(|d| d.quarantined())
+        .unwrap_or_default()
+        .into_iter()
+        .map(|q| QuarantinedFrame {
+            id: q.frame,
+            reason: q.reason,
+            moved_to: q.moved_to.display().to_string(),
+        })
+        .collect();
+    Ok(Json(FrameList {
+        frames,
+        quarantined,
+    }))
 }
 
 /// `GET /v1/frames/{id}`.

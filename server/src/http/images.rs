@@ -8,8 +8,9 @@ use axum::response::IntoResponse;
 use serde::{Deserialize, Deserializer};
 use splatd_proto::api::ImageQuery;
 
-use crate::frame::core_resolve_params;
-use crate::http::blocking::blocking;
+use bytes::Bytes;
+
+use crate::frame::{core_resolve_params, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
 use crate::image::{cascade_layers, encode_exr};
@@ -24,19 +25,39 @@ pub async fn get_image(
     let params = core_resolve_params(&query.apply(&frame.spec().request.resolve))?;
     let threads = app.resolve_threads;
     let started = Instant::now();
-    let exr = blocking("resolve", move || {
-        let cut = frame.cut();
-        let resolved = cut.resolve(&params, threads);
-        let extra = if query.cascades {
-            cascade_layers(cut.cascade_means())
-        } else {
-            Vec::new()
-        };
-        encode_exr(&resolved, &extra).map_err(|e| ApiError::internal("EXR encoding", e))
-    })
-    .await?;
+    let extra_layers = if query.cascades {
+        frame.spec().layout.cascades() as u64
+    } else {
+        0
+    };
+    // The copy of the state, three resolved layers and the EXR holding them (and the raw
+    // cascades when asked for), at 12 bytes per pixel and layer.
+    let cost = frame.spec().memory_bytes() + pixels(&frame) * 12 * (6 + 2 * extra_layers);
+    let key = format!("exr {params:?} {query:?}");
+    let exr = app
+        .renders
+        .get_or_render(&frame, key, cost, move |frame| {
+            let cut = frame.cut();
+            let resolved = cut.resolve(&params, threads);
+            let extra = if query.cascades {
+                cascade_layers(cut.cascade_means())
+            } else {
+                Vec::new()
+            };
+            drop(cut);
+            encode_exr(&resolved, &extra)
+                .map(Bytes::from)
+                .map_err(|e| ApiError::internal("EXR encoding", e))
+        })
+        .await?;
     metrics::histogram!("splatd_resolve_seconds").record(started.elapsed().as_secs_f64());
     Ok(([(header::CONTENT_TYPE, "image/x-exr")], exr))
+}
+
+/// Pixels of a frame.
+fn pixels(frame: &ShardedFrame) -> u64 {
+    let r = &frame.spec().request;
+    u64::from(r.width) * u64::from(r.height)
 }
 
 /// Which layer a preview shows.
@@ -87,21 +108,27 @@ pub async fn get_preview(
 ) -> Result<impl IntoResponse, ApiError> {
     let params = frame.spec().resolve;
     let threads = app.resolve_threads;
-    let png = blocking("preview", move || {
-        let resolved = frame.cut().resolve(&params, threads);
-        let exposure = query
-            .exposure
-            .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted));
-        let layer = match query.layer {
-            PreviewLayer::Reweighted => &resolved.reweighted,
-            PreviewLayer::Mean => &resolved.mean,
-            PreviewLayer::Removed => &resolved.removed,
-        };
-        let pixels = crate::preview::tonemap(layer, exposure);
-        crate::preview::encode_png(resolved.width, resolved.height, &pixels)
-            .map_err(|e| ApiError::internal("PNG encoding", e))
-    })
-    .await?;
+    // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG.
+    let cost = frame.spec().memory_bytes() + pixels(&frame) * (36 + 6);
+    let key = format!("png {:?} {:?}", query.layer, query.exposure);
+    let png = app
+        .renders
+        .get_or_render(&frame, key, cost, move |frame| {
+            let resolved = frame.cut().resolve(&params, threads);
+            let exposure = query
+                .exposure
+                .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted));
+            let layer = match query.layer {
+                PreviewLayer::Reweighted => &resolved.reweighted,
+                PreviewLayer::Mean => &resolved.mean,
+                PreviewLayer::Removed => &resolved.removed,
+            };
+            let pixels = crate::preview::tonemap(layer, exposure);
+            crate::preview::encode_png(resolved.width, resolved.height, &pixels)
+                .map(Bytes::from)
+                .map_err(|e| ApiError::internal("PNG encoding", e))
+        })
+        .await?;
     Ok((
         [
             (header::CONTENT_TYPE, "image/png"),

@@ -22,6 +22,8 @@ pub mod operations;
 pub mod states;
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod tests_budget;
 
 use axum::extract::Request;
 use axum::handler::Handler;

@@ -17,9 +17,25 @@ pub async fn index() -> impl IntoResponse {
     )
 }
 
-/// `GET /healthz`: answers while the server accepts requests.
-pub async fn healthz() -> impl IntoResponse {
-    Json(serde_json::json!({"status": "ok"}))
+/// `GET /healthz`: answers 200 while the server accepts requests. `status` is `degraded` when
+/// acknowledged samples are not all becoming durable (a frame's last snapshot failed) or when
+/// frames were found damaged at start and set aside; the body says which.
+pub async fn healthz(State(app): State<AppState>) -> impl IntoResponse {
+    let Some(durable) = &app.durable else {
+        return Json(serde_json::json!({"status": "ok"}));
+    };
+    let failing = durable.failing();
+    let quarantined: Vec<_> = durable.quarantined().into_iter().map(|q| q.frame).collect();
+    let status = if failing.is_empty() && quarantined.is_empty() {
+        "ok"
+    } else {
+        "degraded"
+    };
+    Json(serde_json::json!({
+        "status": status,
+        "snapshots_failing": failing,
+        "frames_quarantined": quarantined,
+    }))
 }
 
 /// `GET /metrics`: Prometheus text format; 404 `metrics_disabled` without a recorder.

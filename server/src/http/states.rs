@@ -26,8 +26,19 @@ impl Upload for StateBody {
 }
 
 /// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
-pub async fn export(Frame(frame): Frame) -> Result<impl IntoResponse, ApiError> {
+pub async fn export(
+    State(app): State<AppState>,
+    Frame(frame): Frame,
+) -> Result<impl IntoResponse, ApiError> {
+    // A copy of the state and its encoding.
+    let reservation = app
+        .renders
+        .budget()
+        .reserve(2 * frame.spec().memory_bytes())
+        .await
+        .map_err(|busy| ApiError::busy(&busy))?;
     let bytes = blocking("export", move || {
+        let _reservation = reservation;
         let cut = frame.cut();
         let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
         crate::export::write_bands(&cut.bands, frame.id(), None, &mut out)
