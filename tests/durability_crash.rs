@@ -1,175 +1,249 @@
-//! A durable server killed with SIGKILL at random moments, and in the middle of writing
-//! snapshots, while 8 workers that retry keep posting: the final image is bit-identical to an
-//! uninterrupted run of the same samples, with no batch lost and none counted twice.
+//! A durable server that dies, by SIGKILL between an acknowledgement and the next snapshot, or by
+//! an abort while a snapshot is half written, while four workers keep posting through
+//! `BatchWriter`s: the final image is bit-identical to an uninterrupted run of the same samples,
+//! no batch is lost and none counts twice.
+//!
+//! Nothing here depends on timing. Snapshots happen only when a worker syncs (the periodic ones
+//! are an hour apart), the test decides when the server dies (after every worker's batches of a
+//! phase are acknowledged), and the crash inside a snapshot comes from a failpoint
+//! (`SPLATD_FAILPOINTS`), so exactly which batches are lost, and must be resent, is known in
+//! advance. Clients reach the server through a forwarder whose port the test owns, so a
+//! restarted server can take any free port.
 
 mod common;
 
 use std::path::Path;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
-use common::{free_port, runtime, Server};
+use common::{runtime, Forwarder, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::{CreateFrame, ImageQuery};
-use splatd_proto::{Client, Record, RetryPolicy};
-use splatd_scenes::synth::{FireflyScene, SplitMix64};
+use splatd_proto::{BatchWriter, Client, Record, RetryPolicy};
+use splatd_scenes::synth::FireflyScene;
 use splatd_server::image::encode_exr;
 
-const WORKERS: u64 = 8;
-const BATCH: usize = 700;
+const W: u32 = 64;
+const H: u32 = 48;
+const WORKERS: u64 = 4;
+/// Passes per worker and phase.
+const PASSES_PER_PHASE: u64 = 4;
+const PHASES: u64 = 3;
+/// Records per batch: a pass of 64x48 is exactly three batches.
+const BATCH: usize = 1024;
+const BATCHES_PER_PHASE: u64 = PASSES_PER_PHASE * (W * H) as u64 / BATCH as u64;
+const FRAME: &str = "crash";
 
-/// How the killer picks its moments.
-#[derive(Clone, Copy, Debug)]
-enum Moments {
-    /// After a random 150-600 ms of running.
-    Random,
-    /// As soon as a snapshot file is being written (`snapshot.tmp` exists).
-    DuringSnapshot,
+fn scene() -> FireflyScene {
+    FireflyScene::new(W, H, 7)
 }
 
-struct Outcome {
-    kills: u32,
-    resent: u64,
-    samples: u64,
-    expected: u64,
+/// The records of worker `w` in phase `phase`: its passes of that phase, in order.
+fn records(w: u64, phase: u64) -> Vec<Record> {
+    let scene = scene();
+    (0..PASSES_PER_PHASE)
+        .map(|i| (phase * PASSES_PER_PHASE + i) * WORKERS + w)
+        .flat_map(|pass| scene.pass(pass).collect::<Vec<_>>())
+        .map(|(x, y, rgb)| Record::new(x, y, rgb))
+        .collect()
 }
 
-fn run(size: (u32, u32), passes: u64, kills: u32, moments: Moments, seed: u64) -> Outcome {
-    let (w, h) = size;
-    let scene = FireflyScene::new(w, h, seed);
+/// Sends every worker's records of `phase` (all acknowledged when this returns); then syncs
+/// the workers in `syncing`, one after another, in order.
+fn phase(
+    rt: &tokio::runtime::Runtime,
+    writers: Vec<BatchWriter>,
+    phase: u64,
+    syncing: &[u64],
+) -> Vec<BatchWriter> {
+    let tasks: Vec<_> = writers
+        .into_iter()
+        .enumerate()
+        .map(|(w, mut writer)| {
+            rt.spawn(async move {
+                for chunk in records(w as u64, phase).chunks(BATCH) {
+                    writer.extend(chunk.iter().copied()).await.unwrap();
+                }
+                writer.flush().await.unwrap();
+                writer
+            })
+        })
+        .collect();
+    let mut writers: Vec<BatchWriter> =
+        tasks.into_iter().map(|t| rt.block_on(t).unwrap()).collect();
+    for &w in syncing {
+        rt.block_on(writers[w as usize].sync()).unwrap();
+    }
+    writers
+}
+
+/// Syncs every worker (resending what a restart lost), one after another.
+fn sync_all(rt: &tokio::runtime::Runtime, writers: &mut [BatchWriter]) {
+    for writer in writers {
+        rt.block_on(writer.sync()).unwrap();
+    }
+}
+
+fn server_args(data: &Path) -> Vec<String> {
+    vec![
+        "--data-dir".into(),
+        data.display().to_string(),
+        // Snapshots only when a worker syncs: the test knows exactly what is on disk.
+        "--snapshot-interval-ms".into(),
+        "3600000".into(),
+    ]
+}
+
+fn start(data: &Path, failpoints: Option<&str>) -> Server {
+    let args = server_args(data);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    match failpoints {
+        Some(spec) => Server::start_with_env(&args, &[("SPLATD_FAILPOINTS", spec)]),
+        None => Server::start(&args),
+    }
+}
+
+/// Clients that wait out a dead server: a retry every 10-100 ms for a long while.
+fn client(url: &str) -> Client {
+    Client::new(url).unwrap().with_retry_policy(RetryPolicy {
+        max_attempts: 2000,
+        initial_backoff: Duration::from_millis(10),
+        max_backoff: Duration::from_millis(100),
+    })
+}
+
+fn writers(client: &Client) -> Vec<BatchWriter> {
+    (0..WORKERS)
+        .map(|w| client.batch_writer(FRAME, 100 + w, 0, BATCH).unwrap())
+        .collect()
+}
+
+/// Every sample of every worker and phase, accumulated without interruption, and its EXR.
+fn reference() -> (u64, Vec<u8>) {
+    let mut state = FrameState::new(W, H, CascadeLayout::with_defaults());
+    for w in 0..WORKERS {
+        for p in 0..PHASES {
+            state.splat_all(records(w, p).into_iter().map(|r| (r.x, r.y, r.rgb)));
+        }
+    }
+    let exr = encode_exr(&state.resolve(&ResolveParams::with_defaults()), &[]).unwrap();
+    (state.total_samples(), exr)
+}
+
+/// The frame behind `client` holds exactly the reference.
+fn check_exact(rt: &tokio::runtime::Runtime, client: &Client, when: &str) {
+    let (samples, exr) = reference();
+    let info = rt.block_on(client.frame_info(FRAME)).unwrap();
+    assert_eq!(info.samples, samples, "samples {when}");
+    let got = rt
+        .block_on(client.image(FRAME, &ImageQuery::default()))
+        .unwrap();
+    assert!(
+        got[..] == exr[..],
+        "image {when} differs from an uninterrupted run"
+    );
+}
+
+/// SIGKILL after the batches of phase 1 were acknowledged but before any snapshot held them:
+/// the restarted server lost exactly those batches, every worker resends exactly those, and
+/// nothing counts twice.
+#[test]
+fn a_kill_between_acknowledgement_and_snapshot_loses_nothing() {
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    let data_arg = data.to_str().unwrap().to_owned();
-    let addr = format!("127.0.0.1:{}", free_port());
-    let args = ["--data-dir", &data_arg, "--snapshot-interval-ms", "40"];
-    let mut server = Some(Server::start_at(&addr, &args, &[]));
-    let url = format!("http://{addr}");
     let rt = runtime();
-    let patient = RetryPolicy {
-        max_attempts: 400,
-        initial_backoff: Duration::from_millis(10),
-        max_backoff: Duration::from_millis(50),
-    };
-    let client = Client::new(&url).unwrap().with_retry_policy(patient);
-    rt.block_on(client.create_frame(&CreateFrame::new("crash", w, h)))
+    let server = start(&data, None);
+    let forwarder = Forwarder::start(&server.addr);
+    let client = client(&forwarder.url);
+    rt.block_on(client.create_frame(&CreateFrame::new(FRAME, W, H)))
         .unwrap();
 
-    // Eight workers, each sending its share of passes through a BatchWriter that keeps batches
-    // until they are durable, then syncing.
-    let done = Arc::new(AtomicBool::new(false));
-    let mut workers = Vec::new();
-    for worker in 0..WORKERS {
-        let client = client.clone();
-        let records: Vec<Record> = (worker..passes)
-            .step_by(WORKERS as usize)
-            .flat_map(|p| scene.pass(p).collect::<Vec<_>>())
-            .map(|(x, y, rgb)| Record::new(x, y, rgb))
-            .collect();
-        workers.push(rt.spawn(async move {
-            let mut writer = client
-                .batch_writer("crash", 100 + worker, 0, BATCH)
-                .unwrap();
-            for chunk in records.chunks(BATCH) {
-                writer.extend(chunk.iter().copied()).await.unwrap();
-                // Pace the workers so the kills land in the middle of the stream.
-                tokio::time::sleep(Duration::from_millis(3)).await;
-            }
-            writer.sync().await.unwrap();
-            writer.resent()
-        }));
+    // Phase 0 ends on disk; phase 1 is acknowledged, not durable.
+    let all: Vec<u64> = (0..WORKERS).collect();
+    let writers = phase(&rt, writers(&client), 0, &all);
+    let mut writers = phase(&rt, writers, 1, &[]);
+    for w in &writers {
+        assert_eq!(
+            w.unconfirmed() as u64,
+            BATCHES_PER_PHASE,
+            "kept until durable"
+        );
     }
+    server.kill();
+    let server = start(&data, None);
+    forwarder.point_at(Some(&server.addr));
 
-    // The killer.
-    let mut rng = SplitMix64::new(seed ^ 0xdead);
-    let mut kill_count = 0;
-    let snapshot_tmp = data.join("frames/crash/snapshot.tmp");
-    while kill_count < kills {
-        let deadline = match moments {
-            Moments::Random => Instant::now() + Duration::from_millis(150 + rng.next_u64() % 450),
-            Moments::DuringSnapshot => Instant::now() + Duration::from_secs(20),
-        };
-        loop {
-            if Instant::now() >= deadline {
-                break;
-            }
-            if matches!(moments, Moments::DuringSnapshot) && snapshot_tmp.exists() {
-                break;
-            }
-            std::thread::sleep(Duration::from_micros(200));
-        }
-        let caught_tmp = snapshot_tmp.exists();
-        server.take().unwrap().kill();
-        kill_count += 1;
-        if matches!(moments, Moments::DuringSnapshot) {
-            assert!(caught_tmp, "the kill did not land during a snapshot");
-        }
-        std::thread::sleep(Duration::from_millis(rng.next_u64() % 100));
-        server = Some(Server::start_at(&addr, &args, &[]));
-    }
-    let resent: u64 = workers.into_iter().map(|w| rt.block_on(w).unwrap()).sum();
-    done.store(true, Ordering::Relaxed);
-
-    // One more crash after everyone synced: what they were told is durable must be.
-    server.take().unwrap().kill();
-    let _server = Server::start_at(&addr, &args, &[]);
-    let info = rt.block_on(client.frame_info("crash")).unwrap();
-    let got = rt
-        .block_on(client.image("crash", &ImageQuery::default()))
-        .unwrap();
-
-    let mut reference = FrameState::new(w, h, CascadeLayout::with_defaults());
-    for pass in 0..passes {
-        reference.splat_all(scene.pass(pass));
-    }
-    let expected = encode_exr(&reference.resolve(&ResolveParams::with_defaults()), &[]).unwrap();
-    let outcome = Outcome {
-        kills: kill_count,
-        resent,
-        samples: info.samples,
-        expected: reference.total_samples(),
-    };
+    sync_all(&rt, &mut writers);
+    let resent: Vec<u64> = writers.iter().map(BatchWriter::resent).collect();
     assert_eq!(
-        outcome.samples, outcome.expected,
-        "samples after {kill_count} kills"
+        resent,
+        vec![BATCHES_PER_PHASE; WORKERS as usize],
+        "resent exactly phase 1"
     );
+    let mut writers = phase(&rt, writers, 2, &all);
+    check_exact(&rt, &client, "after a kill between ack and snapshot");
+
+    // What the workers were told is durable survives another kill.
+    server.kill();
+    let server = start(&data, None);
+    forwarder.point_at(Some(&server.addr));
+    check_exact(&rt, &client, "after a kill once everything was synced");
+    sync_all(&rt, &mut writers);
     assert!(
-        got[..] == expected[..],
-        "image after {kill_count} kills differs from an uninterrupted run"
+        writers.iter().all(|w| w.resent() == BATCHES_PER_PHASE),
+        "nothing more was lost"
     );
-    check_no_leftovers(&data);
-    outcome
+    drop(server);
 }
 
-fn check_no_leftovers(data: &Path) {
-    let tmp = data.join("frames/crash/snapshot.tmp");
-    // A leftover from the last kill is removed on recovery.
-    assert!(!tmp.exists(), "{} left behind", tmp.display());
-}
+/// The server dies while writing a snapshot: the new snapshot is in `snapshot.tmp`, synced but
+/// not renamed over the previous one. Recovery reads the previous snapshot, removes the
+/// temporary file, and the workers' resends restore the rest, exactly once.
+#[test]
+fn a_crash_while_a_snapshot_is_written_recovers_exactly() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let rt = runtime();
+    // The second snapshot of the frame aborts the process between writing and renaming.
+    let server = start(&data, Some("snapshot.bin:before_rename=abort@2"));
+    let forwarder = Forwarder::start(&server.addr);
+    let client = client(&forwarder.url);
+    rt.block_on(client.create_frame(&CreateFrame::new(FRAME, W, H)))
+        .unwrap();
 
-fn report(name: &str, o: &Outcome) {
-    let batches = o.expected / BATCH as u64;
-    println!(
-        "{name}: kills {}, batches resent after restarts {}, batches lost {}, batches counted \
-         twice {} (about {batches} batches, {} samples)",
-        o.kills,
-        o.resent,
-        o.expected.saturating_sub(o.samples).div_ceil(BATCH as u64),
-        o.samples.saturating_sub(o.expected).div_ceil(BATCH as u64),
-        o.expected
+    // One sync per phase, by worker 0: phase 0 is snapshot 1.
+    let writers = phase(&rt, writers(&client), 0, &[0]);
+    let writers = phase(&rt, writers, 1, &[]);
+    // Snapshot 2 (phase 1) aborts the server; worker 0's sync keeps retrying meanwhile.
+    let syncing = {
+        let mut writers = writers;
+        rt.spawn(async move {
+            writers[0].sync().await.unwrap();
+            writers
+        })
+    };
+    assert_eq!(server.wait_exit(), None, "the failpoint aborted the server");
+    let frame_dir = data.join("frames").join(FRAME);
+    assert!(
+        frame_dir.join("snapshot.tmp").exists(),
+        "the crash left the half-done snapshot"
     );
-}
+    let server = start(&data, None);
+    forwarder.point_at(Some(&server.addr));
+    let mut writers = rt.block_on(syncing).unwrap();
+    assert!(
+        !frame_dir.join("snapshot.tmp").exists(),
+        "recovery removes the half-done snapshot"
+    );
 
-#[test]
-fn sigkill_at_random_moments_loses_nothing_and_counts_nothing_twice() {
-    let o = run((64, 48), 96, 5, Moments::Random, 1);
-    report("random kills", &o);
-    assert!(o.resent > 0, "no kill landed between an ack and a snapshot");
-}
-
-#[test]
-fn sigkill_while_a_snapshot_is_written_recovers_exactly() {
-    // A larger frame, so writing a snapshot takes long enough to be caught in the act.
-    let o = run((256, 192), 24, 3, Moments::DuringSnapshot, 2);
-    report("kills during snapshots", &o);
+    sync_all(&rt, &mut writers);
+    let resent: Vec<u64> = writers.iter().map(BatchWriter::resent).collect();
+    assert_eq!(
+        resent,
+        vec![BATCHES_PER_PHASE; WORKERS as usize],
+        "resent exactly phase 1"
+    );
+    let all: Vec<u64> = (0..WORKERS).collect();
+    phase(&rt, writers, 2, &all);
+    check_exact(&rt, &client, "after a crash inside a snapshot");
+    drop(server);
 }

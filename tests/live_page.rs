@@ -26,7 +26,7 @@ const HEIGHT: u32 = 150;
 const SEED: u64 = 7;
 
 /// How long any one thing the page does may take to show.
-const PAGE_DEADLINE: Duration = Duration::from_secs(30);
+const PAGE_DEADLINE: Duration = common::PATIENCE;
 
 /// The W3C element reference key.
 const ELEMENT_KEY: &str = "element-6066-11e4-a52e-4f735466cecf";
@@ -100,7 +100,7 @@ impl Session {
     /// Waits for chromedriver to be ready, then opens headless Chromium.
     async fn open(driver: &Driver, chromium: &Path) -> Session {
         let http = reqwest::Client::builder()
-            .timeout(Duration::from_secs(60))
+            .timeout(common::PATIENCE)
             .build()
             .expect("HTTP client");
         let base = format!("http://127.0.0.1:{}", driver.port);

@@ -6,7 +6,6 @@ mod common;
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
-use std::time::{Duration, Instant};
 
 use common::{runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
@@ -252,36 +251,34 @@ fn slow_senders_are_cut_off() {
     )
     .unwrap();
 
-    // Half a request line, then silence.
+    // Half a request line, then silence: the server closes the connection (end of stream),
+    // rather than the client's read giving up. The client's read limit only guards against a
+    // hang; it is far longer than the server's timeouts and is not what is checked.
     let mut s = TcpStream::connect(&server.addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    s.set_read_timeout(Some(common::PATIENCE)).unwrap();
     s.write_all(b"POST /v1/frames/f/samples HTTP/1.1\r\nHost: x\r\n")
         .unwrap();
-    let start = Instant::now();
     let mut buf = Vec::new();
-    let _ = s.read_to_end(&mut buf);
-    let waited = start.elapsed();
+    let closed = s.read_to_end(&mut buf);
     assert!(
-        waited < Duration::from_secs(5),
-        "a connection with unfinished headers was held for {waited:?}"
+        closed.is_ok(),
+        "a connection with unfinished headers was not closed by the server: {closed:?}"
     );
 
     // Complete headers promising a body that never comes.
     let mut s = TcpStream::connect(&server.addr).unwrap();
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    s.set_read_timeout(Some(common::PATIENCE)).unwrap();
     s.write_all(
         b"POST /v1/frames/f/samples HTTP/1.1\r\nHost: x\r\n\
           Content-Type: application/x-splatd-batch\r\nContent-Length: 100000\r\n\r\nSPLB",
     )
     .unwrap();
-    let start = Instant::now();
     let mut buf = Vec::new();
-    let _ = s.read_to_end(&mut buf);
-    let waited = start.elapsed();
+    let closed = s.read_to_end(&mut buf);
     let text = String::from_utf8_lossy(&buf);
     assert!(
-        waited < Duration::from_secs(6),
-        "a stalled body held its connection for {waited:?}"
+        closed.is_ok(),
+        "a stalled body's connection was not closed: {closed:?}"
     );
     assert!(text.starts_with("HTTP/1.1 408"), "{text}");
     assert!(text.contains("request_timeout"), "{text}");

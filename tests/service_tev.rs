@@ -4,7 +4,7 @@
 mod common;
 mod tev_decoder;
 
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use common::{runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
@@ -39,10 +39,8 @@ fn served_frames_reach_tev_with_the_resolved_pixels() {
     // Read packets until the image holds the expected pixels (the server may first push an
     // earlier state of the frame), with a deadline.
     let (mut stream, _) = listener.accept().unwrap();
-    stream
-        .set_read_timeout(Some(Duration::from_secs(20)))
-        .unwrap();
-    let deadline = Instant::now() + Duration::from_secs(30);
+    stream.set_read_timeout(Some(common::PATIENCE)).unwrap();
+    let deadline = Instant::now() + common::PATIENCE;
     let mut packets = Vec::new();
     let mut created = 0;
     loop {

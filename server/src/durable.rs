@@ -570,12 +570,16 @@ fn write_atomically(
     let tmp_path = dir.join(tmp);
     let final_path = dir.join(name);
     let written = (|| {
+        crate::failpoint::hit(&format!("{name}:before_write"))
+            .map_err(io_err("writing", &tmp_path))?;
         let file = File::create(&tmp_path).map_err(io_err("creating", &tmp_path))?;
         let mut w = BufWriter::with_capacity(1 << 20, &file);
         write(&mut w).map_err(io_err("writing", &tmp_path))?;
         w.flush().map_err(io_err("writing", &tmp_path))?;
         drop(w);
         file.sync_all().map_err(io_err("syncing", &tmp_path))?;
+        crate::failpoint::hit(&format!("{name}:before_rename"))
+            .map_err(io_err("renaming", &tmp_path))?;
         fs::rename(&tmp_path, &final_path).map_err(io_err("renaming", &tmp_path))
     })();
     if written.is_err() {

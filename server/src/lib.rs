@@ -13,6 +13,7 @@
 pub mod dedup;
 pub mod durable;
 pub mod export;
+pub mod failpoint;
 pub mod frame;
 pub mod http;
 pub mod image;

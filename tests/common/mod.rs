@@ -64,11 +64,11 @@ impl Server {
             // Keep draining so the server never blocks on a full pipe.
             for _ in lines {}
         });
-        let line = match rx.recv_timeout(Duration::from_secs(30)) {
+        let line = match rx.recv_timeout(PATIENCE) {
             Ok(line) => line,
             Err(_) => {
                 let _ = child.kill();
-                panic!("splatd did not report its address within 30 s");
+                panic!("splatd did not report its address within {PATIENCE:?}");
             }
         };
         let url = line
@@ -92,7 +92,24 @@ impl Server {
     pub fn terminate(mut self) -> Option<i32> {
         let mut child = self.child.take().expect("running");
         signal(child.id(), "TERM");
-        wait_bounded(&mut child, Duration::from_secs(20))
+        wait_bounded(&mut child, PATIENCE)
+    }
+
+    /// Waits for the process to end by itself (a failpoint aborted it, say); its exit code, or
+    /// `None` for a signal. Bounded by [`PATIENCE`] against a test that would hang.
+    pub fn wait_exit(mut self) -> Option<i32> {
+        let mut child = self.child.take().expect("running");
+        let start = Instant::now();
+        loop {
+            if let Some(status) = child.try_wait().expect("waiting for splatd") {
+                return status.code();
+            }
+            assert!(
+                start.elapsed() < PATIENCE,
+                "splatd did not exit within {PATIENCE:?}"
+            );
+            std::thread::sleep(Duration::from_millis(10));
+        }
     }
 
     /// SIGKILLs the process (no chance to flush anything) and reaps it.
@@ -175,6 +192,60 @@ pub fn runtime() -> tokio::runtime::Runtime {
         .enable_all()
         .build()
         .expect("runtime")
+}
+
+/// How long any wait in a test may last before the test gives up as hung. It guards against
+/// hanging forever; it is never what a test asserts, so it is generous for loaded machines.
+pub const PATIENCE: Duration = Duration::from_secs(120);
+
+/// A TCP forwarder on a loopback port the test owns for its whole life, relaying each
+/// connection to whichever server is current: clients keep one URL while the server behind it
+/// is killed and restarted on a new ephemeral port (no port can be taken by another test in
+/// between). While no server is set, connections are closed at once, as a dead server's are.
+pub struct Forwarder {
+    /// `http://127.0.0.1:PORT`
+    pub url: String,
+    target: std::sync::Arc<std::sync::Mutex<Option<String>>>,
+}
+
+impl Forwarder {
+    /// Starts forwarding to `target` (`127.0.0.1:PORT`).
+    pub fn start(target: &str) -> Forwarder {
+        use std::net::{TcpListener, TcpStream};
+        let listener = TcpListener::bind("127.0.0.1:0").expect("binding a forwarder");
+        let url = format!("http://{}", listener.local_addr().unwrap());
+        let current = std::sync::Arc::new(std::sync::Mutex::new(Some(target.to_owned())));
+        let shared = current.clone();
+        // Plain threads: the forwarder lives as long as the test process, which is short.
+        std::thread::spawn(move || {
+            for conn in listener.incoming() {
+                let Ok(client) = conn else { return };
+                let target = shared.lock().unwrap().clone();
+                let Some(server) = target.and_then(|t| TcpStream::connect(t).ok()) else {
+                    drop(client);
+                    continue;
+                };
+                let pipe = |mut from: TcpStream, mut to: TcpStream| {
+                    std::thread::spawn(move || {
+                        let _ = std::io::copy(&mut from, &mut to);
+                        let _ = to.shutdown(std::net::Shutdown::Write);
+                    });
+                };
+                let (c2, s2) = (client.try_clone().unwrap(), server.try_clone().unwrap());
+                pipe(client, server);
+                pipe(s2, c2);
+            }
+        });
+        Forwarder {
+            url,
+            target: current,
+        }
+    }
+
+    /// Relays new connections to `target`, or refuses them with `None`.
+    pub fn point_at(&self, target: Option<&str>) {
+        *self.target.lock().unwrap() = target.map(str::to_owned);
+    }
 }
 
 /// A loopback port that was free a moment ago.

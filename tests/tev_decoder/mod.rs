@@ -11,7 +11,7 @@ use std::time::Duration;
 use splatd_estimator::Resolved;
 
 /// How long the stand-in waits for bytes before it gives up on a test.
-pub const READ_TIMEOUT: Duration = Duration::from_secs(20);
+pub const READ_TIMEOUT: Duration = Duration::from_secs(120);
 /// Most packets one connection may bring (a runaway sender fails the test instead of hanging).
 pub const MAX_PACKETS: usize = 10_000;
 /// The largest packet the stand-in accepts.
