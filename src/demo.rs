@@ -30,8 +30,8 @@ use tokio::sync::oneshot;
 use splatd_scenes::tracer::Tracer;
 use splatd_server::image::decode_exr_channels;
 use splatd_server::preview::{auto_exposure, encode_png, side_by_side, tonemap};
-use splatd_server::server::{bind, serve, shutdown_signal};
-use splatd_server::{AppState, Limits};
+use splatd_server::server::{shutdown_signal, Server};
+use splatd_server::Config;
 
 /// The id of the demo's frame.
 pub const FRAME_ID: &str = "demo";
@@ -115,13 +115,16 @@ pub fn run(opts: &DemoOptions) -> Result<DemoReport> {
         .build()
         .context("starting the async runtime")?;
 
-    // The embedded server. Dropping `stop` (on any return path) shuts it down.
-    let (listener, local) = runtime
-        .block_on(bind(&opts.addr))
-        .with_context(|| format!("binding {}", opts.addr))?;
-    let app = AppState::new(Limits::default(), None, None);
+    // The embedded server: the same `Server` as `splatd serve`, with the default configuration
+    // on the demo's address. Dropping `stop` (on any return path) shuts it down.
+    let config = Config {
+        addr: opts.addr.clone(),
+        ..Config::default()
+    };
+    let server = runtime.block_on(Server::bind(config))?;
+    let local = server.local_addr();
     let (stop, stopped) = oneshot::channel::<()>();
-    let server = runtime.spawn(serve(listener, app, async move {
+    let server = runtime.spawn(server.run(async move {
         let _ = stopped.await;
     }));
     let base = format!("http://{local}");
@@ -154,8 +157,7 @@ pub fn run(opts: &DemoOptions) -> Result<DemoReport> {
     runtime
         .block_on(async { tokio::time::timeout(Duration::from_secs(10), server).await })
         .context("the embedded server did not stop within 10 s")?
-        .context("the embedded server task failed")?
-        .context("serving")?;
+        .context("the embedded server task failed")??;
     Ok(DemoReport {
         samples,
         spp: opts.spp,

@@ -5,8 +5,6 @@ mod demo;
 use std::fs::File;
 use std::io::BufReader;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
-use std::time::Duration;
 
 use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -14,13 +12,9 @@ use clap::{Args, Parser, Subcommand};
 use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_proto::batchfile::BatchReader;
 use splatd_proto::{DecodeLimits, StateDump};
-use splatd_server::durable::Durable;
 use splatd_server::frame::core_resolve_params;
-use splatd_server::http::auth::Auth;
 use splatd_server::image::{cascade_layers, encode_exr};
-use splatd_server::push::PushConfig;
-use splatd_server::server::{bind, serve, shutdown_signal};
-use splatd_server::{AppState, Limits};
+use splatd_server::server::{shutdown_signal, Server};
 
 #[derive(Parser)]
 #[command(
@@ -43,7 +37,7 @@ enum Command {
     /// embedded server; writes reweighted.exr, mean.exr and side_by_side.png.
     Demo(DemoArgs),
     /// Runs the HTTP server.
-    Serve(ServeArgs),
+    Serve(splatd_server::Config),
     /// Resolves batch files or state files into an EXR, offline.
     Resolve(ResolveArgs),
     /// Posts rendered passes (OpenEXR, one sample per pixel each) to a server.
@@ -82,79 +76,6 @@ struct DemoArgs {
     /// Keep serving the live page after the demo, until Ctrl-C.
     #[arg(long)]
     serve: bool,
-}
-
-#[derive(Args)]
-struct ServeArgs {
-    /// Address to listen on (port 0 picks a free port; the address is printed).
-    #[arg(long, default_value = "127.0.0.1:7878")]
-    addr: String,
-    /// Most records in one batch.
-    #[arg(long, default_value_t = splatd_proto::batch::DEFAULT_MAX_RECORDS)]
-    max_records: usize,
-    /// Most frames held at once.
-    #[arg(long, default_value_t = 64)]
-    max_frames: usize,
-    /// Most pixels in one frame.
-    #[arg(long, default_value_t = 8192 * 8192)]
-    max_pixels: u64,
-    /// Most cascades in one frame.
-    #[arg(long, default_value_t = splatd_estimator::MAX_CASCADES)]
-    max_cascades: u32,
-    /// Most MiB of cascades over all frames.
-    #[arg(long, default_value_t = 8192)]
-    max_memory_mib: u64,
-    /// Longest a request may take, body included, in seconds.
-    #[arg(long, default_value_t = 120)]
-    request_timeout: u64,
-    /// Longest a connection may idle or take to send its headers, in seconds.
-    #[arg(long, default_value_t = 60)]
-    idle_timeout: u64,
-    /// MiB that requests may hold at once beyond the frames: state copies being resolved or
-    /// exported, encoded images. A request that cannot get its share within
-    /// --work-wait-secs is answered 503 with Retry-After.
-    #[arg(long, default_value_t = 2048)]
-    work_memory_mib: u64,
-    /// Longest a request waits for working memory, in seconds.
-    #[arg(long, default_value_t = 10)]
-    work_wait_secs: u64,
-    /// Keep frames on disk here so they survive restarts and crashes (see PROTOCOL.md,
-    /// "Exactly-once and durability"). Without it frames live in memory only.
-    #[arg(long)]
-    data_dir: Option<PathBuf>,
-    /// How often changed frames are snapshotted to the data directory, in milliseconds.
-    #[arg(long, default_value_t = 1000)]
-    snapshot_interval_ms: u64,
-    /// Bearer tokens with roles, one `<roles> <token>` per line (roles: read, write, admin).
-    /// Entries in the SPLATD_TOKENS environment variable (separated by `;` or newlines) are
-    /// added. Without any token the server is open to everyone.
-    #[arg(long)]
-    tokens_file: Option<PathBuf>,
-    /// Let requests without a token read (list frames, fetch images and previews).
-    #[arg(long)]
-    public_read: bool,
-    /// Push resolved frames to the tev viewer listening at HOST:PORT as samples arrive.
-    #[arg(long, value_name = "HOST:PORT")]
-    tev: Option<String>,
-    /// How often changed frames are pushed to tev, in milliseconds.
-    #[arg(long, default_value_t = 1000)]
-    tev_interval_ms: u64,
-    /// Push mode: send what this node accumulates to the splatd at this URL
-    /// (e.g. `http://render-head:7878`) as exact deltas, each applied there once.
-    /// Not with `--data-dir`: what was pushed is not part of a snapshot, so a restarted node
-    /// would push its restored frames again and count them twice upstream.
-    #[arg(long, conflicts_with = "data_dir")]
-    upstream: Option<String>,
-    /// This node's id in its pushed deltas. Must not be reused by another process, including
-    /// this node after a restart (default: 64 random bits).
-    #[arg(long, requires = "upstream")]
-    node_id: Option<String>,
-    /// Milliseconds between two push rounds.
-    #[arg(long, default_value_t = 1000, requires = "upstream")]
-    push_interval_ms: u64,
-    /// Bearer token sent to the upstream.
-    #[arg(long, requires = "upstream")]
-    upstream_token: Option<String>,
 }
 
 #[derive(Args)]
@@ -254,125 +175,16 @@ fn main() -> Result<()> {
     }
 }
 
-fn run_server(args: ServeArgs) -> Result<()> {
-    let limits = Limits {
-        max_records: args.max_records,
-        max_frames: args.max_frames,
-        max_pixels: args.max_pixels,
-        max_cascades: args.max_cascades,
-        max_memory_bytes: args.max_memory_mib << 20,
-        request_timeout: Duration::from_secs(args.request_timeout),
-        idle_timeout: Duration::from_secs(args.idle_timeout),
-        work_memory_bytes: args.work_memory_mib << 20,
-        work_wait: Duration::from_secs(args.work_wait_secs),
-    };
-    let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
-        .set_buckets(&[
-            0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
-        ])
-        .context("metric buckets")?
-        .install_recorder()
-        .context("installing the metrics recorder")?;
-    let durable = match &args.data_dir {
-        Some(dir) => Some(Arc::new(
-            Durable::open(dir, Duration::from_millis(args.snapshot_interval_ms.max(1)))
-                .with_context(|| format!("opening data directory {}", dir.display()))?,
-        )),
-        None => None,
-    };
-    let mut token_text = String::new();
-    if let Some(path) = &args.tokens_file {
-        token_text = std::fs::read_to_string(path)
-            .with_context(|| format!("reading tokens file {}", path.display()))?;
-    }
-    if let Ok(env) = std::env::var("SPLATD_TOKENS") {
-        token_text.push('\n');
-        token_text.push_str(&env);
-    }
-    let auth = Auth::parse(&token_text, args.public_read).context("invalid tokens")?;
-    if auth.enabled() {
-        tracing::info!(
-            tokens = auth.len(),
-            public_read = args.public_read,
-            "bearer tokens required"
-        );
-    } else {
-        tracing::warn!("no tokens configured: anyone who can reach this server may use it");
-    }
-    let push = args.upstream.clone().map(|upstream| {
-        let mut cfg = PushConfig::new(upstream);
-        if let Some(node) = args.node_id.clone() {
-            cfg.node = node;
-        }
-        cfg.interval = Duration::from_millis(args.push_interval_ms.max(1));
-        cfg.token = args.upstream_token.clone();
-        cfg
-    });
-    if let Some(cfg) = &push {
-        cfg.client().context("--upstream")?;
-    }
-    let app = AppState::with_auth(limits, Some(metrics), durable.clone(), auth);
-    if let Some(durable) = &durable {
-        let n = durable
-            .recover(&app.store)
-            .context("recovering frames from the data directory")?;
-        tracing::info!(frames = n, "recovered");
-    }
+fn run_server(config: splatd_server::Config) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()
         .context("starting the async runtime")?;
     runtime.block_on(async move {
-        if durable.is_some() {
-            splatd_server::durable::survive_file_size_limit().context("handling SIGXFSZ")?;
-        }
-        let (listener, local) = bind(&args.addr)
-            .await
-            .with_context(|| format!("binding {}", args.addr))?;
+        let server = Server::bind(config).await?;
         // Scripts and tests wait for this line to learn the port.
-        println!("splatd listening on http://{local}");
-        tracing::info!(%local, "listening");
-        let (stop_snapshots, stop) = tokio::sync::watch::channel(false);
-        let snapshots = durable
-            .clone()
-            .map(|d| tokio::spawn(d.run(app.clone(), stop.clone())));
-        let viewer = args.tev.clone().map(|addr| {
-            let interval = Duration::from_millis(args.tev_interval_ms.max(1));
-            tokio::spawn(splatd_server::viewer::run(
-                app.clone(),
-                addr,
-                interval,
-                stop.clone(),
-            ))
-        });
-        let pusher = push.map(|cfg| {
-            tracing::info!(upstream = cfg.upstream, node = cfg.node, "push mode");
-            let mut stop = stop.clone();
-            splatd_server::push::spawn_until(app.clone(), cfg, async move {
-                let _ = stop.wait_for(|stopped| *stopped).await;
-            })
-        });
-        serve(listener, app.clone(), shutdown_signal())
-            .await
-            .context("serving")?;
-        // Let a snapshot in progress finish before the final ones.
-        let _ = stop_snapshots.send(true);
-        // The pusher makes a final push: requests in flight are done, so it carries everything
-        // acknowledged.
-        for task in snapshots.into_iter().chain(viewer).chain(pusher) {
-            let _ = task.await;
-        }
-        if let Some(durable) = &durable {
-            // Everything acknowledged as applied becomes durable before a clean exit.
-            for frame in app.store.list() {
-                durable
-                    .snapshot(&frame)
-                    .await
-                    .with_context(|| format!("final snapshot of frame {}", frame.id()))?;
-            }
-        }
-        tracing::info!("stopped");
-        Ok(())
+        println!("splatd listening on http://{}", server.local_addr());
+        server.run(shutdown_signal()).await
     })
 }
 

@@ -10,6 +10,7 @@
 //! * [`server`]: the router, its layers (decompression, timeouts, tracing, JSON errors) and the
 //!   listener with graceful shutdown.
 
+pub mod config;
 pub mod dedup;
 pub mod durable;
 pub mod export;
@@ -34,6 +35,7 @@ use std::time::Duration;
 use metrics_exporter_prometheus::PrometheusHandle;
 use splatd_proto::DecodeLimits;
 
+pub use config::Config;
 use durable::{DurabilityError, Durable};
 use frame::ShardedFrame;
 use http::auth::Auth;
@@ -64,18 +66,9 @@ pub struct Limits {
 }
 
 impl Default for Limits {
+    /// The limits of a server started with no flags (see [`Config`]).
     fn default() -> Self {
-        Limits {
-            max_records: splatd_proto::batch::DEFAULT_MAX_RECORDS,
-            max_frames: 64,
-            max_pixels: 8192 * 8192,
-            max_cascades: splatd_estimator::MAX_CASCADES,
-            max_memory_bytes: 8 << 30,
-            request_timeout: Duration::from_secs(120),
-            idle_timeout: Duration::from_secs(60),
-            work_memory_bytes: 2 << 30,
-            work_wait: Duration::from_secs(10),
-        }
+        Config::default().limits()
     }
 }
 
@@ -149,6 +142,49 @@ impl AppState {
             boot: boot_id(),
             auth,
         }))
+    }
+
+    /// A server state as `config` describes it: its tokens read, its data directory opened and
+    /// every frame in it recovered (or quarantined). For in-process use too: nothing listens.
+    pub fn from_config(
+        config: &Config,
+        metrics: Option<PrometheusHandle>,
+    ) -> anyhow::Result<AppState> {
+        use anyhow::Context;
+        let durable = match &config.data_dir {
+            Some(dir) => Some(Arc::new(
+                Durable::open(dir, config.snapshot_interval())
+                    .with_context(|| format!("opening data directory {}", dir.display()))?,
+            )),
+            None => None,
+        };
+        let mut token_text = String::new();
+        if let Some(path) = &config.tokens_file {
+            token_text = std::fs::read_to_string(path)
+                .with_context(|| format!("reading tokens file {}", path.display()))?;
+        }
+        if let Ok(env) = std::env::var("SPLATD_TOKENS") {
+            token_text.push('\n');
+            token_text.push_str(&env);
+        }
+        let auth = Auth::parse(&token_text, config.public_read).context("invalid tokens")?;
+        if auth.enabled() {
+            tracing::info!(
+                tokens = auth.len(),
+                public_read = config.public_read,
+                "bearer tokens required"
+            );
+        } else {
+            tracing::warn!("no tokens configured: anyone who can reach this server may use it");
+        }
+        let app = AppState::with_auth(config.limits(), metrics, durable.clone(), auth);
+        if let Some(durable) = &durable {
+            let n = durable
+                .recover(&app.store)
+                .context("recovering frames from the data directory")?;
+            tracing::info!(frames = n, "recovered");
+        }
+        Ok(app)
     }
 
     /// Called once a new frame is in the store, before the client hears of it.

@@ -1,4 +1,6 @@
-//! The router, its layers, and the listener.
+//! A server's lifecycle ([`Server`]): configuration in, then the listener, the accept loop, the
+//! snapshot, push and tev tasks, and a graceful shutdown that ends with a final push and a final
+//! snapshot of every changed frame. `splatd serve` and the demo both run it.
 //!
 //! The accept loop is hyper-util's rather than `axum::serve`, for one reason: a header read
 //! timeout. Without it a client that opens a connection and trickles (or never sends) its headers
@@ -15,7 +17,125 @@ use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 
-use super::AppState;
+use anyhow::Context;
+
+use super::push::PushConfig;
+use super::{AppState, Config};
+
+/// A bound server, ready to run.
+pub struct Server {
+    config: Config,
+    app: AppState,
+    listener: TcpListener,
+    local: SocketAddr,
+    push: Option<PushConfig>,
+}
+
+impl Server {
+    /// Reads the tokens, opens and recovers the data directory, installs the metrics recorder
+    /// (unless one is installed already in this process: the server then has no `/metrics`),
+    /// and binds the listener. Nothing is served until [`Server::run`].
+    pub async fn bind(config: Config) -> anyhow::Result<Server> {
+        let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
+            .set_buckets(&[
+                0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
+            ])
+            .context("metric buckets")?
+            .install_recorder()
+            .inspect_err(|e| tracing::warn!(error = %e, "no /metrics"))
+            .ok();
+        let push = config.upstream.clone().map(|upstream| {
+            let mut cfg = PushConfig::new(upstream);
+            if let Some(node) = config.node_id.clone() {
+                cfg.node = node;
+            }
+            cfg.interval = config.push_interval();
+            cfg.token = config.upstream_token.clone();
+            cfg
+        });
+        if let Some(cfg) = &push {
+            cfg.client().context("--upstream")?;
+        }
+        let app = AppState::from_config(&config, metrics)?;
+        if app.durable.is_some() {
+            #[cfg(unix)]
+            super::durable::survive_file_size_limit().context("handling SIGXFSZ")?;
+        }
+        let (listener, local) = bind(&config.addr)
+            .await
+            .with_context(|| format!("binding {}", config.addr))?;
+        Ok(Server {
+            config,
+            app,
+            listener,
+            local,
+            push,
+        })
+    }
+
+    /// The address actually bound (port 0 picks one).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.local
+    }
+
+    /// The state every handler shares.
+    pub fn state(&self) -> &AppState {
+        &self.app
+    }
+
+    /// Serves until `shutdown` resolves; then stops accepting, finishes the requests in flight,
+    /// lets the pusher make its final push and the tev task stop, and snapshots every changed
+    /// frame, so that everything acknowledged as applied is durable before this returns.
+    pub async fn run(self, shutdown: impl Future<Output = ()>) -> anyhow::Result<()> {
+        let Server {
+            config,
+            app,
+            listener,
+            local,
+            push,
+        } = self;
+        tracing::info!(%local, "listening");
+        let (stop_tasks, stop) = tokio::sync::watch::channel(false);
+        let snapshots = app
+            .durable
+            .clone()
+            .map(|d| tokio::spawn(d.run(app.clone(), stop.clone())));
+        let viewer = config.tev.clone().map(|addr| {
+            tokio::spawn(super::viewer::run(
+                app.clone(),
+                addr,
+                config.tev_interval(),
+                stop.clone(),
+            ))
+        });
+        let pusher = push.map(|cfg| {
+            tracing::info!(upstream = cfg.upstream, node = cfg.node, "push mode");
+            let mut stop = stop.clone();
+            super::push::spawn_until(app.clone(), cfg, async move {
+                let _ = stop.wait_for(|stopped| *stopped).await;
+            })
+        });
+        serve(listener, app.clone(), shutdown)
+            .await
+            .context("serving")?;
+        // A snapshot in progress finishes before the final ones; the pusher's final push
+        // carries everything acknowledged, as no request is in flight any more.
+        let _ = stop_tasks.send(true);
+        for task in snapshots.into_iter().chain(viewer).chain(pusher) {
+            let _ = task.await;
+        }
+        if let Some(durable) = &app.durable {
+            for frame in app.store.list() {
+                durable
+                    .snapshot(&frame)
+                    .await
+                    .with_context(|| format!("final snapshot of frame {}", frame.id()))?;
+            }
+        }
+        tracing::info!("stopped");
+        Ok(())
+    }
+}
 
 /// Serves `app` on `listener` until `shutdown` resolves, then stops accepting, lets requests in
 /// flight finish (batches being applied are applied and acknowledged), and returns.
