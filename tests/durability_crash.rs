@@ -15,7 +15,7 @@ mod common;
 use std::path::Path;
 use std::time::Duration;
 
-use common::{runtime, Forwarder, Server};
+use common::{runtime, Forwarder, Server, ServerProcess};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{BatchWriter, Client, Record, RetryPolicy};
@@ -93,7 +93,7 @@ fn server_args(data: &Path) -> Vec<String> {
     ]
 }
 
-fn start(data: &Path, failpoints: Option<&str>) -> Server {
+fn start(data: &Path, failpoints: Option<&str>) -> ServerProcess {
     let args = server_args(data);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     match failpoints {

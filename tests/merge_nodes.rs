@@ -11,7 +11,7 @@ use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
-use common::{runtime, Server};
+use common::{runtime, Server, ServerProcess};
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Origin, Record, StateDump};
 use splatd_scenes::synth::FireflyScene;
@@ -135,7 +135,7 @@ fn retarget(state: &[u8], frame: &str, origin: Option<Origin>) -> Bytes {
 fn pulled_and_offline_merges_equal_one_node() {
     let rt = runtime();
     let (reference, reference_plain) = reference_images(&rt);
-    let nodes: Vec<Server> = (0..3).map(|_| Server::start(&[])).collect();
+    let nodes: Vec<ServerProcess> = (0..3).map(|_| Server::start(&[])).collect();
     let clients: Vec<Client> = nodes.iter().map(|n| Client::new(&n.url).unwrap()).collect();
     let merged = Server::start(&[]);
     let target = Client::new(&merged.url).unwrap();
@@ -437,7 +437,7 @@ fn pushed_deltas_aggregate_exactly_once() {
         .map(str::to_owned)
         .to_vec()
     };
-    let nodes: Vec<Server> = [
+    let nodes: Vec<ServerProcess> = [
         push_args(&proxy.url, "node-a"),
         push_args(&upstream.url, "node-b"),
         push_args(&upstream.url, "node-c"),

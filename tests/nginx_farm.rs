@@ -12,7 +12,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{runtime, Server};
+use common::{runtime, Server, ServerProcess};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
 use splatd_scenes::synth::FireflyScene;
@@ -235,7 +235,7 @@ fn frames_route_by_id_to_one_node_and_resolve_exactly() {
     let Some(bin) = nginx_binary() else {
         return;
     };
-    let nodes: Vec<Server> = (0..3).map(|_| Server::start(&[])).collect();
+    let nodes: Vec<ServerProcess> = (0..3).map(|_| Server::start(&[])).collect();
     let single = Server::start(&[]);
     let dir = tempfile::tempdir().unwrap();
     let addrs: Vec<&str> = nodes.iter().map(|n| n.addr.as_str()).collect();

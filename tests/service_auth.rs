@@ -32,13 +32,12 @@ fn write_and_admin_endpoints_refuse_missing_wrong_and_insufficient_tokens() {
     .unwrap();
     let log = dir.path().join("server.log");
     let server = Server::start_logged(
-        "127.0.0.1:0",
         &["--tokens-file", tokens.to_str().unwrap()],
         &[
             ("SPLATD_TOKENS", &format!("admin {ADMIN}")),
             ("RUST_LOG", "debug"),
         ],
-        Some(&log),
+        &log,
     );
     let rt = runtime();
     let admin = Client::new(&server.url).unwrap().with_token(ADMIN);

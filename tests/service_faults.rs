@@ -7,7 +7,7 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use common::Server;
+use common::{Server, ServerProcess};
 use serde_json::Value;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
@@ -16,7 +16,7 @@ fn http() -> reqwest::blocking::Client {
     reqwest::blocking::Client::new()
 }
 
-fn create(server: &Server, id: &str, w: u32, h: u32) {
+fn create(server: &ServerProcess, id: &str, w: u32, h: u32) {
     let r = http()
         .post(format!("{}/v1/frames", server.url))
         .json(&CreateFrame::new(id, w, h))
@@ -25,7 +25,7 @@ fn create(server: &Server, id: &str, w: u32, h: u32) {
     assert_eq!(r.status(), 201, "{}", r.text().unwrap());
 }
 
-fn post(server: &Server, id: &str, w: u32, h: u32) {
+fn post(server: &ServerProcess, id: &str, w: u32, h: u32) {
     let records = (0..w * h)
         .map(|i| Record::new(i % w, i / w, [1.0, 2.0, 3.0]))
         .collect();
@@ -40,7 +40,7 @@ fn post(server: &Server, id: &str, w: u32, h: u32) {
 }
 
 /// `(status, body)` of `POST .../sync`.
-fn sync(server: &Server, id: &str) -> (u16, Value) {
+fn sync(server: &ServerProcess, id: &str) -> (u16, Value) {
     let r = http()
         .post(format!("{}/v1/frames/{id}/sync", server.url))
         .send()
@@ -48,7 +48,7 @@ fn sync(server: &Server, id: &str) -> (u16, Value) {
     (r.status().as_u16(), r.json().unwrap())
 }
 
-fn get(server: &Server, path: &str) -> Value {
+fn get(server: &ServerProcess, path: &str) -> Value {
     let r = http().get(format!("{}{path}", server.url)).send().unwrap();
     assert_eq!(r.status(), 200);
     r.json().unwrap()

@@ -13,16 +13,15 @@
 //! come in scan-line runs, as a worker rendering tiles or passes sends them, with a heavy-tailed
 //! brightness so every cascade is used.
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use bytes::Bytes;
 use clap::Parser;
 use splatd_estimator::{CascadeLayout, FrameState};
+use splatd_harness::{sibling_binary, Options, ServerProcess};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record, BATCH_CONTENT_TYPE};
 use splatd_scenes::synth::SplitMix64;
@@ -106,7 +105,7 @@ fn main() -> Result<()> {
                 .filter(|a| *a != "memory")
                 .map(|a| a.replace("{tmp}", &tmp.display().to_string()))
                 .collect();
-            let server = ServerProcess::start(&extra)?;
+            let server = start_server(&extra)?;
             let seconds = runtime.block_on(post_all(&server.url, &args, &bodies, round))?;
             best = best.min(seconds);
             drop(server);
@@ -198,47 +197,13 @@ async fn post_all(url: &str, args: &Args, bodies: &[Bytes], round: usize) -> Res
     Ok(seconds)
 }
 
-/// `splatd serve` as a child process on a free port.
-struct ServerProcess {
-    child: Child,
-    url: String,
-}
-
-impl ServerProcess {
-    fn start(extra: &[String]) -> Result<ServerProcess> {
-        let exe = std::env::current_exe()?.with_file_name("splatd");
-        let mut child = Command::new(&exe)
-            .args(["serve", "--addr", "127.0.0.1:0"])
-            .args(extra)
-            .env("RUST_LOG", "warn")
-            .stdout(Stdio::piped())
-            .spawn()
-            .with_context(|| format!("starting {}", exe.display()))?;
-        let stdout = child.stdout.take().context("stdout")?;
-        let mut line = String::new();
-        BufReader::new(stdout).read_line(&mut line)?;
-        let url = line
-            .trim()
-            .strip_prefix("splatd listening on ")
-            .with_context(|| format!("unexpected server output {line:?}"))?
-            .to_owned();
-        Ok(ServerProcess { child, url })
-    }
-}
-
-impl Drop for ServerProcess {
-    fn drop(&mut self) {
-        let _ = Command::new("kill")
-            .arg(self.child.id().to_string())
-            .status();
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while Instant::now() < deadline {
-            if let Ok(Some(_)) = self.child.try_wait() {
-                return;
-            }
-            std::thread::sleep(Duration::from_millis(20));
-        }
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+/// `splatd serve` (the one built beside this program) on a free port, with `extra` flags.
+fn start_server(extra: &[String]) -> Result<ServerProcess> {
+    let binary = sibling_binary().map_err(anyhow::Error::msg)?;
+    let args: Vec<&str> = extra.iter().map(String::as_str).collect();
+    ServerProcess::launch(&Options {
+        log_level: "warn",
+        ..Options::new(binary, &args)
+    })
+    .map_err(anyhow::Error::msg)
 }

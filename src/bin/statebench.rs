@@ -10,13 +10,12 @@
 //! loopback port. The source frame is filled with a few passes of the synthetic firefly scene
 //! (imported as one state, which is faster than posting batches and gives the same cells).
 
-use std::io::{BufRead, BufReader};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{Context, Result};
 use clap::Parser;
 use splatd_estimator::{CascadeLayout, FrameState};
+use splatd_harness::{sibling_binary, Options, ServerProcess};
 use splatd_proto::api::{CascadeParams, CreateFrame};
 use splatd_proto::Client;
 use splatd_scenes::synth::FireflyScene;
@@ -41,53 +40,15 @@ struct Args {
     runs: u32,
 }
 
-/// The server child, killed when dropped.
-struct ServerProcess {
-    child: Child,
-    url: String,
-}
-
-impl Drop for ServerProcess {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
+/// `splatd serve` (the one built beside this program) on a free port, with room for large
+/// frames.
 fn start_server() -> Result<ServerProcess> {
-    let exe = std::env::current_exe()?.with_file_name("splatd");
-    if !exe.exists() {
-        bail!(
-            "{} not found: build the server next to this benchmark first \
-             (cargo build --release --bins)",
-            exe.display()
-        );
-    }
-    let mut child = Command::new(&exe)
-        .args([
-            "serve",
-            "--addr",
-            "127.0.0.1:0",
-            "--max-memory-mib",
-            "16384",
-        ])
-        .env("RUST_LOG", "warn")
-        .stdout(Stdio::piped())
-        .stderr(Stdio::inherit())
-        .spawn()
-        .with_context(|| format!("starting {}", exe.display()))?;
-    let stdout = child.stdout.take().context("piped stdout")?;
-    let mut lines = BufReader::new(stdout).lines();
-    let line = lines
-        .next()
-        .context("the server exited before printing its address")??;
-    // Keep draining so the server never blocks on a full pipe.
-    std::thread::spawn(move || for _ in lines {});
-    let url = line
-        .strip_prefix("splatd listening on ")
-        .with_context(|| format!("unexpected first line from splatd: {line:?}"))?
-        .to_owned();
-    Ok(ServerProcess { child, url })
+    let binary = sibling_binary().map_err(anyhow::Error::msg)?;
+    ServerProcess::launch(&Options {
+        log_level: "warn",
+        ..Options::new(binary, &["--max-memory-mib", "16384"])
+    })
+    .map_err(anyhow::Error::msg)
 }
 
 /// Best time of `runs` memcpys of `src` into a buffer already faulted in.

@@ -1,154 +1,42 @@
 //! Shared by the integration tests: real `splatd` processes on loopback ports, and small helpers.
-#![allow(dead_code)] // each test binary uses a different subset
+#![allow(dead_code, unused_imports)] // each test binary uses a different subset
 
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
-use std::time::{Duration, Instant};
+use std::process::Command;
 
-/// A `splatd serve` process on an ephemeral 127.0.0.1 port, stopped (SIGTERM, then SIGKILL)
-/// when dropped.
-pub struct Server {
-    child: Option<Child>,
-    /// `http://127.0.0.1:PORT`
-    pub url: String,
-    /// `127.0.0.1:PORT`
-    pub addr: String,
-}
+pub use splatd_harness::{Options, ServerProcess, PATIENCE};
 
+/// A `splatd serve` process of this build (see `splatd-harness`), with the constructors the
+/// tests use.
+pub struct Server;
+
+#[allow(clippy::new_ret_no_self)]
 impl Server {
     /// Starts `splatd serve --addr 127.0.0.1:0 <args>` and waits for its "listening" line.
-    pub fn start(args: &[&str]) -> Server {
+    pub fn start(args: &[&str]) -> ServerProcess {
         Self::start_with_env(args, &[])
     }
 
     /// Like [`Server::start`], with extra environment variables.
-    pub fn start_with_env(args: &[&str], env: &[(&str, &str)]) -> Server {
-        Self::start_at("127.0.0.1:0", args, env)
+    pub fn start_with_env(args: &[&str], env: &[(&str, &str)]) -> ServerProcess {
+        Self::launch(Options {
+            env,
+            ..Options::new(env!("CARGO_BIN_EXE_splatd"), args)
+        })
     }
 
-    /// Starts a server on a given address (to restart one on the port it had).
-    pub fn start_at(addr: &str, args: &[&str], env: &[(&str, &str)]) -> Server {
-        Self::start_logged(addr, args, env, None)
+    /// Like [`Server::start_with_env`], with the server's log (stderr) written to `log`.
+    pub fn start_logged(args: &[&str], env: &[(&str, &str)], log: &Path) -> ServerProcess {
+        Self::launch(Options {
+            env,
+            log: Some(log),
+            ..Options::new(env!("CARGO_BIN_EXE_splatd"), args)
+        })
     }
 
-    /// Like [`Server::start_at`], with the server's log (stderr) written to `log`.
-    pub fn start_logged(
-        addr: &str,
-        args: &[&str],
-        env: &[(&str, &str)],
-        log: Option<&Path>,
-    ) -> Server {
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_splatd"));
-        let stderr = match log {
-            Some(path) => Stdio::from(std::fs::File::create(path).expect("log file")),
-            None => Stdio::inherit(),
-        };
-        cmd.args(["serve", "--addr", addr])
-            .args(args)
-            .env("RUST_LOG", "error")
-            .stdout(Stdio::piped())
-            .stderr(stderr);
-        for (k, v) in env {
-            cmd.env(k, v);
-        }
-        let mut child = cmd.spawn().expect("starting splatd");
-        let stdout = child.stdout.take().expect("piped stdout");
-        let (tx, rx) = mpsc::channel();
-        std::thread::spawn(move || {
-            let mut lines = BufReader::new(stdout).lines();
-            if let Some(Ok(line)) = lines.next() {
-                let _ = tx.send(line);
-            }
-            // Keep draining so the server never blocks on a full pipe.
-            for _ in lines {}
-        });
-        let line = match rx.recv_timeout(PATIENCE) {
-            Ok(line) => line,
-            Err(_) => {
-                let _ = child.kill();
-                panic!("splatd did not report its address within {PATIENCE:?}");
-            }
-        };
-        let url = line
-            .strip_prefix("splatd listening on ")
-            .unwrap_or_else(|| panic!("unexpected first line from splatd: {line:?}"))
-            .to_owned();
-        let addr = url.trim_start_matches("http://").to_owned();
-        Server {
-            child: Some(child),
-            url,
-            addr,
-        }
+    fn launch(options: Options<'_>) -> ServerProcess {
+        ServerProcess::launch(&options).unwrap_or_else(|e| panic!("{e}"))
     }
-
-    /// The process id.
-    pub fn pid(&self) -> u32 {
-        self.child.as_ref().expect("running").id()
-    }
-
-    /// Sends SIGTERM and waits (bounded) for a clean exit; returns the exit status code.
-    pub fn terminate(mut self) -> Option<i32> {
-        let mut child = self.child.take().expect("running");
-        signal(child.id(), "TERM");
-        wait_bounded(&mut child, PATIENCE)
-    }
-
-    /// Waits for the process to end by itself (a failpoint aborted it, say); its exit code, or
-    /// `None` for a signal. Bounded by [`PATIENCE`] against a test that would hang.
-    pub fn wait_exit(mut self) -> Option<i32> {
-        let mut child = self.child.take().expect("running");
-        let start = Instant::now();
-        loop {
-            if let Some(status) = child.try_wait().expect("waiting for splatd") {
-                return status.code();
-            }
-            assert!(
-                start.elapsed() < PATIENCE,
-                "splatd did not exit within {PATIENCE:?}"
-            );
-            std::thread::sleep(Duration::from_millis(10));
-        }
-    }
-
-    /// SIGKILLs the process (no chance to flush anything) and reaps it.
-    pub fn kill(mut self) {
-        let mut child = self.child.take().expect("running");
-        let _ = child.kill();
-        let _ = child.wait();
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        if let Some(mut child) = self.child.take() {
-            signal(child.id(), "TERM");
-            if wait_bounded(&mut child, Duration::from_secs(5)).is_none() {
-                let _ = child.kill();
-                let _ = child.wait();
-            }
-        }
-    }
-}
-
-fn signal(pid: u32, sig: &str) {
-    let _ = Command::new("kill")
-        .args([&format!("-{sig}"), &pid.to_string()])
-        .status();
-}
-
-fn wait_bounded(child: &mut Child, limit: Duration) -> Option<i32> {
-    let start = Instant::now();
-    while start.elapsed() < limit {
-        if let Ok(Some(status)) = child.try_wait() {
-            return status.code();
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    let _ = child.kill();
-    let _ = child.wait();
-    None
 }
 
 /// Channels of an EXR as read by the OpenEXR project's Python bindings (an independent reader).
@@ -193,10 +81,6 @@ pub fn runtime() -> tokio::runtime::Runtime {
         .build()
         .expect("runtime")
 }
-
-/// How long any wait in a test may last before the test gives up as hung. It guards against
-/// hanging forever; it is never what a test asserts, so it is generous for loaded machines.
-pub const PATIENCE: Duration = Duration::from_secs(120);
 
 /// A TCP forwarder on a loopback port the test owns for its whole life, relaying each
 /// connection to whichever server is current: clients keep one URL while the server behind it
