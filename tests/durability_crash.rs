@@ -76,6 +76,17 @@ fn phase(
     writers
 }
 
+/// Syncs every worker after the server lost phase 1: each must resend exactly its phase 1.
+fn sync_all_resending_phase_1(rt: &tokio::runtime::Runtime, writers: &mut [BatchWriter]) {
+    sync_all(rt, writers);
+    let resent: Vec<u64> = writers.iter().map(BatchWriter::resent).collect();
+    assert_eq!(
+        resent,
+        vec![BATCHES_PER_PHASE; WORKERS as usize],
+        "resent exactly phase 1"
+    );
+}
+
 /// Syncs every worker (resending what a restart lost), one after another.
 fn sync_all(rt: &tokio::runtime::Runtime, writers: &mut [BatchWriter]) {
     for writer in writers {
@@ -83,18 +94,8 @@ fn sync_all(rt: &tokio::runtime::Runtime, writers: &mut [BatchWriter]) {
     }
 }
 
-fn server_args(data: &Path) -> Vec<String> {
-    vec![
-        "--data-dir".into(),
-        data.display().to_string(),
-        // Snapshots only when a worker syncs: the test knows exactly what is on disk.
-        "--snapshot-interval-ms".into(),
-        "3600000".into(),
-    ]
-}
-
 fn start(data: &Path, failpoints: Option<&str>) -> ServerProcess {
-    let args = server_args(data);
+    let args = common::durable_args(data);
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     match failpoints {
         Some(spec) => Server::start_with_env(&args, &[("SPLATD_FAILPOINTS", spec)]),
@@ -172,13 +173,7 @@ fn a_kill_between_acknowledgement_and_snapshot_loses_nothing() {
     let server = start(&data, None);
     forwarder.point_at(Some(&server.addr));
 
-    sync_all(&rt, &mut writers);
-    let resent: Vec<u64> = writers.iter().map(BatchWriter::resent).collect();
-    assert_eq!(
-        resent,
-        vec![BATCHES_PER_PHASE; WORKERS as usize],
-        "resent exactly phase 1"
-    );
+    sync_all_resending_phase_1(&rt, &mut writers);
     let mut writers = phase(&rt, writers, 2, &all);
     check_exact(&rt, &client, "after a kill between ack and snapshot");
 
@@ -235,13 +230,7 @@ fn a_crash_while_a_snapshot_is_written_recovers_exactly() {
         "recovery removes the half-done snapshot"
     );
 
-    sync_all(&rt, &mut writers);
-    let resent: Vec<u64> = writers.iter().map(BatchWriter::resent).collect();
-    assert_eq!(
-        resent,
-        vec![BATCHES_PER_PHASE; WORKERS as usize],
-        "resent exactly phase 1"
-    );
+    sync_all_resending_phase_1(&rt, &mut writers);
     let all: Vec<u64> = (0..WORKERS).collect();
     phase(&rt, writers, 2, &all);
     check_exact(&rt, &client, "after a crash inside a snapshot");

@@ -54,23 +54,13 @@ fn get(server: &ServerProcess, path: &str) -> Value {
     r.json().unwrap()
 }
 
-fn data_dir_args(dir: &Path) -> Vec<String> {
-    vec![
-        "--data-dir".into(),
-        dir.display().to_string(),
-        // Snapshots only when asked, so the test decides when the disk is written.
-        "--snapshot-interval-ms".into(),
-        "3600000".into(),
-    ]
-}
-
 /// A write past `ulimit -f` used to kill the server (SIGXFSZ, no log line). Now the snapshot
 /// fails like a full disk: sync answers 507 naming the problem, `/healthz` reports the frame,
 /// no partial file is left, frames that fit are still made durable, and the server goes on.
 #[test]
 fn a_file_size_limit_is_a_write_error_not_a_crash() {
     let dir = tempfile::tempdir().unwrap();
-    let args = data_dir_args(dir.path());
+    let args = common::durable_args(dir.path());
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let server = Server::start(&args);
     create(&server, "big", 64, 64); // 64 * 64 * 192 bytes of cascades, far over the limit
@@ -113,7 +103,7 @@ fn a_file_size_limit_is_a_write_error_not_a_crash() {
 #[test]
 fn damaged_frames_are_set_aside_and_the_rest_served() {
     let dir = tempfile::tempdir().unwrap();
-    let args = data_dir_args(dir.path());
+    let args = common::durable_args(dir.path());
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let server = Server::start(&args);
     for id in ["kept", "lost"] {

@@ -132,6 +132,18 @@ impl Forwarder {
     }
 }
 
+/// `splatd serve` arguments for a durable server in `dir` that snapshots only when asked
+/// (`POST .../sync`; the periodic snapshots are an hour apart), so a test knows exactly what
+/// is on disk.
+pub fn durable_args(dir: &Path) -> Vec<String> {
+    vec![
+        "--data-dir".into(),
+        dir.display().to_string(),
+        "--snapshot-interval-ms".into(),
+        "3600000".into(),
+    ]
+}
+
 /// A loopback port that was free a moment ago.
 pub fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
