@@ -551,17 +551,7 @@ mod tests {
         DecodeLimits::default()
     }
 
-    /// Deterministic pseudo-random numbers without a dependency.
-    struct SplitMix64(u64);
-    impl SplitMix64 {
-        fn next(&mut self) -> u64 {
-            self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-            let mut z = self.0;
-            z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-            z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-            z ^ (z >> 31)
-        }
-    }
+    use splatd_scenes::synth::SplitMix64;
 
     #[test]
     fn layout_is_as_documented() {
@@ -602,13 +592,13 @@ mod tests {
 
     #[test]
     fn fast_and_reference_decoders_agree_on_random_batches() {
-        let mut rng = SplitMix64(0x5EED);
+        let mut rng = SplitMix64::new(0x5EED);
         for round in 0..200 {
-            let n = (rng.next() % 300) as usize;
+            let n = (rng.next_u64() % 300) as usize;
             let records = (0..n)
                 .map(|_| {
-                    let v = rng.next();
-                    let w = rng.next();
+                    let v = rng.next_u64();
+                    let w = rng.next_u64();
                     // Arbitrary bit patterns: NaNs, infinities, subnormals.
                     Record::new(
                         v as u32,
@@ -616,13 +606,13 @@ mod tests {
                         [
                             f32::from_bits(w as u32),
                             f32::from_bits((w >> 32) as u32),
-                            f32::from_bits(rng.next() as u32),
+                            f32::from_bits(rng.next_u64() as u32),
                         ],
                     )
                 })
                 .collect();
-            let frame = format!("frame-{round}.{}", rng.next() % 1000);
-            let b = Batch::new(frame, rng.next(), rng.next(), records).expect("valid");
+            let frame = format!("frame-{round}.{}", rng.next_u64() % 1000);
+            let b = Batch::new(frame, rng.next_u64(), rng.next_u64(), records).expect("valid");
             let bytes = b.encode();
             let fast = Batch::decode(&bytes, &limits()).expect("fast decode");
             let slow = Batch::decode_reference(&bytes, &limits()).expect("reference decode");
@@ -630,7 +620,7 @@ mod tests {
             assert_eq!(fast.encode(), bytes, "fast decoder, round {round}");
             assert_eq!(slow.encode(), bytes, "reference decoder, round {round}");
             // Every corruption must be judged identically, too.
-            let cut = (rng.next() as usize) % bytes.len();
+            let cut = (rng.next_u64() as usize) % bytes.len();
             assert_eq!(
                 Batch::decode(&bytes[..cut], &limits()),
                 Batch::decode_reference(&bytes[..cut], &limits()),
