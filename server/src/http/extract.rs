@@ -172,3 +172,12 @@ async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
         )
     })
 }
+
+/// A lease on `frame` for a request that changes it (see `ShardedFrame::lease`); 404
+/// `unknown_frame` once the frame is being deleted.
+pub async fn lease(frame: &crate::frame::ShardedFrame) -> Result<crate::frame::Lease, ApiError> {
+    frame
+        .lease()
+        .await
+        .ok_or_else(|| ApiError::unknown_frame(frame.id()))
+}

@@ -118,10 +118,7 @@ async fn ingest(
     make_batch: impl FnOnce(&ShardedFrame) -> Result<Batch, ApiError> + Send + 'static,
 ) -> Result<Json<BatchAck>, ApiError> {
     // Held until the acknowledgement is ready, so a deletion is answered after it.
-    let _lease = frame
-        .lease()
-        .await
-        .ok_or_else(|| ApiError::unknown_frame(frame.id()))?;
+    let _lease = crate::http::extract::lease(&frame).await?;
     let worker_frame = frame.clone();
     let (batch_id, ingested) = blocking("ingest", move || {
         let batch = make_batch(&worker_frame)?;

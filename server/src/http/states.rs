@@ -58,10 +58,7 @@ pub async fn import(
 ) -> Result<Json<ImportAck>, ApiError> {
     let cells = frame.spec().memory_bytes() / 8;
     // Held until the acknowledgement is ready, so a deletion is answered after it.
-    let _lease = frame
-        .lease()
-        .await
-        .ok_or_else(|| ApiError::unknown_frame(frame.id()))?;
+    let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
     let (samples, applied) = blocking("import", move || {
         let dump = StateDump::decode(&bytes, cells)?;
