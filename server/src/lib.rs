@@ -1,14 +1,15 @@
 //! The splatd server: an axum shell around the estimator core.
 //!
+//! * [`config`]: every flag and default; [`server`]: the [`server::Server`] lifecycle (listener,
+//!   background tasks, graceful shutdown with a final snapshot);
 //! * [`frame`]: one frame as row bands under separate locks, with all-or-nothing batches and
 //!   duplicate detection ([`dedup`]);
 //! * [`store`]: the frames of a server and the limits on them;
-//! * [`routes`]: one handler per endpoint; [`error`]: the JSON errors they answer;
-//! * [`durable`]: snapshots and recovery; [`auth`]: bearer tokens and roles;
+//! * [`http`]: the router, one handler file per concept, the JSON errors and bearer-token roles;
+//! * [`durable`]: snapshots, recovery and quarantine; [`failpoint`]: fault injection for tests;
+//! * [`renders`] and [`work`]: shared resolves and the working-memory budget;
 //! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
-//!   [`viewer`]: pushing frames to tev;
-//! * [`server`]: the router, its layers (decompression, timeouts, tracing, JSON errors) and the
-//!   listener with graceful shutdown.
+//!   [`viewer`]: pushing frames to tev.
 
 pub mod config;
 pub mod dedup;
