@@ -19,8 +19,8 @@
 //! client for workers (reqwest + tokio): [`Client`] (module `client`) sends
 //! requests and retries transient failures with the same bytes, and
 //! [`BatchWriter`] (module `writer`) numbers batches and keeps them until
-//! the server has them on disk, so every sample counts exactly once. `default-features = false` leaves only serde,
-//! bincode and thiserror.
+//! the server has them on disk, so every sample counts exactly once.
+//! `default-features = false` leaves only serde, bincode and thiserror.
 //!
 //! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
 //! and the HTTP endpoints for implementers in other languages;

@@ -1,132 +1,13 @@
-//! The client's retry behaviour against a scripted HTTP server on 127.0.0.1.
-//!
-//! The server is a few lines of tokio: it accepts a bounded number of
-//! connections, records each request, answers with the next scripted
-//! response and closes the connection. Every test runs under a timeout.
+//! The client's retry behaviour against a scripted HTTP server on 127.0.0.1
+//! (`common/mod.rs`). Every test runs under a timeout. The batch writer built
+//! on this client is tested in `batch_writer.rs`.
 #![cfg(feature = "client")]
 
-use std::time::Duration;
+mod common;
 
-use splatd_proto::{
-    Batch, BatchAck, Client, ClientError, CreateFrame, Record, RetryPolicy, BATCH_CONTENT_TYPE,
-};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use common::{ack_json, client, scripted_server, TEST_TIMEOUT};
+use splatd_proto::{Batch, ClientError, CreateFrame, Record, BATCH_CONTENT_TYPE};
 use tokio::net::TcpListener;
-use tokio::task::JoinHandle;
-
-const TEST_TIMEOUT: Duration = Duration::from_secs(20);
-
-/// One request as the server saw it.
-#[derive(Debug, Clone)]
-struct Seen {
-    request_line: String,
-    headers: Vec<(String, String)>,
-    body: Vec<u8>,
-}
-
-impl Seen {
-    fn header(&self, name: &str) -> Option<&str> {
-        self.headers
-            .iter()
-            .find(|(n, _)| n.eq_ignore_ascii_case(name))
-            .map(|(_, v)| v.as_str())
-    }
-}
-
-/// Serves `responses` (status line, extra headers, body) one per connection,
-/// in order, and returns the requests seen.
-async fn scripted_server(
-    responses: Vec<(&'static str, &'static str, String)>,
-) -> (String, JoinHandle<Vec<Seen>>) {
-    let listener = TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind loopback");
-    let addr = listener.local_addr().expect("local addr");
-    let handle = tokio::spawn(async move {
-        let mut seen = Vec::new();
-        for (status, extra_headers, body) in responses {
-            let (mut sock, _) = listener.accept().await.expect("accept");
-            seen.push(read_request(&mut sock).await);
-            let response = format!(
-                "HTTP/1.1 {status}\r\nContent-Type: application/json\r\n{extra_headers}\
-                 Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
-                body.len()
-            );
-            sock.write_all(response.as_bytes()).await.expect("write");
-            sock.shutdown().await.ok();
-        }
-        seen
-    });
-    (format!("http://{addr}"), handle)
-}
-
-async fn read_request(sock: &mut tokio::net::TcpStream) -> Seen {
-    let mut buf = Vec::new();
-    let mut chunk = [0u8; 8192];
-    let head_end = loop {
-        if let Some(i) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
-            break i + 4;
-        }
-        let n = sock.read(&mut chunk).await.expect("read head");
-        assert!(n > 0, "connection closed inside the request head");
-        buf.extend_from_slice(&chunk[..n]);
-    };
-    let head = String::from_utf8(buf[..head_end].to_vec()).expect("ASCII head");
-    let mut lines = head.split("\r\n");
-    let request_line = lines.next().unwrap_or_default().to_owned();
-    let headers: Vec<(String, String)> = lines
-        .filter_map(|l| l.split_once(':'))
-        .map(|(n, v)| (n.trim().to_owned(), v.trim().to_owned()))
-        .collect();
-    let len: usize = headers
-        .iter()
-        .find(|(n, _)| n.eq_ignore_ascii_case("content-length"))
-        .map(|(_, v)| v.parse().expect("numeric content-length"))
-        .unwrap_or(0);
-    let mut body = buf[head_end..].to_vec();
-    while body.len() < len {
-        let n = sock.read(&mut chunk).await.expect("read body");
-        assert!(n > 0, "connection closed inside the body");
-        body.extend_from_slice(&chunk[..n]);
-    }
-    Seen {
-        request_line,
-        headers,
-        body,
-    }
-}
-
-fn fast_retries() -> RetryPolicy {
-    RetryPolicy {
-        max_attempts: 4,
-        initial_backoff: Duration::from_millis(5),
-        max_backoff: Duration::from_millis(20),
-    }
-}
-
-fn client(base: &str) -> Client {
-    let http = reqwest::Client::builder()
-        .no_proxy()
-        .timeout(Duration::from_secs(5))
-        .build()
-        .expect("reqwest client");
-    Client::with_http_client(base, http)
-        .expect("valid base URL")
-        .with_retry_policy(fast_retries())
-}
-
-fn ack_json(frame: &str, worker: u64, seq: u64, accepted: u64) -> String {
-    serde_json::to_string(&BatchAck {
-        frame: frame.into(),
-        worker,
-        seq,
-        accepted,
-        duplicate: false,
-        boot: 1,
-        durable_floor: None,
-    })
-    .expect("serialises")
-}
 
 fn sample_batch() -> Batch {
     Batch::new(
@@ -308,71 +189,8 @@ async fn create_frame_and_frame_info() {
 }
 
 #[tokio::test]
-async fn batch_writer_numbers_batches_and_resends_a_failed_one() {
-    tokio::time::timeout(TEST_TIMEOUT, async {
-        let (base, server) = scripted_server(vec![
-            ("200 OK", "", ack_json("f", 9, 100, 2)),
-            // Seq 101 fails for good on the first push that fills it ...
-            (
-                "400 Bad Request",
-                "",
-                r#"{"error":"x","message":"y"}"#.to_owned(),
-            ),
-            // ... and is resent, unchanged, by the flush.
-            ("200 OK", "", ack_json("f", 9, 101, 2)),
-            ("200 OK", "", ack_json("f", 9, 102, 1)),
-        ])
-        .await;
-        let mut w = client(&base)
-            .batch_writer("f", 9, 100, 2)
-            .expect("valid writer");
-        let records: Vec<Record> = (0..5).map(|i| Record::new(i, 0, [i as f32; 3])).collect();
-        assert!(w.push(records[0]).await.expect("buffered").is_empty());
-        let acks = w.push(records[1]).await.expect("first batch sent");
-        assert_eq!(acks.len(), 1);
-        assert_eq!(acks[0].seq, 100);
-        let err = w
-            .extend(records[2..5].iter().copied())
-            .await
-            .expect_err("400");
-        assert!(
-            matches!(err, ClientError::Rejected { status: 400, .. }),
-            "{err:?}"
-        );
-        assert_eq!(w.pending_seq(), Some(101));
-        assert_eq!(w.buffered(), 0, "extend stopped after sealing seq 101");
-        w.push(records[4])
-            .await
-            .expect("below batch size, nothing sent");
-        let acks = w.flush().await.expect("flushed");
-        assert_eq!(acks.iter().map(|a| a.seq).collect::<Vec<_>>(), [101, 102]);
-        assert_eq!(w.next_seq(), 103);
-        assert_eq!(w.pending_seq(), None);
-
-        let seen = server.await.expect("server task");
-        let decoded: Vec<Batch> = seen
-            .iter()
-            .map(|s| Batch::decode(&s.body, &Default::default()).expect("valid batch"))
-            .collect();
-        assert_eq!(
-            decoded.iter().map(|b| b.seq).collect::<Vec<_>>(),
-            [100, 101, 101, 102]
-        );
-        assert_eq!(seen[1].body, seen[2].body, "resent batch must be identical");
-        assert_eq!(decoded[0].records, records[0..2]);
-        assert_eq!(decoded[1].records, records[2..4]);
-        assert_eq!(decoded[3].records, records[4..5]);
-        assert!(decoded.iter().all(|b| b.worker == 9 && b.frame == "f"));
-    })
-    .await
-    .expect("test timed out");
-}
-
-#[tokio::test]
 async fn invalid_frame_ids_are_refused_locally() {
     let c = client("http://127.0.0.1:9");
     let err = c.frame_info("../etc").await.expect_err("invalid id");
     assert!(matches!(err, ClientError::Wire(_)), "{err:?}");
-    assert!(c.batch_writer("a b", 0, 0, 10).is_err());
-    assert!(c.batch_writer("ok", 0, 0, 0).is_err());
 }
