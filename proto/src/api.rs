@@ -168,8 +168,9 @@ pub struct ResolveParams {
     /// Which recombination to run.
     #[serde(default = "default_variant")]
     pub variant: Variant,
-    /// Support (in samples) at which a brightness band gets full weight, beyond `kappa_min`:
-    /// the count term is `(support - kappa_min) / kappa`. Bands with less support are
+    /// Support (in samples, beyond `kappa_min`) at which the count term
+    /// `(support - kappa_min) / kappa` reaches 1, giving a brightness band full weight with
+    /// `paper` (`shader` averages it with the value term). Bands with less support are
     /// down-weighted, not rejected.
     #[serde(default = "default_kappa")]
     pub kappa: f64,
