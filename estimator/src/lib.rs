@@ -8,9 +8,10 @@
 //! * **resolve** ([`FrameState::resolve`], [`resolve_bands`]): cascades in, the reweighted image,
 //!   the plain mean and the removed energy out.
 //!
-//! The core is pure: no I/O, no threads, no async. All accumulated quantities are fixed-point
-//! integers (see [`FRAC_BITS`]), so a state, and every image resolved from it, is bit-identical
-//! whatever the order samples arrived in and however they were split across partial states.
+//! The core is pure: no I/O and no async; the only threads are the scoped ones
+//! [`resolve_bands`] is asked for. All accumulated quantities are fixed-point integers (see
+//! [`FRAC_BITS`]), so a state, and every image resolved from it, is bit-identical whatever the
+//! order samples arrived in and however they were split across partial states.
 
 mod layout;
 mod resolve;
