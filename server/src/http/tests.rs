@@ -294,3 +294,226 @@ async fn public_read_and_open_servers() {
     assert_eq!(response.status(), StatusCode::CREATED);
     assert!(open.store.get("g").is_ok());
 }
+
+/// Sends `method path` with the given headers and body to `server`; returns the status, the
+/// JSON error's `error` and `message` (empty for a success) and the response headers.
+async fn exchange(
+    server: &AppState,
+    method: Method,
+    path: &str,
+    headers: &[(header::HeaderName, &str)],
+    body: Body,
+) -> (StatusCode, String, String, axum::http::HeaderMap) {
+    let mut request = Request::builder().method(method).uri(path);
+    for (name, value) in headers {
+        request = request.header(name, *value);
+    }
+    let response = router(server.clone())
+        .oneshot(request.body(body).unwrap())
+        .await
+        .unwrap();
+    let status = response.status();
+    let headers = response.headers().clone();
+    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
+        .await
+        .unwrap();
+    if status.is_success() {
+        return (status, String::new(), String::new(), headers);
+    }
+    let error: serde_json::Value = serde_json::from_slice(&bytes)
+        .unwrap_or_else(|e| panic!("{status} without a JSON body ({e}): {bytes:?}"));
+    let text = |key: &str| error[key].as_str().unwrap_or_default().to_owned();
+    (status, text("error"), text("message"), headers)
+}
+
+/// The extractors refuse a request in the order the handlers used to check it by hand, each with
+/// its JSON code: query, then Content-Type, then the frame, and only then the body. So a client
+/// is told the cheapest thing wrong first, and an unknown frame costs the server no body read.
+#[tokio::test]
+async fn extractors_refuse_in_order_with_json_codes() {
+    let server = AppState::new(Limits::default(), None, None);
+    let spec = server.store.check(CreateFrame::new("f", 8, 8)).unwrap();
+    server.store.create(spec).unwrap();
+    let exr = [(header::CONTENT_TYPE, "image/x-exr")];
+    let json = [(header::CONTENT_TYPE, "application/json")];
+
+    // Passes: a query without `seq` is refused before the Content-Type is looked at...
+    let (body, read) = tripwire();
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames/nope/passes?worker=1",
+        &json,
+        body,
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "bad_query")
+    );
+    assert!(!read.load(Ordering::SeqCst));
+    // ...the Content-Type before the frame is looked up...
+    let (body, read) = tripwire();
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames/nope/passes?worker=1&seq=1",
+        &json,
+        body,
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_content_type"
+        )
+    );
+    assert!(!read.load(Ordering::SeqCst));
+    // ...and the frame before a byte of the body is read.
+    let (body, read) = tripwire();
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames/nope/passes?worker=1&seq=1",
+        &exr,
+        body,
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::NOT_FOUND, "unknown_frame")
+    );
+    assert!(!read.load(Ordering::SeqCst));
+    // A body that is read but is no EXR is the pass's fault, not the server's.
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames/f/passes?worker=1&seq=1",
+        &exr,
+        Body::from("not an exr"),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, "invalid_pass")
+    );
+
+    // A compression this server does not speak: 415 with the decompression layer's code.
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames/f/samples",
+        &[
+            (header::CONTENT_TYPE, splatd_proto::BATCH_CONTENT_TYPE),
+            (header::CONTENT_ENCODING, "br"),
+        ],
+        Body::from("whatever"),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_content_encoding"
+        )
+    );
+
+    // JSON bodies: malformed (400), too large (413), mislabelled (415).
+    let (status, code, message, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames",
+        &json,
+        Body::from("{\"id\":"),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "bad_request")
+    );
+    assert!(message.starts_with("invalid JSON body"), "{message}");
+    let huge = format!(
+        "{{\"id\":\"{}\"}}",
+        "x".repeat(super::extract::MAX_JSON_BODY)
+    );
+    let (status, code, _, _) =
+        exchange(&server, Method::POST, "/v1/frames", &json, Body::from(huge)).await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::PAYLOAD_TOO_LARGE, "body_too_large")
+    );
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::POST,
+        "/v1/frames",
+        &[(header::CONTENT_TYPE, "text/plain")],
+        Body::from(r#"{"id":"g","width":4,"height":4}"#),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported_content_type"
+        )
+    );
+
+    // Previews: an exposure that is not positive is a bad query, refused before the frame is
+    // looked up; a good one gives a PNG.
+    for exposure in ["0", "-1", "nan", "inf"] {
+        let (status, code, message, _) = exchange(
+            &server,
+            Method::GET,
+            &format!("/v1/frames/nope/preview.png?exposure={exposure}"),
+            &[],
+            Body::empty(),
+        )
+        .await;
+        assert_eq!(
+            (status, code.as_str()),
+            (StatusCode::BAD_REQUEST, "bad_query"),
+            "exposure={exposure}"
+        );
+        assert!(
+            message.contains("exposure must be a positive number"),
+            "{message}"
+        );
+    }
+    let (status, _, _, headers) = exchange(
+        &server,
+        Method::GET,
+        "/v1/frames/f/preview.png?exposure=2&layer=mean",
+        &[],
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK);
+    assert_eq!(headers[header::CONTENT_TYPE], "image/png");
+
+    // Images: a query the resolver refuses is `invalid_parameters`, an unknown one `bad_query`.
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::GET,
+        "/v1/frames/f/image.exr?kappa=-1",
+        &[],
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "invalid_parameters")
+    );
+    let (status, code, _, _) = exchange(
+        &server,
+        Method::GET,
+        "/v1/frames/f/image.exr?kapa=2",
+        &[],
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "bad_query")
+    );
+}
