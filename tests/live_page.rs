@@ -8,13 +8,13 @@
 
 mod common;
 
-use std::io::{Read, Write};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{free_port, runtime, Server};
+use common::{runtime, Server};
 use serde_json::{json, Value};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Client};
@@ -68,17 +68,48 @@ struct Driver {
     port: u16,
 }
 
+/// What chromedriver prints on stdout once it listens (with `--port=0`, on a port it chose).
+const DRIVER_READY: &str = "ChromeDriver was started successfully on port ";
+
 impl Driver {
+    /// Starts chromedriver on a port of its choosing and waits for the line naming it: ready is
+    /// that event, and no other program can take the port in between.
     fn start(path: &Path) -> Driver {
-        let port = free_port();
-        let child = Command::new(path)
-            .arg(format!("--port={port}"))
+        let mut child = Command::new(path)
+            .arg("--port=0")
             .arg("--allowed-ips=127.0.0.1")
-            .stdout(Stdio::null())
+            .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
             .spawn()
             .unwrap_or_else(|e| panic!("starting {}: {e}", path.display()));
-        Driver { child, port }
+        let stdout = child.stdout.take().expect("stdout is piped");
+        let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            let mut port = None;
+            for line in BufReader::new(stdout).lines().map_while(Result::ok) {
+                if port.is_none() {
+                    port = line
+                        .strip_prefix(DRIVER_READY)
+                        .and_then(|rest| rest.trim_end_matches('.').trim().parse::<u16>().ok());
+                    if let Some(p) = port {
+                        let _ = tx.send(p);
+                    }
+                }
+                // Keeps draining, so chromedriver never blocks on a full pipe.
+            }
+        });
+        let mut driver = Driver { child, port: 0 };
+        match rx.recv_timeout(PAGE_DEADLINE) {
+            Ok(port) => driver.port = port,
+            Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
+                let status = driver.child.wait();
+                panic!("chromedriver exited ({status:?}) without saying it listens");
+            }
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout) => {
+                panic!("chromedriver never said it listens (hung?)")
+            }
+        }
+        driver
     }
 }
 
@@ -100,30 +131,18 @@ impl Session {
     /// Waits for chromedriver to be ready, then opens headless Chromium.
     async fn open(driver: &Driver, chromium: &Path) -> Session {
         let http = reqwest::Client::builder()
-            .timeout(common::PATIENCE)
+            // A cap against a hung browser only, like every wait here.
+            .timeout(PAGE_DEADLINE)
             .build()
             .expect("HTTP client");
         let base = format!("http://127.0.0.1:{}", driver.port);
-        let deadline = Instant::now() + PAGE_DEADLINE;
-        loop {
-            let ready = match http.get(format!("{base}/status")).send().await {
-                Ok(r) => r
-                    .bytes()
-                    .await
-                    .ok()
-                    .and_then(|b| serde_json::from_slice::<Value>(&b).ok())
-                    .is_some_and(|v| v["value"]["ready"] == json!(true)),
-                Err(_) => false,
-            };
-            if ready {
-                break;
-            }
-            assert!(
-                Instant::now() < deadline,
-                "chromedriver was not ready within {PAGE_DEADLINE:?}"
-            );
-            tokio::time::sleep(Duration::from_millis(100)).await;
-        }
+        // chromedriver said it listens; it must also say it is ready.
+        let status = call(&http, "GET", &format!("{base}/status"), None).await;
+        assert_eq!(
+            status["ready"],
+            json!(true),
+            "chromedriver status: {status}"
+        );
         let capabilities = json!({"capabilities": {"alwaysMatch": {
             "browserName": "chrome",
             "goog:chromeOptions": {
