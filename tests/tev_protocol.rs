@@ -17,7 +17,7 @@
 use std::net::TcpListener;
 use std::sync::mpsc;
 use std::thread;
-use std::time::Duration;
+use std::time::Instant;
 
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_server::tev::{TevError, TevSink, MAX_PIXELS_PER_UPDATE};
@@ -147,18 +147,23 @@ fn after_tev_goes_away_the_next_show_reconnects_and_recreates() {
         .recv_timeout(READ_TIMEOUT)
         .expect("the first tev closed");
 
-    // Writes into a closed connection fail within a few packets; the error drops it.
-    let mut failure = None;
-    for _ in 0..200 {
+    // The stand-in has closed its end. A write into the connection fails once the close (and
+    // the reset answering the first write after it) reached this side, which TCP does not
+    // time: show until one fails. The loop ends by itself at that event; the cap only stops a
+    // hung test. The error drops the connection.
+    let deadline = Instant::now() + READ_TIMEOUT;
+    let failure = loop {
         match sink.show("frame", &resolved) {
-            Ok(()) => thread::sleep(Duration::from_millis(5)),
-            Err(e) => {
-                failure = Some(e);
-                break;
+            Ok(()) => {
+                assert!(
+                    Instant::now() < deadline,
+                    "no send error after tev went away (hung?)"
+                );
+                thread::yield_now();
             }
+            Err(e) => break e,
         }
-    }
-    let failure = failure.expect("a send error after tev went away");
+    };
     assert!(matches!(failure, TevError::Send { .. }), "{failure:?}");
     assert!(
         failure.to_string().contains("next frame reconnects"),
