@@ -14,8 +14,8 @@ use splatd_proto::api::{CreateFrame, FrameInfo};
 use splatd_proto::{Batch, Origin};
 
 use splatd_estimator::{
-    self as estimator, cell_len, cell_spp, check_sample, resolve_bands, CascadeLayout, FrameState,
-    MergeError, ParamError, Resolved, SampleError,
+    self as estimator, cell_len, cell_spp, resolve_bands, CascadeLayout, FrameState, MergeError,
+    ParamError, Resolved, SampleError, MAX_PIXEL_SAMPLES,
 };
 
 use super::dedup::{BatchId, Seen};
@@ -452,11 +452,14 @@ impl ShardedFrame {
                     },
                 });
             }
-            check_sample(r.rgb).map_err(|error| IngestError::Sample {
-                index,
-                record: *r,
-                error,
-            })?;
+            self.spec
+                .layout
+                .check_sample(r.rgb)
+                .map_err(|error| IngestError::Sample {
+                    index,
+                    record: *r,
+                    error,
+                })?;
             let band = if single {
                 0
             } else {
@@ -473,7 +476,29 @@ impl ShardedFrame {
                 frame: self.id().to_owned(),
             });
         }
-        match lock(&self.seen).insert_batch(batch.worker, batch.seq, digest) {
+        // The bands this batch touches, locked top to bottom (as every holder of several bands
+        // locks them), so that the room check below and the additions see the same cells.
+        let mut guards: Vec<Option<MutexGuard<'_, FrameState>>> = self
+            .bands
+            .iter()
+            .zip(&buckets)
+            .map(|(band, samples)| (!samples.is_empty()).then(|| lock(band)))
+            .collect();
+        let id = lock(&self.seen).check_batch(batch.worker, batch.seq, digest);
+        if id == BatchId::New {
+            for (guard, samples) in guards.iter().zip(&buckets) {
+                if let Some((x, y)) = guard.as_deref().and_then(|g| first_full(g, samples)) {
+                    let spp = guard.as_deref().map_or(0, |g| g.spp(x, y));
+                    return Err(pixel_full(batch, x, y, spp));
+                }
+            }
+        }
+        // Checked again while recording: a batch with the same id may have been applied since.
+        let id = match id {
+            BatchId::New => lock(&self.seen).insert_batch(batch.worker, batch.seq, digest),
+            other => other,
+        };
+        match id {
             BatchId::New => {}
             BatchId::Retry => {
                 return Ok(Ingested {
@@ -490,12 +515,11 @@ impl ShardedFrame {
                 })
             }
         }
-        for (band, samples) in self.bands.iter().zip(buckets) {
-            if samples.is_empty() {
-                continue;
+        for (guard, samples) in guards.iter_mut().zip(buckets) {
+            if let Some(mut band) = guard.take() {
+                let report = band.splat_all(samples);
+                debug_assert_eq!(report.rejected(), 0, "records were checked above");
             }
-            let report = lock(band).splat_all(samples);
-            debug_assert_eq!(report.rejected(), 0, "records were checked above");
         }
         let n = batch.records.len() as u64;
         self.counters.samples.fetch_add(n, Ordering::Relaxed);
@@ -541,17 +565,29 @@ impl ShardedFrame {
                 frame: self.id().to_owned(),
             });
         }
+        // Every band, locked top to bottom (as every holder of several bands locks them), so
+        // that the room check and the additions see the same cells.
+        let mut bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
+        if let Some(o) = origin {
+            let seen = lock(&self.seen);
+            if seen.nodes.get(&o.node).is_some_and(|s| s.contains(o.seq)) {
+                return Ok(false);
+            }
+        }
+        for band in &bands {
+            band.check_room_for(state).map_err(mismatch)?;
+        }
         if let Some(o) = origin {
             if !lock(&self.seen).insert_delta(&o.node, o.seq) {
                 return Ok(false);
             }
         }
-        for band in &self.bands {
-            // Every band has the frame's size and layout, checked above for band 0.
-            lock(band)
-                .merge_overlap(state)
-                .expect("a band has its frame's size and layout");
+        for band in &mut bands {
+            // Every band has the frame's size and layout, checked above for band 0, and room.
+            band.merge_overlap(state)
+                .expect("a band has its frame's size and layout, and room for the state");
         }
+        drop(bands);
         self.counters
             .samples
             .fetch_add(state.total_samples(), Ordering::Relaxed);
@@ -648,6 +684,47 @@ impl ShardedFrame {
             rejected_batches: c.rejected_batches,
             memory_bytes: self.spec.memory_bytes(),
         }
+    }
+}
+
+/// The first pixel of `samples` (of one band) that cannot take all of its samples in `band`.
+fn first_full(band: &FrameState, samples: &[(u32, u32, [f32; 3])]) -> Option<(u32, u32)> {
+    let n = samples.len() as u64;
+    if band.total_samples().saturating_add(n) <= MAX_PIXEL_SAMPLES {
+        return None;
+    }
+    // Near the limit: count the samples of the pixels that could not take the whole batch.
+    let mut near: std::collections::HashMap<(u32, u32), u64> = Default::default();
+    for &(x, y, _) in samples {
+        if !band.has_room(x, y, n) {
+            *near.entry((x, y)).or_default() += 1;
+        }
+    }
+    samples
+        .iter()
+        .map(|&(x, y, _)| (x, y))
+        .find(|&(x, y)| near.get(&(x, y)).is_some_and(|&k| !band.has_room(x, y, k)))
+}
+
+/// The refusal of `batch` because pixel `(x, y)`, holding `spp` samples, cannot take them all:
+/// names the record that would go past the limit.
+#[cold]
+fn pixel_full(batch: &Batch, x: u32, y: u32, spp: u64) -> IngestError {
+    let mut held = spp;
+    let (index, record) = batch
+        .records
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| (r.x, r.y) == (x, y))
+        .find(|_| {
+            held += 1;
+            held > MAX_PIXEL_SAMPLES
+        })
+        .expect("the pixel cannot take its records");
+    IngestError::Sample {
+        index,
+        record: *record,
+        error: SampleError::PixelFull { x, y },
     }
 }
 

@@ -7,7 +7,7 @@ use axum::Json;
 use splatd_proto::{ErrorBody, StateError, WireError};
 
 use crate::frame::{ImportRefused, IngestError};
-use splatd_estimator::SampleError;
+use splatd_estimator::{MergeError, SampleError};
 
 /// An error answered to a client.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -109,6 +109,8 @@ impl From<IngestError> for ApiError {
                 SampleError::OutOfFrame { .. } => "pixel_out_of_range",
                 SampleError::NonFinite => "non_finite_sample",
                 SampleError::Negative => "negative_sample",
+                SampleError::TooBright { .. } => "sample_too_bright",
+                SampleError::PixelFull { .. } => "pixel_full",
             },
         };
         ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, code, e.to_string())
@@ -121,6 +123,10 @@ impl From<ImportRefused> for ApiError {
             ImportRefused::WrongFrame { .. } => {
                 ApiError::bad_request("frame_mismatch", e.to_string())
             }
+            ImportRefused::Mismatch {
+                error: MergeError::TooManySamples { .. },
+                ..
+            } => ApiError::new(StatusCode::CONFLICT, "too_many_samples", e.to_string()),
             ImportRefused::Mismatch { .. } => {
                 ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string())
             }
