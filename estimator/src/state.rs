@@ -286,7 +286,7 @@ pub fn top_sum(cell: &[u64], c: usize) -> u128 {
 }
 
 /// Channel `c` of cascade `j` of one cell (exactly [`cell_len`]`(K)` words) in fixed-point units,
-/// as an `f64` (the top cascade's 85-bit sum, rounded once).
+/// as an `f64` (for the top cascade, its 85-bit sum to `f64` precision).
 #[inline]
 pub fn cascade_units(cell: &[u64], j: usize, c: usize) -> f64 {
     let k = cell.len() / 4;

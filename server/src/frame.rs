@@ -959,6 +959,78 @@ mod tests {
         );
     }
 
+    /// A batch with a sample brighter than the layout represents, or one that would put more
+    /// than 2^32 samples in a pixel, is refused whole and counted; so is an import that would.
+    #[test]
+    fn too_bright_samples_and_full_pixels_are_refused_whole() {
+        let frame = ShardedFrame::new(spec(4, 40));
+        let max = frame.spec().layout.max_component() as f32;
+        let mut recs: Vec<Record> = (0..40).map(|y| Record::new(1, y, [max; 3])).collect();
+        recs[30].rgb[2] = 1e14;
+        let err = frame.ingest(&batch(1, 0, recs.clone())).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                IngestError::Sample {
+                    index: 30,
+                    error: SampleError::TooBright { .. },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert!(err.to_string().contains("largest representable"), "{err}");
+        assert_eq!(frame.version(), 0);
+        recs[30].rgb[2] = max;
+        assert_eq!(frame.ingest(&batch(1, 0, recs)).unwrap().accepted, 40);
+
+        // Fill pixel (2, 3) to 2^32 samples, by an import.
+        let mut full = FrameState::new(4, 40, frame.spec().layout.clone());
+        full.splat(2, 3, [1.0; 3]).unwrap();
+        for _ in 0..32 {
+            let copy = full.clone();
+            full.merge(&copy).unwrap();
+        }
+        assert!(frame.import("f", &full, None).unwrap());
+        let before = frame.cut().whole();
+        let recs = vec![
+            Record::new(0, 0, [1.0; 3]),
+            Record::new(2, 3, [1.0; 3]),
+            Record::new(3, 3, [1.0; 3]),
+        ];
+        let err = frame.ingest(&batch(1, 1, recs)).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                IngestError::Sample {
+                    index: 1,
+                    error: SampleError::PixelFull { x: 2, y: 3 },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        let mut one = FrameState::new(4, 40, frame.spec().layout.clone());
+        one.splat(2, 3, [1.0; 3]).unwrap();
+        one.splat(0, 39, [1.0; 3]).unwrap();
+        let err = frame.import("f", &one, None).unwrap_err();
+        assert_eq!(
+            err,
+            ImportRefused::Mismatch {
+                frame: "f".into(),
+                error: MergeError::TooManySamples { x: 2, y: 3 }
+            }
+        );
+        assert_eq!(frame.cut().whole(), before, "nothing of either applied");
+        let info = frame.info();
+        assert_eq!(info.samples, 40 + (1 << 32));
+        assert_eq!(info.spp_max, 1 << 32);
+        assert_eq!((info.rejected_batches, info.rejected_samples), (2, 43));
+        // Other pixels still take samples.
+        let ok = vec![Record::new(0, 0, [1.0; 3]), Record::new(3, 39, [2.0; 3])];
+        assert_eq!(frame.ingest(&batch(1, 2, ok)).unwrap().accepted, 2);
+    }
+
     /// After `retire` returns, nothing is applied: batches and imports are refused by name.
     #[test]
     fn a_retired_frame_takes_nothing() {
