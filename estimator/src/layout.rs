@@ -1,6 +1,12 @@
 //! The cascade layout: which brightness band each cascade covers, and how one sample is split
 //! between the two cascades around its brightness.
 //!
+//! Bounds that follow from the layout (documented in full in the `state` module): a sample
+//! component may be at most [`CascadeLayout::max_component`] `= c_{K-1} * 2^26`; a share in
+//! cascade `j` is stored to `2^-26` of `c_j` ([`FRAC_BITS`]); luminance weights are in
+//! `[1/32, 1]` ([`MIN_LUMINANCE_WEIGHT`]); a pixel holds at most `2^32` samples
+//! ([`MAX_PIXEL_SAMPLES`]) in a `32 K + 8`-byte cell.
+//!
 //! The layout is fixed for a frame once samples arrive and must be identical on every node that
 //! accumulates the frame; otherwise partial states cannot be merged. It is therefore a value type
 //! that compares equal field by field, and [`CascadeLayout::new`] is the only way to build one.
