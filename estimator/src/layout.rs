@@ -1,24 +1,50 @@
 //! The cascade layout: which brightness band each cascade covers, and how one sample is split
 //! between the two cascades around its brightness.
 //!
+//! Bounds that follow from the layout (documented in full in the `state` module): a sample
+//! component may be at most [`CascadeLayout::max_component`] `= c_{K-1} * 2^26`; a share in
+//! cascade `j` is stored to `2^-26` of `c_j` ([`FRAC_BITS`]); luminance weights are in
+//! `[1/32, 1]` ([`MIN_LUMINANCE_WEIGHT`]); a pixel holds at most `2^32` samples
+//! ([`MAX_PIXEL_SAMPLES`]) in a `32 K + 8`-byte cell.
+//!
 //! The layout is fixed for a frame once samples arrive and must be identical on every node that
 //! accumulates the frame; otherwise partial states cannot be merged. It is therefore a value type
 //! that compares equal field by field, and [`CascadeLayout::new`] is the only way to build one.
 
 use std::fmt;
 
+use crate::state::{check_sample, SampleError};
+
 /// Fractional bits of every fixed-point quantity in a frame state.
 ///
 /// A cascade's RGB sums are stored as integers in units of `c_j * 2^-FRAC_BITS`, its sample count
 /// in units of `2^-FRAC_BITS`. Integer sums are associative, so the state, and every image
 /// resolved from it, is bit-identical whatever order samples arrive in or however they are split
-/// across nodes. 32 bits keep a relative resolution of 2^-32 of the cascade's scale, finer than
-/// an `f32` sample carries, and leave 2^32 units of headroom for the count (4 billion samples in
-/// one pixel) and about `2^32 / (b * max_channel_factor)` full-scale samples for the sums.
-pub const FRAC_BITS: u32 = 32;
+/// across nodes.
+///
+/// 26 bits is the most that keeps every sum exact for [`MAX_PIXEL_SAMPLES`] samples in one pixel
+/// in a `u64`: a sample's share in cascade `j` has luminance at most `c_j` (see
+/// [`CascadeLayout::split`]), so each of its channels is at most `c_j / MIN_LUMINANCE_WEIGHT =
+/// 32 c_j`, i.e. at most `2^31` units (plus rounding), and `2^32` such shares stay below `2^64`.
+/// Counts add exactly [`COUNT_ONE`] per sample, at most `2^58` per pixel. Each share is rounded
+/// once, to `2^-26` of its cascade's scale (relative `1.5e-8`, finer than the `f32` sample).
+/// The top cascade is the exception (it takes every sample above `c_{K-1}` whole); its RGB sums
+/// get 21 more bits (see the `state` module).
+pub const FRAC_BITS: u32 = 26;
 
 /// One sample count in fixed point.
 pub const COUNT_ONE: u64 = 1 << FRAC_BITS;
+
+/// Most samples one pixel may hold: `2^32`. A batch or merge that would go past it is refused.
+pub const MAX_PIXEL_SAMPLES: u64 = 1 << 32;
+
+/// Largest sample component relative to the top cascade's scale: a component may be at most
+/// `c_{K-1} * 2^TOP_HEADROOM_BITS` ([`CascadeLayout::max_component`]).
+///
+/// Such a component is `2^(FRAC_BITS + 26) = 2^52` units of the top cascade, and
+/// [`MAX_PIXEL_SAMPLES`] of them are `2^84` (plus rounding), inside the top cascade's 85-bit sums.
+/// (`2^27` would give exactly `2^85`, one past the range.)
+pub const TOP_HEADROOM_BITS: u32 = 26;
 
 /// Largest cascade count accepted; 16 cascades of base 8 span 8^15 ≈ 3.5e13 in brightness.
 pub const MAX_CASCADES: u32 = 16;
@@ -74,6 +100,8 @@ pub struct CascadeLayout {
     from_units: Vec<f64>,
     /// `1 / c_j`.
     inv_scales: Vec<f64>,
+    /// `c_{K-1} * 2^TOP_HEADROOM_BITS`: the largest sample component accepted.
+    max_component: f64,
 }
 
 impl fmt::Debug for CascadeLayout {
@@ -166,6 +194,7 @@ impl CascadeLayout {
             to_units: scales.iter().map(|c| one / c).collect(),
             from_units: scales.iter().map(|c| c / one).collect(),
             inv_scales: scales.iter().map(|c| 1.0 / c).collect(),
+            max_component: highest * (1u64 << TOP_HEADROOM_BITS) as f64,
             scales,
         })
     }
@@ -204,6 +233,27 @@ impl CascadeLayout {
     /// `c_j` for every cascade.
     pub fn scales(&self) -> &[f64] {
         &self.scales
+    }
+
+    /// The largest sample component this layout represents exactly: `c_{K-1} * 2^26`
+    /// (`4096 * 2^26 = 2.7e11` with the defaults). Larger components are refused
+    /// ([`SampleError::TooBright`]), never clamped.
+    pub fn max_component(&self) -> f64 {
+        self.max_component
+    }
+
+    /// Checks a sample's value for this layout: finite, non-negative
+    /// ([`crate::check_sample`]) and no component above [`CascadeLayout::max_component`].
+    #[inline]
+    pub fn check_sample(&self, rgb: [f32; 3]) -> Result<(), SampleError> {
+        check_sample(rgb)?;
+        match rgb.iter().find(|&&c| c as f64 > self.max_component) {
+            Some(&value) => Err(SampleError::TooBright {
+                value,
+                max: self.max_component,
+            }),
+            None => Ok(()),
+        }
     }
 
     /// Brightness of an RGB value.
@@ -279,10 +329,11 @@ pub const DEFAULT_CASCADE_COUNT: u32 = 6;
 /// splatd's default scale of the lowest cascade, chosen by the quality benchmark.
 pub const DEFAULT_LOWEST_SCALE: f64 = 0.125;
 
-/// Rounds `value * units` (non-negative) to the nearest integer, saturating at `u64::MAX`.
+/// Rounds `value * units` (non-negative) to the nearest integer.
 ///
 /// `as u64` saturates and maps NaN to 0, so the result is defined for every input; callers pass
-/// only finite non-negative values.
+/// only checked samples, whose shares are at most `2^52` units (see [`FRAC_BITS`]), far from
+/// saturation.
 #[inline]
 pub(crate) fn to_fixed(value: f64, units: f64) -> u64 {
     (value * units + 0.5) as u64
@@ -318,8 +369,9 @@ mod tests {
                 "count identity broken at l={l}: {count_from_luminance}"
             );
             let explicit = s.count_lo as f64 / COUNT_ONE as f64;
+            // Rounded to 2^-FRAC_BITS of a count.
             assert!(
-                (explicit - s.w_lo * l / c[s.lo]).abs() < 1e-9,
+                (explicit - s.w_lo * l / c[s.lo]).abs() < 1.0 / COUNT_ONE as f64,
                 "explicit count {explicit} disagrees with luminance count at l={l}"
             );
             // The same weight as the notes' form (b^j/L - 1/b) / (1 - 1/b), scaled by c_j.

@@ -19,13 +19,14 @@ mod state;
 
 pub use layout::{
     rec709_luminance, CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_CASCADE_BASE,
-    DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, MIN_LUMINANCE_WEIGHT,
-    REC709_LUMINANCE,
+    DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, MAX_PIXEL_SAMPLES,
+    MIN_LUMINANCE_WEIGHT, REC709_LUMINANCE, TOP_HEADROOM_BITS,
 };
 pub use resolve::{
     resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
 pub use state::{
-    cell_len, cell_spp, check_sample, FrameState, MergeError, SampleError, ShapeError, SplatReport,
+    cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, MergeError,
+    SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
 };

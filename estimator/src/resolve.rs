@@ -18,7 +18,7 @@
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
 use super::layout::{CascadeLayout, ParamError, COUNT_ONE, FRAC_BITS};
-use super::state::{cell_len, FrameState};
+use super::state::{cascade_units, cell_len, FrameState};
 
 /// Which weight formula to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -311,7 +311,8 @@ impl<'a> Resolver<'a> {
             let mut total = 0u64;
             for j in 0..k {
                 let c = cell[4 * j + 3];
-                total = total.saturating_add(c);
+                // At most 2^58 per pixel (see the state module): exact.
+                total += c;
                 counts[j + 1] = c as f64 * one;
             }
             // counts[0] and counts[k + 1] stay 0: the missing neighbours at the ends.
@@ -395,14 +396,15 @@ fn pixel(
     let mut removed = [0.0f64; 3];
     for j in 0..k {
         let units = &cell[4 * j..4 * j + 4];
-        if units[0] | units[1] | units[2] == 0 {
+        // The top cascade is empty only if its high word is too (a low word is 0 at 2^64).
+        if units[0] | units[1] | units[2] == 0 && (j + 1 < k || cell[4 * k] == 0) {
             continue;
         }
         let u = layout.unit_value(j);
         let b = [
-            units[0] as f64 * u,
-            units[1] as f64 * u,
-            units[2] as f64 * u,
+            cascade_units(cell, j, 0) * u,
+            cascade_units(cell, j, 1) * u,
+            cascade_units(cell, j, 2) * u,
         ];
         let inv_c = layout.inv_scale(j);
         let lf = layout.luminance(f);

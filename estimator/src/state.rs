@@ -1,21 +1,56 @@
-//! Per-frame accumulation state: `K` cascade sums and counts plus the exact sample count of every
-//! pixel, all in fixed point so that accumulation and merging are exact and order-independent.
+//! Per-frame accumulation state: `K` cascade sums and counts per pixel, all in fixed point so that
+//! accumulation and merging are exact and order-independent.
 //!
-//! Storage is pixel-major: a pixel's cell is `K` groups of `[r, g, b, count]`, `4K` `u64`s or
-//! `32K` bytes. The pixel's sample count `N_p` is not stored: every sample adds exactly
-//! [`COUNT_ONE`] to the counts of its cascades (the two shares of a split add to it by
-//! construction), so `N_p = (Σ_j count_j) >> FRAC_BITS`, exactly. Leaving it out saves 8 bytes per
-//! pixel and, more importantly, a cache line per splat: a splat touches only the 64 contiguous
-//! bytes of cascades `lo` and `lo + 1` of one cell. Resolve reads the cells row by row.
+//! Storage is pixel-major: a pixel's cell is `K` groups of `[r, g, b, count]` followed by one
+//! *high word*, `4K + 1` `u64`s or `32K + 8` bytes ([`cell_len`]). The pixel's sample count `N_p`
+//! is not stored: every sample adds exactly [`COUNT_ONE`] to the counts of its cascades (the two
+//! shares of a split add to it by construction), so `N_p = (Σ_j count_j) >> FRAC_BITS`, exactly.
+//! A splat touches the 64 contiguous bytes of cascades `lo` and `lo + 1` of one cell (and the
+//! high word right after them, rarely, on a carry). Resolve reads the cells row by row.
+//!
+//! # Exact bounds
+//!
+//! Values are in units of `c_j * 2^-26` ([`FRAC_BITS`]), counts in units of `2^-26`.
+//!
+//! * A sample component must be finite, `>= 0` (`-0.0` is zero) and at most
+//!   `c_{K-1} * 2^26` ([`CascadeLayout::max_component`]; `2^38 ≈ 2.7e11` with the default layout
+//!   `c0 = 1/8, b = 8, K = 6`). Anything else is refused ([`SampleError`]), never altered.
+//! * A pixel holds at most `2^32` samples ([`MAX_PIXEL_SAMPLES`]): a splat, batch or merge that
+//!   would go past it is refused ([`SampleError::PixelFull`], [`MergeError::TooManySamples`]).
+//! * Cascades `0 .. K-2` receive shares of luminance at most `c_j`, so with weights in
+//!   `[1/32, 1]` each channel of a share is at most `32 c_j = 2^31` units: `2^32` samples stay
+//!   below `2^63 + 2^62` ([`LOW_SHARE_MAX`] per sample), inside a `u64`.
+//! * The top cascade `K-1` takes every sample brighter than `c_{K-1}` whole: a share is at most
+//!   `2^52` units, `2^32` of them `2^84`. Its r, g, b sums are 85-bit integers
+//!   `hi * 2^64 + lo`: `lo` is the cascade's ordinary word, `hi` a 21-bit field of the cell's high
+//!   word (r in bits 0..21, g in 21..42, b in 42..63).
+//! * Counts: at most `2^32 * 2^26 = 2^58` per pixel.
+//!
+//! Within these bounds no sum can overflow, so every addition is exact (overflow is
+//! debug-asserted); [`FrameState::from_cells`] checks that imported cells respect them per pixel.
 //!
 //! A state may hold a horizontal band of a frame (rows `y0 .. y0 + rows`), so that a service
 //! can shard a frame across locks; a state that holds the whole frame is just the band starting
 //! at row 0 with all rows.
 
-use super::layout::{to_fixed, CascadeLayout, COUNT_ONE, FRAC_BITS};
+use std::ops::Range;
+
+use super::layout::{to_fixed, CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_PIXEL_SAMPLES};
+
+/// Bits of each top-cascade channel held in the cell's high word.
+const HI_BITS: u32 = 21;
+const HI_MASK: u64 = (1 << HI_BITS) - 1;
+
+/// Largest units a checked sample's share adds to one channel of cascades `0 .. K-2`, with slack
+/// for `f64` rounding: `2^31 + 2^30` (the exact bound is `2^31`).
+pub const LOW_SHARE_MAX: u64 = (1 << 31) + (1 << 30);
+
+/// Largest units a checked sample's share adds to one channel of the top cascade, with slack for
+/// `f64` rounding: `2^52 + 2^51` (the exact bound is `2^52`).
+pub const TOP_SHARE_MAX: u64 = (1 << 52) + (1 << 51);
 
 /// Why a sample was not accumulated. Nothing of a rejected sample reaches the state.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
 pub enum SampleError {
     /// A component is NaN or infinite.
     #[error("sample has a non-finite component (NaN or infinity)")]
@@ -26,6 +61,26 @@ pub enum SampleError {
     /// counted, like non-finite samples.
     #[error("sample has a negative component")]
     Negative,
+    /// A component is larger than the frame's layout represents exactly
+    /// ([`CascadeLayout::max_component`]). Refused, never clamped.
+    #[error(
+        "component {value:e} exceeds this frame's largest representable sample {max:e}; \
+         create the frame with more cascades or a larger lowest_scale"
+    )]
+    TooBright {
+        /// The offending component.
+        value: f32,
+        /// The largest component accepted.
+        max: f64,
+    },
+    /// The pixel already holds the most samples a pixel may hold ([`MAX_PIXEL_SAMPLES`]).
+    #[error("pixel ({x}, {y}) already holds {MAX_PIXEL_SAMPLES} samples, the most a pixel holds")]
+    PixelFull {
+        /// Column of the sample.
+        x: u32,
+        /// Row of the sample.
+        y: u32,
+    },
     /// The pixel lies outside the frame (or outside the band this state holds).
     #[error("pixel ({x}, {y}) is outside the {width}x{height} frame")]
     OutOfFrame {
@@ -40,7 +95,8 @@ pub enum SampleError {
     },
 }
 
-/// Checks a sample's value (not its pixel): finite and non-negative. `-0.0` is accepted as zero.
+/// Checks a sample's value (not its pixel) independently of any layout: finite and non-negative.
+/// `-0.0` is accepted as zero. [`CascadeLayout::check_sample`] also checks the brightness limit.
 #[inline]
 pub fn check_sample(rgb: [f32; 3]) -> Result<(), SampleError> {
     if !rgb.iter().all(|c| c.is_finite()) {
@@ -63,12 +119,16 @@ pub struct SplatReport {
     pub negative: u64,
     /// Samples whose pixel lies outside the state.
     pub out_of_frame: u64,
+    /// Samples with a component above the layout's largest ([`SampleError::TooBright`]).
+    pub too_bright: u64,
+    /// Samples of a pixel that already held [`MAX_PIXEL_SAMPLES`].
+    pub pixel_full: u64,
 }
 
 impl SplatReport {
     /// Samples not accumulated.
     pub fn rejected(&self) -> u64 {
-        self.non_finite + self.negative + self.out_of_frame
+        self.non_finite + self.negative + self.out_of_frame + self.too_bright + self.pixel_full
     }
 
     fn count(&mut self, result: Result<(), SampleError>) {
@@ -77,6 +137,8 @@ impl SplatReport {
             Err(SampleError::NonFinite) => self.non_finite += 1,
             Err(SampleError::Negative) => self.negative += 1,
             Err(SampleError::OutOfFrame { .. }) => self.out_of_frame += 1,
+            Err(SampleError::TooBright { .. }) => self.too_bright += 1,
+            Err(SampleError::PixelFull { .. }) => self.pixel_full += 1,
         }
     }
 }
@@ -117,6 +179,43 @@ pub enum MergeError {
         /// Their rows.
         theirs: std::ops::Range<u32>,
     },
+    /// The sum would hold more than [`MAX_PIXEL_SAMPLES`] samples in a pixel.
+    #[error(
+        "pixel ({x}, {y}) would hold more than {MAX_PIXEL_SAMPLES} samples, the most a pixel holds"
+    )]
+    TooManySamples {
+        /// Column of the first such pixel.
+        x: u32,
+        /// Row of the first such pixel.
+        y: u32,
+    },
+    /// [`FrameState::delta_since`] was given a state that is not an earlier copy of this one.
+    #[error("pixel ({x}, {y}) holds less than in the earlier state: not an earlier copy")]
+    NotEarlier {
+        /// Column of the first such pixel.
+        x: u32,
+        /// Row of the first such pixel.
+        y: u32,
+    },
+}
+
+/// Cells that cannot be a state: they do not fit the geometry, or a pixel holds what no sequence
+/// of checked samples could have produced.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum CellsError {
+    /// The cells do not fit the geometry.
+    #[error(transparent)]
+    Shape(#[from] ShapeError),
+    /// A pixel's cell breaks the bounds of the module docs.
+    #[error("pixel ({x}, {y}): {reason}")]
+    Invalid {
+        /// Column.
+        x: u32,
+        /// Row.
+        y: u32,
+        /// What is wrong.
+        reason: String,
+    },
 }
 
 /// A state's cells do not fit its geometry (an imported state that was cut or padded).
@@ -146,6 +245,9 @@ pub struct FrameState {
     rows: u32,
     layout: CascadeLayout,
     cells: Vec<u64>,
+    /// Samples held in all pixels (a function of `cells`, kept so that the common case "no pixel
+    /// can be full" is checked without reading any cell).
+    samples: u64,
 }
 
 impl std::fmt::Debug for FrameState {
@@ -160,20 +262,102 @@ impl std::fmt::Debug for FrameState {
     }
 }
 
-/// `u64`s per pixel for `k` cascades: `[r, g, b, count]` per cascade.
+/// `u64`s per pixel for `k` cascades: `[r, g, b, count]` per cascade, then the high word of the
+/// top cascade's r, g, b sums.
 pub const fn cell_len(k: usize) -> usize {
-    4 * k
+    4 * k + 1
 }
 
 /// Samples in a pixel from its cell: the exact sum of its fixed-point counts.
 #[inline]
 pub fn cell_spp(cell: &[u64]) -> u64 {
-    let units = cell
-        .iter()
-        .skip(3)
-        .step_by(4)
-        .fold(0u64, |a, &c| a.saturating_add(c));
+    let k = cell.len() / 4;
+    let units = (0..k).fold(0u64, |a, j| a.wrapping_add(cell[4 * j + 3]));
     units >> FRAC_BITS
+}
+
+/// The top cascade's channel `c` (0..3) of one cell (exactly [`cell_len`]`(K)` words), as the
+/// 85-bit integer `hi * 2^64 + lo`.
+#[inline]
+pub fn top_sum(cell: &[u64], c: usize) -> u128 {
+    let k = cell.len() / 4;
+    let hi = (cell[4 * k] >> (HI_BITS * c as u32)) & HI_MASK;
+    ((hi as u128) << 64) | cell[4 * (k - 1) + c] as u128
+}
+
+/// Channel `c` of cascade `j` of one cell (exactly [`cell_len`]`(K)` words) in fixed-point units,
+/// as an `f64` (for the top cascade, its 85-bit sum to `f64` precision).
+#[inline]
+pub fn cascade_units(cell: &[u64], j: usize, c: usize) -> f64 {
+    let k = cell.len() / 4;
+    let lo = cell[4 * j + c] as f64;
+    if j + 1 == k {
+        let hi = (cell[4 * k] >> (HI_BITS * c as u32)) & HI_MASK;
+        lo + hi as f64 * 18446744073709551616.0
+    } else {
+        lo
+    }
+}
+
+/// Adds cell `src` to cell `dst` (same `K`), exactly: the top cascade's sums with carry into the
+/// high word. The caller guarantees the result holds at most [`MAX_PIXEL_SAMPLES`] samples of
+/// valid cells, so nothing overflows (debug-asserted).
+#[inline]
+fn add_cell(dst: &mut [u64], src: &[u64]) {
+    let k = dst.len() / 4;
+    let top = 4 * (k - 1);
+    for (d, s) in dst[..top].iter_mut().zip(&src[..top]) {
+        debug_assert!(d.checked_add(*s).is_some(), "cell sum overflows");
+        *d = d.wrapping_add(*s);
+    }
+    let mut hi = dst[4 * k].wrapping_add(src[4 * k]);
+    for c in 0..3 {
+        let (sum, carry) = dst[top + c].overflowing_add(src[top + c]);
+        dst[top + c] = sum;
+        hi = hi.wrapping_add(u64::from(carry) << (HI_BITS * c as u32));
+    }
+    debug_assert!(dst[top + 3].checked_add(src[top + 3]).is_some());
+    dst[top + 3] = dst[top + 3].wrapping_add(src[top + 3]);
+    debug_assert_eq!(hi >> (3 * HI_BITS), 0, "top cascade sum overflows 85 bits");
+    dst[4 * k] = hi;
+}
+
+/// Why `cell` (of pixel `x`, `y`) cannot hold what checked samples produce, if it cannot.
+fn check_cell(cell: &[u64]) -> Result<(), String> {
+    let k = cell.len() / 4;
+    let counts = (0..k).try_fold(0u64, |a, j| a.checked_add(cell[4 * j + 3]));
+    let Some(counts) = counts else {
+        return Err("its counts overflow".into());
+    };
+    if counts % COUNT_ONE != 0 {
+        return Err(format!(
+            "its counts add to {counts} units, not a whole number of samples"
+        ));
+    }
+    let n = counts >> FRAC_BITS;
+    if n > MAX_PIXEL_SAMPLES {
+        return Err(format!(
+            "it holds {n} samples, more than {MAX_PIXEL_SAMPLES}"
+        ));
+    }
+    if cell[4 * k] >> (3 * HI_BITS) != 0 {
+        return Err("its high word has bits beyond the three 21-bit fields".into());
+    }
+    for j in 0..k {
+        for c in 0..3 {
+            let (units, max) = if j + 1 == k {
+                (top_sum(cell, c), n as u128 * TOP_SHARE_MAX as u128)
+            } else {
+                (cell[4 * j + c] as u128, n as u128 * LOW_SHARE_MAX as u128)
+            };
+            if units > max {
+                return Err(format!(
+                    "cascade {j} channel {c} holds {units} units, more than {n} samples can add"
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 impl FrameState {
@@ -204,6 +388,7 @@ impl FrameState {
             rows: rows.end - rows.start,
             layout,
             cells: vec![0; len],
+            samples: 0,
         }
     }
 
@@ -219,15 +404,17 @@ impl FrameState {
             .collect()
     }
 
-    /// Rebuilds a state from exported cells, checking that they fit the geometry.
+    /// Rebuilds a state from exported cells, checking that they fit the geometry and that every
+    /// pixel respects the bounds of the module docs (so that merging it can never overflow).
     pub fn from_cells(
         width: u32,
         height: u32,
         rows: std::ops::Range<u32>,
         layout: CascadeLayout,
         cells: Vec<u64>,
-    ) -> Result<Self, ShapeError> {
-        let expected = width as usize * rows.len() * cell_len(layout.cascades());
+    ) -> Result<Self, CellsError> {
+        let stride = cell_len(layout.cascades());
+        let expected = width as usize * rows.len() * stride;
         if cells.len() != expected || rows.end > height {
             return Err(ShapeError {
                 found: cells.len(),
@@ -235,7 +422,17 @@ impl FrameState {
                 width,
                 rows: rows.end.saturating_sub(rows.start),
                 cascades: layout.cascades(),
-            });
+            }
+            .into());
+        }
+        let mut samples = 0u64;
+        for (i, cell) in cells.chunks_exact(stride).enumerate() {
+            check_cell(cell).map_err(|reason| CellsError::Invalid {
+                x: (i % width as usize) as u32,
+                y: rows.start + (i / width as usize) as u32,
+                reason,
+            })?;
+            samples += cell_spp(cell);
         }
         Ok(Self {
             width,
@@ -244,7 +441,75 @@ impl FrameState {
             rows: rows.end - rows.start,
             layout,
             cells,
+            samples,
         })
+    }
+
+    /// Rebuilds a state from cells of the previous format (state format version 1: `FRAC_BITS`
+    /// 32, `4K` `u64`s per pixel, sums that saturated at `u64::MAX`), converting them.
+    ///
+    /// Values are rounded to the nearest unit of `2^-26` (`v / 64`); counts are rounded too, and
+    /// the rounding residual is put on each pixel's largest count so that the pixel still holds
+    /// exactly its `N_p` samples. The top cascade's high word starts at 0. A value or count sum
+    /// that saturated cannot be converted honestly: refused, naming the pixel.
+    pub fn from_frac32_cells(
+        width: u32,
+        height: u32,
+        rows: std::ops::Range<u32>,
+        layout: CascadeLayout,
+        old: &[u64],
+    ) -> Result<Self, CellsError> {
+        let k = layout.cascades();
+        let pixels = width as usize * rows.len();
+        if old.len() != pixels * 4 * k || rows.end > height {
+            return Err(ShapeError {
+                found: old.len(),
+                expected: pixels * 4 * k,
+                width,
+                rows: rows.end.saturating_sub(rows.start),
+                cascades: k,
+            }
+            .into());
+        }
+        let stride = cell_len(k);
+        let mut cells = vec![0u64; pixels * stride];
+        for (i, (src, dst)) in old
+            .chunks_exact(4 * k)
+            .zip(cells.chunks_exact_mut(stride))
+            .enumerate()
+        {
+            let invalid = |reason: &str| CellsError::Invalid {
+                x: (i % width as usize) as u32,
+                y: rows.start + (i / width as usize) as u32,
+                reason: reason.to_owned(),
+            };
+            if src.contains(&u64::MAX) {
+                return Err(invalid(
+                    "a sum saturated in the previous state format; it cannot be converted exactly",
+                ));
+            }
+            let counts = (0..k).try_fold(0u64, |a, j| a.checked_add(src[4 * j + 3]));
+            let counts = counts
+                .filter(|c| c % (1u64 << 32) == 0)
+                .ok_or_else(|| invalid("its counts are not a whole number of samples"))?;
+            let shift = 32 - FRAC_BITS;
+            for (d, &v) in dst.iter_mut().zip(src) {
+                // Round to nearest: v / 64, plus the highest bit shifted out.
+                *d = (v >> shift) + ((v >> (shift - 1)) & 1);
+            }
+            let target = (counts >> 32) << FRAC_BITS;
+            let rounded: u64 = (0..k).map(|j| dst[4 * j + 3]).sum();
+            let largest = (0..k)
+                .max_by_key(|&j| dst[4 * j + 3])
+                .expect("at least two cascades");
+            let at = 4 * largest + 3;
+            // Each count rounds by at most half a unit, so the residual is at most K / 2 units
+            // and the largest count (at least 1/K of the total) absorbs it.
+            dst[at] = (dst[at] + target)
+                .checked_sub(rounded)
+                .ok_or_else(|| invalid("its counts cannot be converted"))?;
+        }
+        Self::from_cells(width, height, rows, layout, cells)
     }
 
     /// Frame width.
@@ -291,12 +556,21 @@ impl FrameState {
         cell_spp(&self.row(y)[x as usize * stride..(x as usize + 1) * stride])
     }
 
-    /// Samples accumulated in all pixels of this state.
+    /// Samples accumulated in all pixels of this state: exact (at most `2^32` per pixel, and a
+    /// state holds fewer than `2^32` pixels: their cells alone would take over 200 GB).
     pub fn total_samples(&self) -> u64 {
-        let stride = cell_len(self.layout.cascades());
-        self.cells
-            .chunks_exact(stride)
-            .fold(0u64, |a, cell| a.saturating_add(cell_spp(cell)))
+        self.samples
+    }
+
+    /// Whether pixel `(x, y)` (which must lie in this state) can take `n` more samples.
+    #[inline]
+    pub fn has_room(&self, x: u32, y: u32, n: u64) -> bool {
+        // No pixel holds more than the whole state: this reads no cell until the state holds
+        // 2^32 samples.
+        if self.samples.saturating_add(n) <= MAX_PIXEL_SAMPLES {
+            return true;
+        }
+        self.spp(x, y).saturating_add(n) <= MAX_PIXEL_SAMPLES
     }
 
     /// Where `(x, y)` lives, or why it does not.
@@ -318,7 +592,10 @@ impl FrameState {
     #[inline]
     pub fn splat(&mut self, x: u32, y: u32, rgb: [f32; 3]) -> Result<(), SampleError> {
         self.check_pixel(x, y)?;
-        check_sample(rgb)?;
+        self.layout.check_sample(rgb)?;
+        if !self.has_room(x, y, 1) {
+            return Err(SampleError::PixelFull { x, y });
+        }
         self.splat_checked(x, y, rgb);
         Ok(())
     }
@@ -340,7 +617,19 @@ impl FrameState {
         while samples.peek().is_some() {
             let mut n = 0;
             for (x, y, rgb) in samples.by_ref() {
-                let checked = self.check_pixel(x, y).and_then(|()| check_sample(rgb));
+                let checked = self
+                    .check_pixel(x, y)
+                    .and_then(|()| self.layout.check_sample(rgb))
+                    .and_then(|()| {
+                        // The `n` samples of this chunk are not applied yet: at first count them
+                        // as if they all were in this pixel (exactly only near the limit).
+                        if self.has_room(x, y, n as u64 + 1) || self.room_exact(x, y, &pending[..n])
+                        {
+                            Ok(())
+                        } else {
+                            Err(SampleError::PixelFull { x, y })
+                        }
+                    });
                 report.count(checked);
                 if checked.is_ok() {
                     pending[n] = self.prepare(x, y, rgb);
@@ -358,7 +647,21 @@ impl FrameState {
         report
     }
 
-    /// Accumulates a sample already known to be valid and inside this state.
+    /// Whether pixel `(x, y)` can take one more sample besides those of `pending` in it.
+    #[cold]
+    fn room_exact(&self, x: u32, y: u32, pending: &[Pending]) -> bool {
+        let k = self.layout.cascades();
+        let pixel = (y - self.y0) as usize * self.width as usize + x as usize;
+        let here = pending
+            .iter()
+            .filter(|p| (p.at - 4 * p.split.lo) / cell_len(k) == pixel)
+            .count() as u64;
+        self.spp(x, y) + here < MAX_PIXEL_SAMPLES
+    }
+
+    /// Accumulates a sample already known to be valid for this layout
+    /// ([`CascadeLayout::check_sample`]), inside this state, in a pixel with room for it
+    /// ([`FrameState::has_room`]).
     #[inline]
     pub fn splat_checked(&mut self, x: u32, y: u32, rgb: [f32; 3]) {
         let p = self.prepare(x, y, rgb);
@@ -387,7 +690,24 @@ impl FrameState {
         let (low, high) = cascades.split_at_mut(4);
         add_share(low, p.s, self.layout.units_per_value(lo) * w_lo, count_lo);
         let units = self.layout.units_per_value(lo + 1) * (1.0 - w_lo);
-        add_share(high, p.s, units, COUNT_ONE - count_lo);
+        let carry = add_share_carry(high, p.s, units, COUNT_ONE - count_lo);
+        if carry != 0 {
+            self.carry(p, carry);
+        }
+        self.samples += 1;
+    }
+
+    /// Adds carries out of the top cascade's words to its high word, which follows it.
+    #[cold]
+    fn carry(&mut self, p: &Pending, carry: u64) {
+        debug_assert_eq!(
+            p.split.lo + 2,
+            self.layout.cascades(),
+            "a carry below the top cascade"
+        );
+        let hi = &mut self.cells[p.at + 8];
+        *hi += carry;
+        debug_assert_eq!(*hi >> (3 * HI_BITS), 0, "top cascade sum overflows 85 bits");
     }
 
     /// Checks that `other` is a state of a frame of the same size and cascade layout (its rows
@@ -414,8 +734,10 @@ impl FrameState {
     ///
     /// The layouts and frame sizes must match. Row ranges must be equal, or one must contain the
     /// other; then the rows they share are added (so a whole-frame state can be merged into a
-    /// band, and a band into a whole-frame state). Addition saturates instead of wrapping, which
-    /// keeps it commutative and associative on the unsigned cells.
+    /// band, and a band into a whole-frame state). A merge that would put more than
+    /// [`MAX_PIXEL_SAMPLES`] samples in a pixel is refused ([`MergeError::TooManySamples`]);
+    /// within that bound addition is exact (no saturation, no wrapping), hence commutative and
+    /// associative. A refused merge changes nothing.
     pub fn merge(&mut self, other: &FrameState) -> Result<(), MergeError> {
         self.check_same_frame(other)?;
         let (ours, theirs) = (self.rows(), other.rows());
@@ -425,43 +747,88 @@ impl FrameState {
         if !nested(&ours, &theirs) && !nested(&theirs, &ours) {
             return Err(MergeError::Rows { ours, theirs });
         }
+        self.check_room_for(other)?;
         self.add_shared_rows(other);
         Ok(())
     }
 
     /// Adds the rows this state shares with `other` (possibly none), for callers that hold a
     /// frame as bands tiling it: merging a state into every band with this adds all of it,
-    /// whichever bands its rows fall in. Only the frame (size and layout) is checked, so once
-    /// [`FrameState::check_same_frame`] passed for one band it cannot fail for another: a
-    /// caller can check before it changes anything.
+    /// whichever bands its rows fall in. The frame (size and layout) is checked, and that no
+    /// shared pixel would hold more than [`MAX_PIXEL_SAMPLES`]; a caller holding several bands
+    /// can run [`FrameState::check_same_frame`] and [`FrameState::check_room_for`] on every band
+    /// first, so that nothing changes unless everything fits.
     pub fn merge_overlap(&mut self, other: &FrameState) -> Result<(), MergeError> {
         self.check_same_frame(other)?;
+        self.check_room_for(other)?;
         self.add_shared_rows(other);
         Ok(())
     }
 
-    fn add_shared_rows(&mut self, other: &FrameState) {
+    /// The rows this state shares with `other`, as cell ranges of `self` and of `other`.
+    fn shared_cells(&self, other: &FrameState) -> Option<(Range<usize>, Range<usize>)> {
         let (ours, theirs) = (self.rows(), other.rows());
         let shared = ours.start.max(theirs.start)..ours.end.min(theirs.end);
         if shared.is_empty() {
-            return;
+            return None;
         }
         let row_len = self.width as usize * cell_len(self.layout.cascades());
         let at = |start: u32| (shared.start - start) as usize * row_len;
         let len = shared.len() * row_len;
-        let dst = &mut self.cells[at(ours.start)..at(ours.start) + len];
-        let src = &other.cells[at(theirs.start)..at(theirs.start) + len];
-        for (d, s) in dst.iter_mut().zip(src) {
-            *d = d.saturating_add(*s);
+        Some((
+            at(ours.start)..at(ours.start) + len,
+            at(theirs.start)..at(theirs.start) + len,
+        ))
+    }
+
+    /// Checks that adding the rows `other` (of the same frame) shares with this state leaves no
+    /// pixel with more than [`MAX_PIXEL_SAMPLES`] samples.
+    pub fn check_room_for(&self, other: &FrameState) -> Result<(), MergeError> {
+        if self.samples.saturating_add(other.samples) <= MAX_PIXEL_SAMPLES {
+            return Ok(());
         }
+        let Some((dst, src)) = self.shared_cells(other) else {
+            return Ok(());
+        };
+        let stride = cell_len(self.layout.cascades());
+        let first = self.cells[dst]
+            .chunks_exact(stride)
+            .zip(other.cells[src.clone()].chunks_exact(stride))
+            .position(|(d, s)| cell_spp(d) + cell_spp(s) > MAX_PIXEL_SAMPLES);
+        match first {
+            None => Ok(()),
+            Some(i) => {
+                let pixel = src.start / stride + i;
+                Err(MergeError::TooManySamples {
+                    x: (pixel % self.width as usize) as u32,
+                    y: other.y0 + (pixel / self.width as usize) as u32,
+                })
+            }
+        }
+    }
+
+    fn add_shared_rows(&mut self, other: &FrameState) {
+        let Some((dst, src)) = self.shared_cells(other) else {
+            return;
+        };
+        let stride = cell_len(self.layout.cascades());
+        let mut added = 0;
+        let dst = self.cells[dst].chunks_exact_mut(stride);
+        for (d, s) in dst.zip(other.cells[src].chunks_exact(stride)) {
+            added += cell_spp(s);
+            add_cell(d, s);
+        }
+        self.samples += added;
     }
 }
 
 impl FrameState {
     /// What this state holds beyond `earlier`, an earlier copy of it: `self - earlier`, cell by
-    /// cell. Merging the result into `earlier` gives back `self` exactly, so a node can ship only
-    /// what it accumulated since its last push. Cells only grow, so the difference is exact as
-    /// long as no cell saturated (2^64 units: more than 4 billion samples in one pixel).
+    /// cell (the top cascade's 85-bit sums with borrow). Merging the result into `earlier` gives
+    /// back `self` exactly, so a node can ship only what it accumulated since its last push.
+    /// Sums never saturate and only grow, so the difference is always exact; a state holding
+    /// less than `earlier` in some sum is not a later copy of it and is refused
+    /// ([`MergeError::NotEarlier`]).
     pub fn delta_since(&self, earlier: &FrameState) -> Result<FrameState, MergeError> {
         self.check_same_frame(earlier)?;
         if self.rows() != earlier.rows() {
@@ -471,9 +838,32 @@ impl FrameState {
             });
         }
         let mut delta = self.clone();
-        for (d, e) in delta.cells.iter_mut().zip(&earlier.cells) {
-            *d = d.saturating_sub(*e);
+        let k = self.layout.cascades();
+        let top = 4 * (k - 1);
+        for (i, (d, e)) in delta
+            .cells
+            .chunks_exact_mut(cell_len(k))
+            .zip(earlier.cells.chunks_exact(cell_len(k)))
+            .enumerate()
+        {
+            let not_earlier = || MergeError::NotEarlier {
+                x: (i % self.width as usize) as u32,
+                y: self.y0 + (i / self.width as usize) as u32,
+            };
+            let tops: [u128; 3] = std::array::from_fn(|c| top_sum(d, c));
+            for (a, b) in d[..top].iter_mut().zip(&e[..top]) {
+                *a = a.checked_sub(*b).ok_or_else(not_earlier)?;
+            }
+            d[top + 3] = d[top + 3].checked_sub(e[top + 3]).ok_or_else(not_earlier)?;
+            let mut hi = 0u64;
+            for (c, t) in tops.into_iter().enumerate() {
+                let diff = t.checked_sub(top_sum(e, c)).ok_or_else(not_earlier)?;
+                d[top + c] = diff as u64;
+                hi |= ((diff >> 64) as u64) << (HI_BITS * c as u32);
+            }
+            d[4 * k] = hi;
         }
+        delta.samples = self.samples - earlier.samples;
         Ok(delta)
     }
 
@@ -493,11 +883,10 @@ impl FrameState {
                             return [0.0; 3];
                         }
                         let scale = unit / n as f64;
-                        let c = &cell[4 * j..4 * j + 3];
                         [
-                            (c[0] as f64 * scale) as f32,
-                            (c[1] as f64 * scale) as f32,
-                            (c[2] as f64 * scale) as f32,
+                            (cascade_units(cell, j, 0) * scale) as f32,
+                            (cascade_units(cell, j, 1) * scale) as f32,
+                            (cascade_units(cell, j, 2) * scale) as f32,
                         ]
                     })
                     .collect()
@@ -548,12 +937,31 @@ fn prefetch(cells: &[u64], at: usize) {
     let _ = (cells, at);
 }
 
+/// Adds a share to a cascade below the top: cannot overflow within the bounds (debug-asserted).
 #[inline]
 fn add_share(cascade: &mut [u64], s: [f64; 3], units: f64, count: u64) {
-    cascade[0] = cascade[0].saturating_add(to_fixed(s[0], units));
-    cascade[1] = cascade[1].saturating_add(to_fixed(s[1], units));
-    cascade[2] = cascade[2].saturating_add(to_fixed(s[2], units));
-    cascade[3] = cascade[3].saturating_add(count);
+    for c in 0..3 {
+        let v = to_fixed(s[c], units);
+        debug_assert!(cascade[c].checked_add(v).is_some(), "cascade sum overflows");
+        cascade[c] = cascade[c].wrapping_add(v);
+    }
+    debug_assert!(cascade[3].checked_add(count).is_some(), "count overflows");
+    cascade[3] = cascade[3].wrapping_add(count);
+}
+
+/// Adds a share to a cascade that may be the top one; returns the carries out of its r, g, b
+/// words, placed as they add to the high word (zero below the top cascade).
+#[inline]
+fn add_share_carry(cascade: &mut [u64], s: [f64; 3], units: f64, count: u64) -> u64 {
+    let mut carry = 0;
+    for c in 0..3 {
+        let (sum, over) = cascade[c].overflowing_add(to_fixed(s[c], units));
+        cascade[c] = sum;
+        carry |= u64::from(over) << (HI_BITS * c as u32);
+    }
+    debug_assert!(cascade[3].checked_add(count).is_some(), "count overflows");
+    cascade[3] = cascade[3].wrapping_add(count);
+    carry
 }
 
 #[cfg(test)]
@@ -572,9 +980,9 @@ mod tests {
         let u = state.layout().unit_value(j);
         let c = COUNT_ONE as f64;
         [
-            cell[4 * j] as f64 * u,
-            cell[4 * j + 1] as f64 * u,
-            cell[4 * j + 2] as f64 * u,
+            cascade_units(cell, j, 0) * u,
+            cascade_units(cell, j, 1) * u,
+            cascade_units(cell, j, 2) * u,
             cell[4 * j + 3] as f64 / c,
         ]
     }
@@ -589,7 +997,7 @@ mod tests {
             let sum = lo[c] + hi[c];
             // One fixed-point unit of each cascade at most.
             assert!(
-                (sum - rgb[c] as f64).abs() < 64.0 * 2.0f64.powi(-31),
+                (sum - rgb[c] as f64).abs() < 64.0 * 2.0f64.powi(1 - FRAC_BITS as i32),
                 "{c}: {sum}"
             );
         }
@@ -610,7 +1018,8 @@ mod tests {
         assert_eq!(state.spp(0, 0), 3);
         let c0 = cascade(&state, 0, 0, 0);
         assert_eq!(c0[3], 2.0, "two dim samples, two full counts in cascade 0");
-        assert!((c0[1] - 1e-7).abs() < 1e-9);
+        // Half a unit of cascade 0 (c0 = 1) at most.
+        assert!((c0[1] - 1e-7).abs() <= 0.5 / COUNT_ONE as f64);
         let top = cascade(&state, 0, 0, 5);
         assert_eq!(
             cascade(&state, 0, 0, 4),
@@ -643,7 +1052,8 @@ mod tests {
                 accepted: 0,
                 non_finite: 3,
                 negative: 1,
-                out_of_frame: 2
+                out_of_frame: 2,
+                ..SplatReport::default()
             }
         );
         assert_eq!(state, before);
@@ -711,9 +1121,294 @@ mod tests {
     #[test]
     fn from_cells_refuses_cells_that_do_not_fit() {
         let err = FrameState::from_cells(2, 2, 0..2, layout(), vec![0; 10]).unwrap_err();
-        assert_eq!(err.expected, 2 * 2 * 24);
+        assert!(
+            matches!(err, CellsError::Shape(ShapeError { expected: 100, .. })),
+            "{err}"
+        );
         let state = FrameState::new(2, 2, layout());
         let back = FrameState::from_cells(2, 2, 0..2, layout(), state.cells().to_vec()).unwrap();
         assert_eq!(back, state);
+    }
+
+    fn largest() -> (CascadeLayout, f32) {
+        let layout = CascadeLayout::with_defaults();
+        let m = layout.max_component();
+        assert_eq!(
+            m,
+            4096.0 * 2f64.powi(26),
+            "c_{{K-1}} * 2^26 with the defaults"
+        );
+        assert_eq!(m as f32 as f64, m);
+        (layout, m as f32)
+    }
+
+    fn mean(state: &FrameState) -> [f32; 3] {
+        state.resolve(&crate::ResolveParams::off()).mean[0]
+    }
+
+    #[test]
+    fn the_largest_component_is_exact_and_anything_brighter_is_refused_by_name() {
+        let (layout, m) = largest();
+        let mut state = FrameState::new(1, 1, layout.clone());
+        state.splat(0, 0, [m, m, m]).unwrap();
+        assert_eq!(mean(&state), [m; 3]);
+        let mut state = FrameState::new(1, 1, layout.clone());
+        state.splat(0, 0, [m, 0.0, 1.0]).unwrap();
+        assert_eq!(mean(&state), [m, 0.0, 1.0]);
+
+        let above = f32::from_bits(m.to_bits() + 1);
+        let before = state.clone();
+        for bad in [above, 1e14, 3e38, f32::MAX] {
+            let err = state.splat(0, 0, [0.5, bad, 0.5]).unwrap_err();
+            assert_eq!(
+                err,
+                SampleError::TooBright {
+                    value: bad,
+                    max: layout.max_component()
+                }
+            );
+            assert!(
+                err.to_string()
+                    .contains("exceeds this frame's largest representable sample"),
+                "{err}"
+            );
+        }
+        let report = state.splat_all([(0, 0, [1e14, 0.0, 0.0]), (0, 0, [3e38, 3e38, 3e38])]);
+        assert_eq!(report.too_bright, 2);
+        assert_eq!(report.rejected(), 2);
+        assert_eq!(state, before, "nothing of a refused sample is kept");
+    }
+
+    #[test]
+    fn twenty_thousand_samples_of_1e9_keep_their_mean() {
+        let mut state = FrameState::new(1, 1, CascadeLayout::with_defaults());
+        let report = state.splat_all((0..20_000).map(|_| (0, 0, [1e9f32, 1e9, 1e9])));
+        assert_eq!(report.accepted, 20_000);
+        assert_eq!(state.total_samples(), 20_000);
+        assert_eq!(mean(&state), [1e9; 3]);
+        let top = state.cascade_means().pop().unwrap()[0];
+        assert_eq!(top, [1e9; 3]);
+    }
+
+    /// 2^32 samples of the largest component in one pixel: the top sums reach 2^84 units and the
+    /// mean is still exact; one more sample or merge is refused and changes nothing.
+    #[test]
+    fn a_pixel_holds_2_pow_32_of_the_largest_samples_and_no_more() {
+        let (layout, m) = largest();
+        let mut state = FrameState::new(2, 1, layout);
+        state.splat(0, 0, [m, m, m]).unwrap();
+        state.splat(1, 0, [1.0, 2.0, 3.0]).unwrap();
+        for _ in 0..32 {
+            let copy = state.clone();
+            state.merge(&copy).unwrap();
+        }
+        assert_eq!(state.spp(0, 0), MAX_PIXEL_SAMPLES);
+        assert_eq!(state.total_samples(), 2 * MAX_PIXEL_SAMPLES);
+        let cell = &state.cells()[..cell_len(6)];
+        for c in 0..3 {
+            assert_eq!(top_sum(cell, c), 1u128 << 84);
+        }
+        assert_eq!(mean(&state), [m; 3]);
+        let r = state.resolve(&crate::ResolveParams::off());
+        assert_eq!(r.mean[1], [1.0, 2.0, 3.0]);
+        assert_eq!(r.spp, [MAX_PIXEL_SAMPLES; 2]);
+
+        let before = state.clone();
+        let copy = state.clone();
+        assert_eq!(
+            state.merge(&copy),
+            Err(MergeError::TooManySamples { x: 0, y: 0 })
+        );
+        let mut one = FrameState::new(2, 1, state.layout().clone());
+        one.splat(1, 0, [0.0; 3]).unwrap();
+        assert_eq!(
+            state.merge(&one),
+            Err(MergeError::TooManySamples { x: 1, y: 0 })
+        );
+        assert_eq!(
+            state.splat(0, 0, [0.0; 3]),
+            Err(SampleError::PixelFull { x: 0, y: 0 })
+        );
+        let report = state.splat_all([(1, 0, [0.0; 3]), (0, 0, [1.0; 3])]);
+        assert_eq!(report.pixel_full, 2);
+        assert_eq!(state, before);
+    }
+
+    /// Near the limit, `splat_all` counts the samples of a pixel within one chunk exactly.
+    #[test]
+    fn splat_all_fills_a_pixel_exactly_to_the_limit() {
+        let mut state = FrameState::new(2, 1, CascadeLayout::with_defaults());
+        state.splat(0, 0, [1.0; 3]).unwrap();
+        for _ in 0..31 {
+            let copy = state.clone();
+            state.merge(&copy).unwrap();
+        }
+        // 2^31 samples; bring pixel 0 to 2^32 - 3 with a state of 2^31 - 3.
+        let mut rest = FrameState::new(2, 1, CascadeLayout::with_defaults());
+        rest.splat(0, 0, [1.0; 3]).unwrap();
+        for _ in 0..30 {
+            let copy = rest.clone();
+            rest.merge(&copy).unwrap();
+        }
+        let mut three = FrameState::new(2, 1, CascadeLayout::with_defaults());
+        three.splat_all([(0, 0, [1.0; 3]); 3]);
+        let rest = rest.delta_since(&FrameState::new(2, 1, CascadeLayout::with_defaults()));
+        let rest = rest.unwrap();
+        let mut full = rest.clone();
+        full.merge(&rest).unwrap();
+        let short = full.delta_since(&three).unwrap();
+        state.merge(&short).unwrap();
+        assert_eq!(state.spp(0, 0), MAX_PIXEL_SAMPLES - 3);
+        let report = state.splat_all([
+            (0, 0, [2.0; 3]),
+            (1, 0, [2.0; 3]),
+            (0, 0, [2.0; 3]),
+            (0, 0, [2.0; 3]),
+            (0, 0, [2.0; 3]),
+        ]);
+        assert_eq!((report.accepted, report.pixel_full), (4, 1));
+        assert_eq!(state.spp(0, 0), MAX_PIXEL_SAMPLES);
+        assert_eq!(state.spp(1, 0), 1);
+    }
+
+    /// Splatting across 2^64 units carries into the high word exactly as merging does, and a
+    /// delta across a carry (with a borrow) merges back to the original.
+    #[test]
+    fn carries_in_the_top_cascade_survive_deltas_and_merges() {
+        let (layout, m) = largest();
+        let mut splatted = FrameState::new(1, 1, layout.clone());
+        for _ in 0..4097 {
+            splatted.splat(0, 0, [m, m / 2.0, 0.0]).unwrap();
+        }
+        let mut merged = FrameState::new(1, 1, layout.clone());
+        merged.splat(0, 0, [m, m / 2.0, 0.0]).unwrap();
+        let one = merged.clone();
+        for _ in 0..12 {
+            let copy = merged.clone();
+            merged.merge(&copy).unwrap();
+        }
+        merged.merge(&one).unwrap();
+        assert_eq!(splatted, merged, "2^12 + 1 samples, by splats or by merges");
+        let cell = splatted.cells();
+        assert_eq!(top_sum(cell, 0), (1u128 << 64) + (1 << 52));
+        assert_eq!(mean(&splatted), [m, m / 2.0, 0.0]);
+
+        // v = 2^37 + 3 * 2^14 is 2^51 + 3 * 2^28 units: 2^12 of them are 2^63 + 3 * 2^40,
+        // 2^13 are 2^64 + 3 * 2^41, whose low word is smaller than the earlier one's.
+        let v = (2f64.powi(37) + 3.0 * 2f64.powi(14)) as f32;
+        let mut earlier = FrameState::new(1, 2, layout.clone());
+        earlier.splat(0, 0, [v, 1.0, v]).unwrap();
+        earlier.splat(0, 1, [0.25, 8.0, 100.0]).unwrap();
+        for _ in 0..12 {
+            let copy = earlier.clone();
+            earlier.merge(&copy).unwrap();
+        }
+        let mut later = earlier.clone();
+        let copy = later.clone();
+        later.merge(&copy).unwrap();
+        later.splat(0, 0, [3.0, 1e9, 5e10]).unwrap();
+        assert_eq!(
+            top_sum(&later.cells()[..cell_len(6)], 0),
+            (1 << 64) + 3 * (1 << 41) + 3 * (1 << 14)
+        );
+        let delta = later.delta_since(&earlier).unwrap();
+        assert_eq!(
+            delta.total_samples(),
+            later.total_samples() - earlier.total_samples()
+        );
+        let mut back = earlier.clone();
+        back.merge(&delta).unwrap();
+        assert_eq!(back, later);
+        assert_eq!(
+            earlier.delta_since(&later).unwrap_err(),
+            MergeError::NotEarlier { x: 0, y: 0 }
+        );
+    }
+
+    #[test]
+    fn from_cells_refuses_cells_no_samples_could_make() {
+        let layout = layout();
+        let mut state = FrameState::new(2, 1, layout.clone());
+        state.splat(1, 0, [5.0, 50.0, 5000.0]).unwrap();
+        let k = 6;
+        let stride = cell_len(k);
+        let bad = |f: &dyn Fn(&mut [u64])| {
+            let mut cells = state.cells().to_vec();
+            f(&mut cells[stride..]);
+            FrameState::from_cells(2, 1, 0..1, layout.clone(), cells).unwrap_err()
+        };
+        for err in [
+            bad(&|c| c[3] += 1),
+            bad(&|c| c[4 * k] = 1 << 63),
+            bad(&|c| c[0] = u64::MAX),
+            bad(&|c| c[4 * (k - 1)] = TOP_SHARE_MAX + 1),
+        ] {
+            assert!(
+                matches!(err, CellsError::Invalid { x: 1, y: 0, .. }),
+                "{err}"
+            );
+        }
+        let back = FrameState::from_cells(2, 1, 0..1, layout, state.cells().to_vec()).unwrap();
+        assert_eq!(back.total_samples(), 1);
+        assert_eq!(back, state);
+    }
+
+    /// Cells of the previous format (2^-32 units, 4K words per pixel) convert to the state the
+    /// same samples give now, up to rounding of each sum; a saturated sum is refused by pixel.
+    #[test]
+    fn previous_format_cells_convert_and_saturated_ones_are_refused() {
+        let layout = layout();
+        let k = 6;
+        let mut state = FrameState::new(3, 1, layout.clone());
+        for (x, rgb) in [
+            (0, [0.5f32, 0.25, 1.0]),
+            (1, [10.0, 20.0, 30.0]),
+            (1, [1e5, 1e5, 1e5]),
+        ] {
+            state.splat(x, 0, rgb).unwrap();
+        }
+        // The old cells of these samples: every value and count 64 times finer, plus some
+        // sub-unit remainder that rounds away; counts still add to N * 2^32 exactly.
+        let mut old = Vec::new();
+        for cell in state.cells().chunks_exact(cell_len(k)) {
+            let mut counts = 0;
+            for j in 0..k {
+                for c in 0..3 {
+                    old.push((cascade_units(cell, j, c) as u64) * 64 + 31 - c as u64);
+                }
+                old.push(cell[4 * j + 3] * 64);
+                counts += cell[4 * j + 3] * 64;
+            }
+            assert_eq!(counts % (1 << 32), 0);
+        }
+        // Move count units between the two cascades of pixel 1's split: the rounding of each
+        // no longer adds up by itself, the residual goes to the larger count.
+        let split: Vec<usize> = (0..k).filter(|&j| old[4 * k + 4 * j + 3] != 0).collect();
+        old[4 * k + 4 * split[0] + 3] += 40;
+        old[4 * k + 4 * split[1] + 3] -= 40;
+        let back = FrameState::from_frac32_cells(3, 1, 0..1, layout.clone(), &old).unwrap();
+        assert_eq!(back.total_samples(), 3);
+        assert_eq!((back.spp(0, 0), back.spp(1, 0), back.spp(2, 0)), (1, 2, 0));
+        for j in 0..k {
+            for c in 0..3 {
+                for p in 0..3 {
+                    let at = p * cell_len(k);
+                    assert_eq!(
+                        cascade_units(&back.cells()[at..], j, c),
+                        cascade_units(&state.cells()[at..], j, c),
+                        "pixel {p} cascade {j} channel {c}"
+                    );
+                }
+            }
+        }
+        let mut saturated = old.clone();
+        saturated[4 * k + 4 * (k - 1)] = u64::MAX;
+        let err = FrameState::from_frac32_cells(3, 1, 0..1, layout.clone(), &saturated);
+        assert!(
+            matches!(err, Err(CellsError::Invalid { x: 1, y: 0, .. })),
+            "{err:?}"
+        );
+        let err = FrameState::from_frac32_cells(3, 1, 0..1, layout, &old[1..]);
+        assert!(matches!(err, Err(CellsError::Shape(_))), "{err:?}");
     }
 }

@@ -5,7 +5,7 @@
 //! of the same frame (same size and cascade layout) merge by adding them cell by cell, which is
 //! what makes a farm of nodes aggregate exactly, as if one server had seen every sample.
 //!
-//! # Byte layout (version 1)
+//! # Byte layout (version 2)
 //!
 //! Little-endian throughout. After a 6-byte preamble (magic `b"SPLS"`, `u16` version), the header
 //! is bincode 2 with `legacy()` configuration (fixed-width integers, `u64` lengths; the same
@@ -20,15 +20,23 @@
 //! | `cascades` | `u32` | cascade count `K` |
 //! | `lowest_scale` | `f64` | `c0` |
 //! | `luminance` | `3 x f64` | brightness weights |
-//! | `frac_bits` | `u32` | fixed-point fractional bits (32) |
+//! | `frac_bits` | `u32` | fixed-point fractional bits (26) |
 //! | `origin` | `u8` tag (0 none, 1 some) + string + `u64` | push delta id: sending node, sequence |
 //! | `count` | `u64` | number of cells that follow |
 //!
 //! Then `count` cells, `u64` each. Pixels are row-major within the rows held; each pixel has `K`
-//! groups of `[r, g, b, count]`: the RGB sums of the cascade in units of `c_j * 2^-frac_bits`
-//! and its fractional sample count in units of `2^-frac_bits`, so
-//! `count == width * (rows_end - rows_start) * 4 * K`. A pixel's sample count is the sum of its
-//! counts divided by `2^frac_bits` (exact: every sample adds exactly one).
+//! groups of `[r, g, b, count]` and then one *high word*, so
+//! `count == width * (rows_end - rows_start) * (4 * K + 1)`. A group holds the RGB sums of
+//! cascade `j` in units of `c_j * 2^-frac_bits` (`c_j = lowest_scale * base^j`) and its
+//! fractional sample count in units of `2^-frac_bits`. The high word holds the bits above 64 of
+//! the top cascade's (`j = K - 1`) r, g and b sums, 21 bits each (r in bits 0..21, g in 21..42,
+//! b in 42..63; bit 63 is 0): its sums are `hi * 2^64 + lo`. A pixel's sample count is the sum of
+//! its counts divided by `2^frac_bits` (exact: every sample adds exactly one), at most `2^32`.
+//! A receiver checks every pixel against these bounds (see `splatd_estimator`'s state module).
+//!
+//! Version 1 (`frac_bits` 32, `4 * K` cells per pixel, sums that saturated) is refused by
+//! [`StateDump::decode`], naming both versions; [`StateDump::decode_v1`] reads it for servers
+//! that convert old snapshots.
 //!
 //! Decoding checks the declared count against the geometry and the bytes present before it
 //! allocates anything.
@@ -40,7 +48,10 @@ use serde::{Deserialize, Serialize};
 pub const STATE_MAGIC: [u8; 4] = *b"SPLS";
 
 /// The only state format version this crate reads and writes.
-pub const STATE_VERSION: u16 = 1;
+pub const STATE_VERSION: u16 = 2;
+
+/// The previous state format version, read only by [`StateDump::decode_v1`].
+pub const STATE_VERSION_1: u16 = 1;
 
 /// `Content-Type` of a state body.
 pub const STATE_CONTENT_TYPE: &str = "application/x-splatd-state";
@@ -85,7 +96,7 @@ pub struct StateDump {
     pub frac_bits: u32,
     /// Set on push deltas: who sent it, and which of its deltas it is.
     pub origin: Option<Origin>,
-    /// The cells: `width * rows * 4 * cascades` values.
+    /// The cells: `width * rows * (4 * cascades + 1)` values (`4 * cascades` in version 1).
     pub cells: Vec<u64>,
 }
 
@@ -99,7 +110,10 @@ pub enum StateError {
         found: Vec<u8>,
     },
     /// A state of a version this build cannot read.
-    #[error("unsupported state format version {found}; this build reads version {supported}")]
+    #[error(
+        "unsupported state format version {found}; this build reads version {supported} \
+         (version 1 states, with 32 fractional bits, must be re-exported by a current server)"
+    )]
     UnsupportedVersion {
         /// Version found.
         found: u16,
@@ -181,7 +195,13 @@ struct Header {
 impl StateDump {
     /// Cells a state of this geometry must hold.
     pub fn expected_cells(&self) -> u64 {
-        expected_cells(self.width, self.rows_start, self.rows_end, self.cascades)
+        expected_cells(
+            self.width,
+            self.rows_start,
+            self.rows_end,
+            self.cascades,
+            STATE_VERSION,
+        )
     }
 
     /// Encodes the state in the layout of the module docs.
@@ -243,6 +263,17 @@ impl StateDump {
 
     /// Decodes an untrusted state body holding at most `max_cells` cells.
     pub fn decode(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
+        Self::decode_version(bytes, max_cells, STATE_VERSION)
+    }
+
+    /// Decodes an untrusted state body of the previous format version 1 (`4 * K` cells per
+    /// pixel in units of `2^-32`, see the module docs), for converting old snapshots. Its cells
+    /// are returned as they are: they do not fit a current state.
+    pub fn decode_v1(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
+        Self::decode_version(bytes, max_cells, STATE_VERSION_1)
+    }
+
+    fn decode_version(bytes: &[u8], max_cells: u64, wanted: u16) -> Result<StateDump, StateError> {
         let available = bytes.len() as u64;
         let magic_len = bytes.len().min(4);
         if bytes[..magic_len] != STATE_MAGIC[..magic_len] {
@@ -257,10 +288,10 @@ impl StateDump {
             });
         };
         let version = u16::from_le_bytes([v0, v1]);
-        if version != STATE_VERSION {
+        if version != wanted {
             return Err(StateError::UnsupportedVersion {
                 found: version,
-                supported: STATE_VERSION,
+                supported: wanted,
             });
         }
         let (header, header_len): (Header, usize) =
@@ -284,6 +315,7 @@ impl StateDump {
             header.rows_start,
             header.rows_end,
             header.cascades,
+            version,
         );
         if header.count != expected {
             return Err(StateError::Shape {
@@ -335,11 +367,11 @@ impl StateDump {
     }
 }
 
-fn expected_cells(width: u32, rows_start: u32, rows_end: u32, cascades: u32) -> u64 {
+fn expected_cells(width: u32, rows_start: u32, rows_end: u32, cascades: u32, version: u16) -> u64 {
+    let per_pixel = 4 * cascades as u64 + u64::from(version >= 2);
     (width as u64)
         .saturating_mul(rows_end.saturating_sub(rows_start) as u64)
-        .saturating_mul(4)
-        .saturating_mul(cascades as u64)
+        .saturating_mul(per_pixel)
 }
 
 #[cfg(test)]
@@ -357,12 +389,12 @@ mod tests {
             cascades: 2,
             lowest_scale: 0.125,
             luminance: [0.2126, 0.7152, 0.0722],
-            frac_bits: 32,
+            frac_bits: 26,
             origin: Some(Origin {
                 node: "node-a".into(),
                 seq: 7,
             }),
-            cells: (0..48)
+            cells: (0..54)
                 .map(|i| i * 0x0101_0101_0101 + u64::MAX / 3)
                 .collect(),
         }
@@ -437,5 +469,36 @@ mod tests {
         bytes[4] = 9;
         let err = StateDump::decode(&bytes, u64::MAX).unwrap_err();
         assert!(err.to_string().contains("version 9"), "{err}");
+    }
+
+    /// A version 1 state (4K cells per pixel, 32 fractional bits) is refused by name, and read
+    /// by `decode_v1` only.
+    #[test]
+    fn version_1_states_are_refused_and_read_only_on_request() {
+        let v1 = StateDump {
+            frac_bits: 32,
+            cells: (0..48).collect(),
+            ..dump()
+        };
+        let mut bytes = v1.encode();
+        bytes[4..6].copy_from_slice(&1u16.to_le_bytes());
+        // The header's count is the encoder's, 48 = 3 * 2 * 4 * 2: a version 1 count.
+        let err = StateDump::decode(&bytes, u64::MAX).unwrap_err();
+        assert_eq!(
+            err,
+            StateError::UnsupportedVersion {
+                found: 1,
+                supported: 2
+            }
+        );
+        assert!(
+            err.to_string().contains("version 1") && err.to_string().contains("version 2"),
+            "{err}"
+        );
+        assert_eq!(StateDump::decode_v1(&bytes, u64::MAX).unwrap(), v1);
+        assert!(matches!(
+            StateDump::decode_v1(&dump().encode(), u64::MAX),
+            Err(StateError::UnsupportedVersion { found: 2, .. })
+        ));
     }
 }

@@ -30,7 +30,7 @@ fn batch_strategy() -> impl Strategy<Value = Batch> {
 
 fn state_strategy() -> impl Strategy<Value = StateDump> {
     (1u32..6, 1u32..5, 2u32..5, any::<bool>()).prop_flat_map(|(w, h, k, origin)| {
-        let cells = (w * h * 4 * k) as usize;
+        let cells = (w * h * (4 * k + 1)) as usize;
         prop::collection::vec(any::<u64>(), cells).prop_map(move |cells| StateDump {
             frame: "f".into(),
             width: w,
@@ -41,7 +41,7 @@ fn state_strategy() -> impl Strategy<Value = StateDump> {
             cascades: k,
             lowest_scale: 0.125,
             luminance: [0.2126, 0.7152, 0.0722],
-            frac_bits: 32,
+            frac_bits: 26,
             origin: origin.then(|| Origin {
                 node: "n".into(),
                 seq: 3,

@@ -50,8 +50,11 @@ use super::store::FrameStore;
 
 const SNAPSHOT_MAGIC: [u8; 4] = *b"SPLC";
 /// 2 added the content digest of every applied batch (see `dedup`); version 1 snapshots are
-/// still read, their batches without digests.
-const SNAPSHOT_VERSION: u16 = 2;
+/// still read, their batches without digests. 3 holds states of state format version 2
+/// (`frac_bits` 26, a high word per pixel); the version 1 states of snapshots 1 and 2 are
+/// converted when read, and a frame whose old state had a saturated sum (which cannot be
+/// converted honestly) is quarantined.
+const SNAPSHOT_VERSION: u16 = 3;
 const SNAPSHOT_FILE: &str = "snapshot.bin";
 const SNAPSHOT_TMP: &str = "snapshot.tmp";
 const FRAME_FILE: &str = "frame.json";
@@ -659,8 +662,15 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
     );
     for _ in 0..bands {
         let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
-        let dump = StateDump::decode(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
-        let band = crate::export::load(dump).map_err(|e| damaged(e.to_string()))?;
+        let band = if version >= 3 {
+            let dump = StateDump::decode(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
+            crate::export::load(dump)
+        } else {
+            let dump =
+                StateDump::decode_v1(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
+            crate::export::load_v1(dump)
+        }
+        .map_err(|e| damaged(e.to_string()))?;
         whole.merge(&band).map_err(|e| damaged(e.to_string()))?;
     }
     ShardedFrame::restore(spec, &whole, meta.seen, meta.counters, meta.version)
@@ -748,7 +758,7 @@ mod tests {
         post(&f, 4, 0);
         durable.snapshot(&f).await.unwrap();
 
-        // Rewrite the snapshot as version 1 wrote it: the same cells, metadata without digests.
+        // Rewrite the snapshot as version 1 wrote it: metadata without digests.
         let path = dir.path().join("frames/f").join(SNAPSHOT_FILE);
         let bytes = fs::read(&path).unwrap();
         let body = &bytes[..bytes.len() - 4];
@@ -764,15 +774,9 @@ mod tests {
             nodes: meta.seen.nodes,
         };
         let v1 = bincode::serde::encode_to_vec(&v1, bincode::config::legacy()).unwrap();
-        let mut old = Vec::new();
-        old.extend_from_slice(&SNAPSHOT_MAGIC);
-        old.extend_from_slice(&1u16.to_le_bytes());
-        old.extend_from_slice(&(v1.len() as u64).to_le_bytes());
-        old.extend_from_slice(&v1);
-        old.extend_from_slice(&body[14 + meta_len..]);
-        let crc = crc32fast::hash(&old);
-        old.extend_from_slice(&crc.to_le_bytes());
-        fs::write(&path, old).unwrap();
+        // And its cells as state format version 1 held them.
+        let whole = recover(dir.path()).get("f").unwrap().cut().whole();
+        fs::write(&path, old_snapshot(1, &v1, &[v1_state(&whole, "f", None)])).unwrap();
 
         let store = recover(dir.path());
         let back = store.get("f").unwrap();
@@ -783,6 +787,99 @@ mod tests {
             "old ids stay applied"
         );
         post(&back, 4, 1);
+    }
+
+    /// The body of `state` as state format version 1 wrote it: 2^-32 units (64 times finer,
+    /// plus a remainder that rounds away), `4K` cells per pixel, no high word; pixel `saturate`
+    /// gets a top-cascade sum saturated at `u64::MAX`.
+    fn v1_state(state: &FrameState, id: &str, saturate: Option<usize>) -> Vec<u8> {
+        let k = state.layout().cascades();
+        let mut cells = Vec::new();
+        for cell in state.cells().chunks_exact(splatd_estimator::cell_len(k)) {
+            assert_eq!(cell[4 * k], 0, "no high word in an old state");
+            for (i, &v) in cell[..4 * k].iter().enumerate() {
+                cells.push(if i % 4 == 3 { v * 64 } else { v * 64 + 17 });
+            }
+        }
+        if let Some(pixel) = saturate {
+            cells[pixel * 4 * k + 4 * (k - 1)] = u64::MAX;
+        }
+        let mut dump = crate::export::dump(state, id, None);
+        dump.frac_bits = 32;
+        dump.cells = cells;
+        let mut body = dump.encode();
+        body[4..6].copy_from_slice(&1u16.to_le_bytes());
+        body
+    }
+
+    /// A snapshot of `version` with metadata `meta` and `states` as its bands.
+    fn old_snapshot(version: u16, meta: &[u8], states: &[Vec<u8>]) -> Vec<u8> {
+        let mut old = Vec::new();
+        old.extend_from_slice(&SNAPSHOT_MAGIC);
+        old.extend_from_slice(&version.to_le_bytes());
+        old.extend_from_slice(&(meta.len() as u64).to_le_bytes());
+        old.extend_from_slice(meta);
+        old.extend_from_slice(&(states.len() as u32).to_le_bytes());
+        for state in states {
+            old.extend_from_slice(&(state.len() as u64).to_le_bytes());
+            old.extend_from_slice(state);
+        }
+        let crc = crc32fast::hash(&old);
+        old.extend_from_slice(&crc.to_le_bytes());
+        old
+    }
+
+    /// Snapshots of versions 1 and 2 hold states of format version 1 (32 fractional bits, `4K`
+    /// cells per pixel): they are converted when read, and a saturated sum, which cannot be
+    /// converted honestly, quarantines the frame, naming the pixel.
+    #[tokio::test]
+    async fn version_2_snapshots_with_old_states_are_converted() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        for id in ["f", "sat"] {
+            let f = frame(id);
+            durable.frame_created(&f).await.unwrap();
+            post(&f, 4, 0);
+            let bright = vec![
+                Record::new(5, 7, [1e5, 2.0, 3e4]),
+                Record::new(0, 0, [0.3; 3]),
+            ];
+            let batch = Batch::new(id, 4, 1, bright).unwrap();
+            f.ingest(&batch).unwrap();
+            durable.snapshot(&f).await.unwrap();
+        }
+        let expected = recover(dir.path()).get("f").unwrap().cut().whole();
+
+        for (id, saturate) in [("f", false), ("sat", true)] {
+            let path = dir.path().join("frames").join(id).join(SNAPSHOT_FILE);
+            let bytes = fs::read(&path).unwrap();
+            let body = &bytes[..bytes.len() - 4];
+            let meta_len = u64::from_le_bytes(body[6..14].try_into().unwrap()) as usize;
+            let meta = &body[14..14 + meta_len];
+            let state = v1_state(&expected, id, saturate.then_some(7 * 8 + 5));
+            fs::write(&path, old_snapshot(2, meta, &[state])).unwrap();
+        }
+
+        let store = FrameStore::new(Limits::default());
+        let durable = open(dir.path());
+        assert_eq!(durable.recover(&store).unwrap(), 1);
+        let back = store.get("f").unwrap();
+        assert_eq!(back.cut().whole(), expected, "converted exactly");
+        assert_eq!(back.info().samples, 22);
+        let q = durable.quarantined();
+        assert_eq!(q.len(), 1);
+        assert_eq!(q[0].frame, "sat");
+        assert!(
+            q[0].reason.contains("pixel (5, 7)") && q[0].reason.contains("saturated"),
+            "{}",
+            q[0].reason
+        );
+        // The next snapshot is written in the current versions and read back as it is.
+        post(&back, 4, 2);
+        durable.snapshot(&back).await.unwrap();
+        let bytes = fs::read(dir.path().join("frames/f").join(SNAPSHOT_FILE)).unwrap();
+        assert_eq!(u16::from_le_bytes([bytes[4], bytes[5]]), SNAPSHOT_VERSION);
+        assert_eq!(recover(dir.path()).get("f").unwrap().info().samples, 42);
     }
 
     /// A damaged or missing file never reads as an empty frame: the frame is moved aside and

@@ -6,7 +6,7 @@
 
 use splatd_proto::{Origin, StateDump};
 
-use splatd_estimator::{CascadeLayout, FrameState, ParamError, ShapeError, FRAC_BITS};
+use splatd_estimator::{CascadeLayout, CellsError, FrameState, ParamError, FRAC_BITS};
 
 /// An imported state that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -20,9 +20,9 @@ pub enum ImportError {
         /// Bits in the state.
         found: u32,
     },
-    /// Its cells do not fit its geometry.
+    /// Its cells do not fit its geometry, or hold what no checked samples could have made.
     #[error(transparent)]
-    Shape(#[from] ShapeError),
+    Cells(#[from] CellsError),
 }
 
 /// The wire form of a state (a whole frame or a band).
@@ -104,6 +104,29 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
         dump.rows_start..dump.rows_end,
         layout,
         dump.cells,
+    )?)
+}
+
+/// Fractional bits of state format version 1.
+const V1_FRAC_BITS: u32 = 32;
+
+/// A state from its version 1 wire form ([`StateDump::decode_v1`]: 32 fractional bits, `4K`
+/// cells per pixel), converted to the current cells
+/// ([`FrameState::from_frac32_cells`]). A sum that saturated cannot be converted and is refused,
+/// naming its pixel.
+pub fn load_v1(dump: StateDump) -> Result<FrameState, ImportError> {
+    if dump.frac_bits != V1_FRAC_BITS {
+        return Err(ImportError::FracBits {
+            found: dump.frac_bits,
+        });
+    }
+    let layout = CascadeLayout::new(dump.base, dump.cascades, dump.lowest_scale, dump.luminance)?;
+    Ok(FrameState::from_frac32_cells(
+        dump.width,
+        dump.height,
+        dump.rows_start..dump.rows_end,
+        layout,
+        &dump.cells,
     )?)
 }
 

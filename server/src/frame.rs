@@ -14,8 +14,8 @@ use splatd_proto::api::{CreateFrame, FrameInfo};
 use splatd_proto::{Batch, Origin};
 
 use splatd_estimator::{
-    self as estimator, cell_len, cell_spp, check_sample, resolve_bands, CascadeLayout, FrameState,
-    MergeError, ParamError, Resolved, SampleError,
+    self as estimator, cell_len, cell_spp, resolve_bands, CascadeLayout, FrameState, MergeError,
+    ParamError, Resolved, SampleError, MAX_PIXEL_SAMPLES,
 };
 
 use super::dedup::{BatchId, Seen};
@@ -452,11 +452,14 @@ impl ShardedFrame {
                     },
                 });
             }
-            check_sample(r.rgb).map_err(|error| IngestError::Sample {
-                index,
-                record: *r,
-                error,
-            })?;
+            self.spec
+                .layout
+                .check_sample(r.rgb)
+                .map_err(|error| IngestError::Sample {
+                    index,
+                    record: *r,
+                    error,
+                })?;
             let band = if single {
                 0
             } else {
@@ -473,7 +476,29 @@ impl ShardedFrame {
                 frame: self.id().to_owned(),
             });
         }
-        match lock(&self.seen).insert_batch(batch.worker, batch.seq, digest) {
+        // The bands this batch touches, locked top to bottom (as every holder of several bands
+        // locks them), so that the room check below and the additions see the same cells.
+        let mut guards: Vec<Option<MutexGuard<'_, FrameState>>> = self
+            .bands
+            .iter()
+            .zip(&buckets)
+            .map(|(band, samples)| (!samples.is_empty()).then(|| lock(band)))
+            .collect();
+        let id = lock(&self.seen).check_batch(batch.worker, batch.seq, digest);
+        if id == BatchId::New {
+            for (guard, samples) in guards.iter().zip(&buckets) {
+                if let Some((x, y)) = guard.as_deref().and_then(|g| first_full(g, samples)) {
+                    let spp = guard.as_deref().map_or(0, |g| g.spp(x, y));
+                    return Err(pixel_full(batch, x, y, spp));
+                }
+            }
+        }
+        // Checked again while recording: a batch with the same id may have been applied since.
+        let id = match id {
+            BatchId::New => lock(&self.seen).insert_batch(batch.worker, batch.seq, digest),
+            other => other,
+        };
+        match id {
             BatchId::New => {}
             BatchId::Retry => {
                 return Ok(Ingested {
@@ -490,12 +515,11 @@ impl ShardedFrame {
                 })
             }
         }
-        for (band, samples) in self.bands.iter().zip(buckets) {
-            if samples.is_empty() {
-                continue;
+        for (guard, samples) in guards.iter_mut().zip(buckets) {
+            if let Some(mut band) = guard.take() {
+                let report = band.splat_all(samples);
+                debug_assert_eq!(report.rejected(), 0, "records were checked above");
             }
-            let report = lock(band).splat_all(samples);
-            debug_assert_eq!(report.rejected(), 0, "records were checked above");
         }
         let n = batch.records.len() as u64;
         self.counters.samples.fetch_add(n, Ordering::Relaxed);
@@ -541,17 +565,29 @@ impl ShardedFrame {
                 frame: self.id().to_owned(),
             });
         }
+        // Every band, locked top to bottom (as every holder of several bands locks them), so
+        // that the room check and the additions see the same cells.
+        let mut bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
+        if let Some(o) = origin {
+            let seen = lock(&self.seen);
+            if seen.nodes.get(&o.node).is_some_and(|s| s.contains(o.seq)) {
+                return Ok(false);
+            }
+        }
+        for band in &bands {
+            band.check_room_for(state).map_err(mismatch)?;
+        }
         if let Some(o) = origin {
             if !lock(&self.seen).insert_delta(&o.node, o.seq) {
                 return Ok(false);
             }
         }
-        for band in &self.bands {
-            // Every band has the frame's size and layout, checked above for band 0.
-            lock(band)
-                .merge_overlap(state)
-                .expect("a band has its frame's size and layout");
+        for band in &mut bands {
+            // Every band has the frame's size and layout, checked above for band 0, and room.
+            band.merge_overlap(state)
+                .expect("a band has its frame's size and layout, and room for the state");
         }
+        drop(bands);
         self.counters
             .samples
             .fetch_add(state.total_samples(), Ordering::Relaxed);
@@ -648,6 +684,47 @@ impl ShardedFrame {
             rejected_batches: c.rejected_batches,
             memory_bytes: self.spec.memory_bytes(),
         }
+    }
+}
+
+/// The first pixel of `samples` (of one band) that cannot take all of its samples in `band`.
+fn first_full(band: &FrameState, samples: &[(u32, u32, [f32; 3])]) -> Option<(u32, u32)> {
+    let n = samples.len() as u64;
+    if band.total_samples().saturating_add(n) <= MAX_PIXEL_SAMPLES {
+        return None;
+    }
+    // Near the limit: count the samples of the pixels that could not take the whole batch.
+    let mut near: std::collections::HashMap<(u32, u32), u64> = Default::default();
+    for &(x, y, _) in samples {
+        if !band.has_room(x, y, n) {
+            *near.entry((x, y)).or_default() += 1;
+        }
+    }
+    samples
+        .iter()
+        .map(|&(x, y, _)| (x, y))
+        .find(|&(x, y)| near.get(&(x, y)).is_some_and(|&k| !band.has_room(x, y, k)))
+}
+
+/// The refusal of `batch` because pixel `(x, y)`, holding `spp` samples, cannot take them all:
+/// names the record that would go past the limit.
+#[cold]
+fn pixel_full(batch: &Batch, x: u32, y: u32, spp: u64) -> IngestError {
+    let mut held = spp;
+    let (index, record) = batch
+        .records
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| (r.x, r.y) == (x, y))
+        .find(|_| {
+            held += 1;
+            held > MAX_PIXEL_SAMPLES
+        })
+        .expect("the pixel cannot take its records");
+    IngestError::Sample {
+        index,
+        record: *record,
+        error: SampleError::PixelFull { x, y },
     }
 }
 
@@ -880,6 +957,78 @@ mod tests {
             !frame.cut().seen.nodes.contains_key("m"),
             "a refused import's origin is not recorded"
         );
+    }
+
+    /// A batch with a sample brighter than the layout represents, or one that would put more
+    /// than 2^32 samples in a pixel, is refused whole and counted; so is an import that would.
+    #[test]
+    fn too_bright_samples_and_full_pixels_are_refused_whole() {
+        let frame = ShardedFrame::new(spec(4, 40));
+        let max = frame.spec().layout.max_component() as f32;
+        let mut recs: Vec<Record> = (0..40).map(|y| Record::new(1, y, [max; 3])).collect();
+        recs[30].rgb[2] = 1e14;
+        let err = frame.ingest(&batch(1, 0, recs.clone())).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                IngestError::Sample {
+                    index: 30,
+                    error: SampleError::TooBright { .. },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert!(err.to_string().contains("largest representable"), "{err}");
+        assert_eq!(frame.version(), 0);
+        recs[30].rgb[2] = max;
+        assert_eq!(frame.ingest(&batch(1, 0, recs)).unwrap().accepted, 40);
+
+        // Fill pixel (2, 3) to 2^32 samples, by an import.
+        let mut full = FrameState::new(4, 40, frame.spec().layout.clone());
+        full.splat(2, 3, [1.0; 3]).unwrap();
+        for _ in 0..32 {
+            let copy = full.clone();
+            full.merge(&copy).unwrap();
+        }
+        assert!(frame.import("f", &full, None).unwrap());
+        let before = frame.cut().whole();
+        let recs = vec![
+            Record::new(0, 0, [1.0; 3]),
+            Record::new(2, 3, [1.0; 3]),
+            Record::new(3, 3, [1.0; 3]),
+        ];
+        let err = frame.ingest(&batch(1, 1, recs)).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                IngestError::Sample {
+                    index: 1,
+                    error: SampleError::PixelFull { x: 2, y: 3 },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        let mut one = FrameState::new(4, 40, frame.spec().layout.clone());
+        one.splat(2, 3, [1.0; 3]).unwrap();
+        one.splat(0, 39, [1.0; 3]).unwrap();
+        let err = frame.import("f", &one, None).unwrap_err();
+        assert_eq!(
+            err,
+            ImportRefused::Mismatch {
+                frame: "f".into(),
+                error: MergeError::TooManySamples { x: 2, y: 3 }
+            }
+        );
+        assert_eq!(frame.cut().whole(), before, "nothing of either applied");
+        let info = frame.info();
+        assert_eq!(info.samples, 40 + (1 << 32));
+        assert_eq!(info.spp_max, 1 << 32);
+        assert_eq!((info.rejected_batches, info.rejected_samples), (2, 43));
+        // Other pixels still take samples.
+        let ok = vec![Record::new(0, 0, [1.0; 3]), Record::new(3, 39, [2.0; 3])];
+        assert_eq!(frame.ingest(&batch(1, 2, ok)).unwrap().accepted, 2);
     }
 
     /// After `retire` returns, nothing is applied: batches and imports are refused by name.

@@ -8,7 +8,7 @@
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 use axum::Json;
-use splatd_estimator::{ParamError, SampleError};
+use splatd_estimator::{MergeError, ParamError, SampleError};
 use splatd_proto::{ErrorBody, StateError, WireError};
 
 use crate::durable::DurabilityError;
@@ -144,6 +144,8 @@ impl From<IngestError> for ApiError {
                 SampleError::OutOfFrame { .. } => "pixel_out_of_range",
                 SampleError::NonFinite => "non_finite_sample",
                 SampleError::Negative => "negative_sample",
+                SampleError::TooBright { .. } => "sample_too_bright",
+                SampleError::PixelFull { .. } => "pixel_full",
             },
         };
         ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, code, e.to_string())
@@ -156,6 +158,10 @@ impl From<ImportRefused> for ApiError {
             ImportRefused::WrongFrame { .. } => {
                 ApiError::bad_request("frame_mismatch", e.to_string())
             }
+            ImportRefused::Mismatch {
+                error: MergeError::TooManySamples { .. },
+                ..
+            } => ApiError::new(StatusCode::CONFLICT, "too_many_samples", e.to_string()),
             ImportRefused::Mismatch { .. } => {
                 ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string())
             }
