@@ -11,7 +11,8 @@ use clap::{Args, Parser, Subcommand};
 
 use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_proto::batchfile::BatchReader;
-use splatd_proto::{DecodeLimits, StateDump};
+use splatd_proto::{Applied, DecodeLimits, StateDump};
+use splatd_server::dedup::Seen;
 use splatd_server::frame::core_resolve_params;
 use splatd_server::image::{cascade_layers, encode_exr};
 use splatd_server::server::{shutdown_signal, Server};
@@ -279,21 +280,25 @@ fn is_state_file(path: &Path) -> Result<bool> {
     Ok(n == 4 && &magic == b"SPLS")
 }
 
-fn read_state(path: &Path) -> Result<(String, FrameState)> {
+/// A state file: its frame id, cells and the batches they hold.
+fn read_state(path: &Path) -> Result<(String, FrameState, Vec<Applied>)> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let dump = StateDump::decode(&bytes, u64::MAX)
+    let mut dump = StateDump::decode(&bytes, u64::MAX)
         .with_context(|| format!("{} is not a valid state", path.display()))?;
     let frame = dump.frame.clone();
+    let batches = std::mem::take(&mut dump.batches);
     let state =
         splatd_server::export::load(dump).with_context(|| format!("loading {}", path.display()))?;
-    Ok((frame, state))
+    Ok((frame, state, batches))
 }
 
-/// Adds state files together, checking they are of one frame.
-fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState)> {
-    let (frame, mut total) = read_state(&inputs[0])?;
+/// Adds state files together, checking they are of one frame and hold no batch twice.
+fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState, Seen)> {
+    let (frame, mut total, batches) = read_state(&inputs[0])?;
+    let mut seen = Seen::default();
+    seen.insert_applied(&batches);
     for path in &inputs[1..] {
-        let (other_frame, state) = read_state(path)?;
+        let (other_frame, state, batches) = read_state(path)?;
         if other_frame != frame {
             bail!(
                 "{} is a state of frame {other_frame:?}, but {} is of frame {frame:?}",
@@ -301,16 +306,27 @@ fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState)> {
                 inputs[0].display()
             );
         }
+        if let Some(o) = seen.overlap(&batches) {
+            bail!(
+                "{} holds {} batch(es) that the states before it hold too, the first (worker {}, \
+                 seq {}); merging it would count them twice",
+                path.display(),
+                o.count,
+                o.worker,
+                o.seq
+            );
+        }
         total
             .merge(&state)
             .with_context(|| format!("merging {}", path.display()))?;
+        seen.insert_applied(&batches);
     }
-    Ok((frame, total))
+    Ok((frame, total, seen))
 }
 
 fn merge(inputs: &[PathBuf], output: &Path) -> Result<()> {
-    let (frame, total) = merge_states(inputs)?;
-    let bytes = splatd_server::export::dump(&total, &frame, None).encode();
+    let (frame, total, seen) = merge_states(inputs)?;
+    let bytes = splatd_server::export::dump(&total, &frame, None, seen.applied()).encode();
     std::fs::write(output, bytes).with_context(|| format!("writing {}", output.display()))?;
     println!(
         "merged {} states of frame {frame:?} ({} samples) into {}",

@@ -22,24 +22,53 @@
 //! | `luminance` | `3 x f64` | brightness weights |
 //! | `frac_bits` | `u32` | fixed-point fractional bits (26) |
 //! | `origin` | `u8` tag (0 none, 1 some) + string + `u64` | push delta id: sending node, sequence |
-//! | `count` | `u64` | number of cells that follow |
 //!
-//! Then `count` cells, `u64` each. Pixels are row-major within the rows held; each pixel has `K`
-//! groups of `[r, g, b, count]` and then one *high word*, so
-//! `count == width * (rows_end - rows_start) * (4 * K + 1)`. A group holds the RGB sums of
-//! cascade `j` in units of `c_j * 2^-frac_bits` (`c_j = lowest_scale * base^j`) and its
-//! fractional sample count in units of `2^-frac_bits`. The high word holds the bits above 64 of
-//! the top cascade's (`j = K - 1`) r, g and b sums, 21 bits each (r in bits 0..21, g in 21..42,
-//! b in 42..63; bit 63 is 0): its sums are `hi * 2^64 + lo`. A pixel's sample count is the sum of
-//! its counts divided by `2^frac_bits` (exact: every sample adds exactly one), at most `2^32`.
-//! A receiver checks every pixel against these bounds (see `splatd_estimator`'s state module).
+//! **Cells.** Each pixel has `K` groups of `[r, g, b, count]` and then one *high word*: `4K + 1`
+//! `u64` cells. A group holds the RGB sums of cascade `j` in units of `c_j * 2^-frac_bits`
+//! (`c_j = lowest_scale * base^j`) and its fractional sample count in units of `2^-frac_bits`.
+//! The high word holds the bits above 64 of the top cascade's (`j = K - 1`) r, g and b sums,
+//! 21 bits each (r in bits 0..21, g in 21..42, b in 42..63; bit 63 is 0): its sums are
+//! `hi * 2^64 + lo`. A pixel's sample count is the sum of its counts divided by `2^frac_bits`
+//! (exact: every sample adds exactly one), at most `2^32`. A receiver checks every pixel against
+//! these bounds (see `splatd_estimator`'s state module).
 //!
-//! Version 1 (`frac_bits` 32, `4 * K` cells per pixel, sums that saturated) is refused by
-//! [`StateDump::decode`], naming both versions; [`StateDump::decode_v1`] reads it for servers
-//! that convert old snapshots.
+//! Pixels are numbered row-major from 0 within the rows held, and only pixels holding something
+//! (some cell not 0) are sent, in *runs* of consecutive such pixels:
 //!
-//! Decoding checks the declared count against the geometry and the bytes present before it
-//! allocates anything.
+//! | field | type | meaning |
+//! | --- | --- | --- |
+//! | `first` | `u32` | number of the run's first pixel |
+//! | `pixels` | `u32` | pixels in the run, at least 1 |
+//! | cells | `pixels * (4K + 1)` x `u64` | the run's pixels, in order |
+//!
+//! Runs are maximal: every pixel in a run holds something, and between two runs lies at least
+//! one empty pixel. A run header with `pixels = 0` and `first` = the number of pixels held ends
+//! the list. So a push delta in which 1 % of the pixels changed is about 1 % of a full state,
+//! and a full frame costs 8 bytes more than its cells.
+//!
+//! **Applied batches.** Last, the batches whose samples the state holds, so that a receiver can
+//! refuse a state that would count a batch twice (a worker that resent a batch to another node
+//! when its first node failed leaves the batch in both nodes' states). A `u64` count of
+//! workers, then per worker, in increasing worker order:
+//!
+//! | field | type | meaning |
+//! | --- | --- | --- |
+//! | `worker` | `u64` | the worker id of the batches |
+//! | `ranges` | `u64` | number of ranges that follow |
+//! | ranges | `ranges` x (`u64` start, `u64` end) | sequence numbers `start..end`, increasing, non-empty, with a gap between two ranges |
+//! | digests | one `u64` per sequence number, in order | the batch's content digest (`0`: not recorded) |
+//!
+//! A state that holds only some rows of a frame lists every batch with samples in those rows.
+//! Snapshot bands list none: a snapshot keeps the frame's applied batches itself.
+//!
+//! Version 1 (`frac_bits` 32, `4 * K` dense cells per pixel after a `u64` count in the header,
+//! sums that saturated, no batches) is refused by [`StateDump::decode`], naming both versions;
+//! [`StateDump::decode_v1`] reads it for servers that convert old snapshots.
+//!
+//! Decoding checks the geometry against the receiver's limit before it allocates anything, and
+//! every count against the bytes present.
+
+use std::ops::Range;
 
 use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
 use serde::{Deserialize, Serialize};
@@ -96,8 +125,83 @@ pub struct StateDump {
     pub frac_bits: u32,
     /// Set on push deltas: who sent it, and which of its deltas it is.
     pub origin: Option<Origin>,
-    /// The cells: `width * rows * (4 * cascades + 1)` values (`4 * cascades` in version 1).
+    /// The cells: `width * rows * (4 * cascades + 1)` values (`4 * cascades` in version 1),
+    /// empty pixels included.
     pub cells: Vec<u64>,
+    /// The batches whose samples the state holds, by increasing worker id.
+    pub batches: Vec<Applied>,
+}
+
+/// The batches of one worker that a state holds.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Applied {
+    /// The worker id.
+    pub worker: u64,
+    /// Sequence numbers, as increasing, non-empty ranges with a gap between two of them.
+    pub ranges: Vec<Range<u64>>,
+    /// The content digest of each batch, one per sequence number in `ranges`, in order; `0`
+    /// where none was recorded.
+    pub digests: Vec<u64>,
+}
+
+impl Applied {
+    /// Number of batches.
+    pub fn len(&self) -> u64 {
+        self.ranges.iter().map(|r| r.end - r.start).sum()
+    }
+
+    /// Whether it names no batch.
+    pub fn is_empty(&self) -> bool {
+        self.ranges.is_empty()
+    }
+
+    /// Every `(seq, digest)`, in increasing `seq` order; digest `None` where none was recorded.
+    pub fn batches(&self) -> impl Iterator<Item = (u64, Option<u64>)> + '_ {
+        self.ranges
+            .iter()
+            .flat_map(|r| r.clone())
+            .zip(&self.digests)
+            .map(|(seq, &d)| (seq, (d != 0).then_some(d)))
+    }
+
+    /// Builds the entry of `worker` from `(seq, digest)` pairs in strictly increasing `seq`
+    /// order.
+    pub fn from_batches(
+        worker: u64,
+        batches: impl IntoIterator<Item = (u64, Option<u64>)>,
+    ) -> Applied {
+        let mut applied = Applied {
+            worker,
+            ..Applied::default()
+        };
+        for (seq, digest) in batches {
+            match applied.ranges.last_mut() {
+                Some(last) if last.end == seq => last.end += 1,
+                Some(last) => {
+                    assert!(seq > last.end, "sequence numbers must increase");
+                    applied.ranges.push(seq..seq + 1);
+                }
+                None => applied.ranges.push(seq..seq + 1),
+            }
+            applied.digests.push(digest.unwrap_or(0));
+        }
+        applied
+    }
+
+    /// Checks the invariants the encoding relies on.
+    fn check(&self) -> Result<(), String> {
+        let mut end = None;
+        for r in &self.ranges {
+            if r.start >= r.end || end.is_some_and(|e| r.start <= e) {
+                return Err(format!(
+                    "worker {}: sequence ranges must be non-empty, increasing and apart, found {}..{} after {:?}",
+                    self.worker, r.start, r.end, end
+                ));
+            }
+            end = Some(r.end);
+        }
+        Ok(())
+    }
 }
 
 /// Why a state body was refused.
@@ -150,8 +254,8 @@ pub enum StateError {
         /// The limit.
         max: u64,
     },
-    /// Bytes after the last cell.
-    #[error("state has {count} unexpected bytes after its last cell")]
+    /// Bytes after the end of the state.
+    #[error("state has {count} unexpected bytes after its end")]
     TrailingBytes {
         /// Extra bytes.
         count: usize,
@@ -189,11 +293,17 @@ struct Header {
     luminance: [f64; 3],
     frac_bits: u32,
     origin: Option<Origin>,
+}
+
+/// The header of version 1, which declared its (dense) cell count.
+#[derive(Serialize, Deserialize)]
+struct HeaderV1 {
+    header: Header,
     count: u64,
 }
 
 impl StateDump {
-    /// Cells a state of this geometry must hold.
+    /// Cells a state of this geometry holds, empty pixels included.
     pub fn expected_cells(&self) -> u64 {
         expected_cells(
             self.width,
@@ -224,14 +334,53 @@ impl StateDump {
     }
 
     /// Like [`StateDump::write_with_cells`], with the cells given as consecutive parts (a
-    /// frame's row bands, top to bottom), so they need not be gathered into one buffer first.
+    /// frame's row bands, top to bottom, each of whole pixels), so they need not be gathered
+    /// into one buffer first.
     pub fn write_with_cell_parts(
         &self,
         parts: &[&[u64]],
         out: &mut impl std::io::Write,
     ) -> std::io::Result<()> {
-        let count: usize = parts.iter().map(|p| p.len()).sum();
-        let header = Header {
+        out.write_all(&STATE_MAGIC)?;
+        out.write_all(&STATE_VERSION.to_le_bytes())?;
+        out.write_all(&self.header_bytes())?;
+        let pixels = Pixels::new(parts, self.cell_len());
+        let mut block = Vec::with_capacity(8 * 8192);
+        for run in pixels.runs() {
+            block.extend_from_slice(&(run.start as u32).to_le_bytes());
+            block.extend_from_slice(&((run.end - run.start) as u32).to_le_bytes());
+            for cells in pixels.cells(run) {
+                // Convert in blocks: one write per 64 KiB instead of one per cell.
+                for chunk in cells.chunks(8192) {
+                    if block.len() + 8 * chunk.len() > block.capacity() {
+                        out.write_all(&block)?;
+                        block.clear();
+                    }
+                    block.extend(chunk.iter().flat_map(|c| c.to_le_bytes()));
+                }
+            }
+        }
+        block.extend_from_slice(&(pixels.count() as u32).to_le_bytes());
+        block.extend_from_slice(&0u32.to_le_bytes());
+        out.write_all(&block)?;
+        out.write_all(&self.batches_bytes())
+    }
+
+    /// The length of [`StateDump::write_with_cell_parts`]'s output, without writing it.
+    pub fn encoded_len_with_cell_parts(&self, parts: &[&[u64]]) -> u64 {
+        let pixels = Pixels::new(parts, self.cell_len());
+        let runs: Vec<Range<usize>> = pixels.runs().collect();
+        let cells: usize = runs.iter().map(|r| r.len() * self.cell_len()).sum();
+        (6 + self.header_bytes().len() + 8 * (runs.len() + 1) + 8 * cells) as u64
+            + self.batches_bytes().len() as u64
+    }
+
+    fn cell_len(&self) -> usize {
+        4 * self.cascades as usize + 1
+    }
+
+    fn header(&self) -> Header {
+        Header {
             frame: self.frame.clone(),
             width: self.width,
             height: self.height,
@@ -243,97 +392,109 @@ impl StateDump {
             luminance: self.luminance,
             frac_bits: self.frac_bits,
             origin: self.origin.clone(),
-            count: count as u64,
-        };
-        out.write_all(&STATE_MAGIC)?;
-        out.write_all(&STATE_VERSION.to_le_bytes())?;
-        let header = bincode::serde::encode_to_vec(&header, HEADER_CONFIG)
-            .expect("bincode encoding of a state header is infallible");
-        out.write_all(&header)?;
-        // Convert in blocks: one write per 64 KiB instead of one per cell.
-        let mut block = [0u8; 8 * 8192];
-        for chunk in parts.iter().flat_map(|p| p.chunks(8192)) {
-            for (dst, cell) in block.chunks_exact_mut(8).zip(chunk) {
-                dst.copy_from_slice(&cell.to_le_bytes());
-            }
-            out.write_all(&block[..8 * chunk.len()])?;
         }
-        Ok(())
     }
 
-    /// Decodes an untrusted state body holding at most `max_cells` cells.
+    fn header_bytes(&self) -> Vec<u8> {
+        bincode::serde::encode_to_vec(self.header(), HEADER_CONFIG)
+            .expect("bincode encoding of a state header is infallible")
+    }
+
+    fn batches_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        out.extend_from_slice(&(self.batches.len() as u64).to_le_bytes());
+        for a in &self.batches {
+            out.extend_from_slice(&a.worker.to_le_bytes());
+            out.extend_from_slice(&(a.ranges.len() as u64).to_le_bytes());
+            for r in &a.ranges {
+                out.extend_from_slice(&r.start.to_le_bytes());
+                out.extend_from_slice(&r.end.to_le_bytes());
+            }
+            for d in &a.digests {
+                out.extend_from_slice(&d.to_le_bytes());
+            }
+        }
+        out
+    }
+
+    /// Encodes the state in version 1's layout (dense cells, as they are; no batches), for
+    /// tests of the conversion of old snapshots.
+    #[doc(hidden)]
+    pub fn encode_v1(&self) -> Vec<u8> {
+        let mut out = STATE_MAGIC.to_vec();
+        out.extend_from_slice(&STATE_VERSION_1.to_le_bytes());
+        let header = HeaderV1 {
+            header: self.header(),
+            count: self.cells.len() as u64,
+        };
+        out.extend(
+            bincode::serde::encode_to_vec(&header, HEADER_CONFIG)
+                .expect("bincode encoding of a state header is infallible"),
+        );
+        out.extend(self.cells.iter().flat_map(|c| c.to_le_bytes()));
+        out
+    }
+
+    /// Decodes an untrusted state body whose geometry holds at most `max_cells` cells.
     pub fn decode(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
-        Self::decode_version(bytes, max_cells, STATE_VERSION)
+        let body = preamble(bytes, STATE_VERSION)?;
+        let (header, header_len): (Header, usize) = decode_header(body, bytes.len())?;
+        let mut dump = StateDump::with_header(header)?;
+        let count = dump.expected_cells();
+        if count > max_cells {
+            return Err(StateError::TooLarge {
+                count,
+                max: max_cells,
+            });
+        }
+        let mut rest = Reader {
+            bytes: &body[header_len..],
+            at: 6 + header_len,
+            total: bytes.len(),
+        };
+        dump.cells = rest.runs(count, dump.cell_len())?;
+        dump.batches = rest.batches()?;
+        if !rest.bytes.is_empty() {
+            return Err(StateError::TrailingBytes {
+                count: rest.bytes.len(),
+            });
+        }
+        Ok(dump)
     }
 
     /// Decodes an untrusted state body of the previous format version 1 (`4 * K` cells per
     /// pixel in units of `2^-32`, see the module docs), for converting old snapshots. Its cells
     /// are returned as they are: they do not fit a current state.
     pub fn decode_v1(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
-        Self::decode_version(bytes, max_cells, STATE_VERSION_1)
-    }
-
-    fn decode_version(bytes: &[u8], max_cells: u64, wanted: u16) -> Result<StateDump, StateError> {
         let available = bytes.len() as u64;
-        let magic_len = bytes.len().min(4);
-        if bytes[..magic_len] != STATE_MAGIC[..magic_len] {
-            return Err(StateError::BadMagic {
-                found: bytes[..magic_len].to_vec(),
-            });
-        }
-        let Some((&[_, _, _, _, v0, v1], body)) = bytes.split_first_chunk::<6>() else {
-            return Err(StateError::Truncated {
-                needed: 6,
-                available,
-            });
-        };
-        let version = u16::from_le_bytes([v0, v1]);
-        if version != wanted {
-            return Err(StateError::UnsupportedVersion {
-                found: version,
-                supported: wanted,
-            });
-        }
-        let (header, header_len): (Header, usize) =
-            bincode::serde::decode_from_slice(body, HEADER_CONFIG).map_err(|e| match e {
-                bincode::error::DecodeError::UnexpectedEnd { additional } => {
-                    StateError::Truncated {
-                        needed: available.saturating_add(additional as u64),
-                        available,
-                    }
-                }
-                other => StateError::Malformed(other.to_string()),
-            })?;
-        if header.rows_start > header.rows_end || header.rows_end > header.height {
-            return Err(StateError::Malformed(format!(
-                "rows {}..{} do not lie in a frame of height {}",
-                header.rows_start, header.rows_end, header.height
-            )));
-        }
+        let body = preamble(bytes, STATE_VERSION_1)?;
+        let (HeaderV1 { header, count }, header_len): (HeaderV1, usize) =
+            decode_header(body, bytes.len())?;
+        let mut dump = StateDump::with_header(header)?;
         let expected = expected_cells(
-            header.width,
-            header.rows_start,
-            header.rows_end,
-            header.cascades,
-            version,
+            dump.width,
+            dump.rows_start,
+            dump.rows_end,
+            dump.cascades,
+            STATE_VERSION_1,
         );
-        if header.count != expected {
+        if count != expected {
             return Err(StateError::Shape {
-                count: header.count,
+                count,
                 expected,
-                width: header.width,
-                rows: header.rows_end - header.rows_start,
-                cascades: header.cascades,
+                width: dump.width,
+                rows: dump.rows_end - dump.rows_start,
+                cascades: dump.cascades,
             });
         }
-        if header.count > max_cells {
+        if count > max_cells {
             return Err(StateError::TooLarge {
-                count: header.count,
+                count,
                 max: max_cells,
             });
         }
         let cells_bytes = &body[header_len..];
-        let needed = header.count.saturating_mul(8);
+        let needed = count.saturating_mul(8);
         if (cells_bytes.len() as u64) < needed {
             return Err(StateError::Truncated {
                 needed: (6 + header_len as u64).saturating_add(needed),
@@ -346,10 +507,20 @@ impl StateDump {
                 count: cells_bytes.len() - needed as usize,
             });
         }
-        let cells = cells_bytes
+        dump.cells = cells_bytes
             .chunks_exact(8)
             .map(|c| u64::from_le_bytes(c.try_into().expect("8-byte chunk")))
             .collect();
+        Ok(dump)
+    }
+
+    fn with_header(header: Header) -> Result<StateDump, StateError> {
+        if header.rows_start > header.rows_end || header.rows_end > header.height {
+            return Err(StateError::Malformed(format!(
+                "rows {}..{} do not lie in a frame of height {}",
+                header.rows_start, header.rows_end, header.height
+            )));
+        }
         Ok(StateDump {
             frame: header.frame,
             width: header.width,
@@ -362,7 +533,220 @@ impl StateDump {
             luminance: header.luminance,
             frac_bits: header.frac_bits,
             origin: header.origin,
-            cells,
+            cells: Vec::new(),
+            batches: Vec::new(),
+        })
+    }
+}
+
+/// Checks the magic and the version; returns the bytes after them.
+fn preamble(bytes: &[u8], wanted: u16) -> Result<&[u8], StateError> {
+    let magic_len = bytes.len().min(4);
+    if bytes[..magic_len] != STATE_MAGIC[..magic_len] {
+        return Err(StateError::BadMagic {
+            found: bytes[..magic_len].to_vec(),
+        });
+    }
+    let Some((&[_, _, _, _, v0, v1], body)) = bytes.split_first_chunk::<6>() else {
+        return Err(StateError::Truncated {
+            needed: 6,
+            available: bytes.len() as u64,
+        });
+    };
+    let version = u16::from_le_bytes([v0, v1]);
+    if version != wanted {
+        return Err(StateError::UnsupportedVersion {
+            found: version,
+            supported: wanted,
+        });
+    }
+    Ok(body)
+}
+
+fn decode_header<H: serde::de::DeserializeOwned>(
+    body: &[u8],
+    total: usize,
+) -> Result<(H, usize), StateError> {
+    bincode::serde::decode_from_slice(body, HEADER_CONFIG).map_err(|e| match e {
+        bincode::error::DecodeError::UnexpectedEnd { additional } => StateError::Truncated {
+            needed: (total as u64).saturating_add(additional as u64),
+            available: total as u64,
+        },
+        other => StateError::Malformed(other.to_string()),
+    })
+}
+
+/// Reads the parts after the header, checking every count against the bytes left.
+struct Reader<'a> {
+    bytes: &'a [u8],
+    /// Offset of `bytes` in the whole body, and the body's length, for error messages.
+    at: usize,
+    total: usize,
+}
+
+impl<'a> Reader<'a> {
+    fn take(&mut self, n: u64) -> Result<&'a [u8], StateError> {
+        if (self.bytes.len() as u64) < n {
+            return Err(StateError::Truncated {
+                needed: (self.at as u64).saturating_add(n),
+                available: self.total as u64,
+            });
+        }
+        let (head, rest) = self.bytes.split_at(n as usize);
+        self.bytes = rest;
+        self.at += n as usize;
+        Ok(head)
+    }
+
+    fn u32(&mut self) -> Result<u32, StateError> {
+        Ok(u32::from_le_bytes(
+            self.take(4)?.try_into().expect("4 bytes"),
+        ))
+    }
+
+    fn u64(&mut self) -> Result<u64, StateError> {
+        Ok(u64::from_le_bytes(
+            self.take(8)?.try_into().expect("8 bytes"),
+        ))
+    }
+
+    /// The runs of a state of `count` cells, `cell_len` per pixel, expanded to all its cells.
+    fn runs(&mut self, count: u64, cell_len: usize) -> Result<Vec<u64>, StateError> {
+        let pixels = count / cell_len as u64;
+        let mut cells = vec![0u64; count as usize];
+        let mut next = 0u64; // the first pixel a run may start at
+        loop {
+            let first = self.u32()? as u64;
+            let n = self.u32()? as u64;
+            if n == 0 {
+                if first != pixels {
+                    return Err(StateError::Malformed(format!(
+                        "the run list ends with pixel {first}, not with the {pixels} pixels held"
+                    )));
+                }
+                return Ok(cells);
+            }
+            if first < next || first + n > pixels {
+                return Err(StateError::Malformed(format!(
+                    "a run of {n} pixels from pixel {first} does not lie after the previous run \
+                     (with a gap) in the {pixels} pixels held"
+                )));
+            }
+            let bytes = self.take(n * 8 * cell_len as u64)?;
+            let dst = &mut cells[first as usize * cell_len..(first + n) as usize * cell_len];
+            for (d, b) in dst.iter_mut().zip(bytes.chunks_exact(8)) {
+                *d = u64::from_le_bytes(b.try_into().expect("8 bytes"));
+            }
+            if let Some(i) = dst
+                .chunks_exact(cell_len)
+                .position(|p| p.iter().all(|&c| c == 0))
+            {
+                return Err(StateError::Malformed(format!(
+                    "pixel {} is in a run but holds nothing",
+                    first as usize + i
+                )));
+            }
+            next = first + n + 1;
+        }
+    }
+
+    fn batches(&mut self) -> Result<Vec<Applied>, StateError> {
+        let workers = self.u64()?;
+        // Each worker takes at least 16 bytes: no allocation by what the count claims.
+        if workers > self.bytes.len() as u64 / 16 {
+            return Err(StateError::Truncated {
+                needed: (self.at as u64).saturating_add(workers.saturating_mul(16)),
+                available: self.total as u64,
+            });
+        }
+        let mut all: Vec<Applied> = Vec::with_capacity(workers as usize);
+        for _ in 0..workers {
+            let worker = self.u64()?;
+            if all.last().is_some_and(|a| a.worker >= worker) {
+                return Err(StateError::Malformed(format!(
+                    "applied batches: worker {worker} is out of order"
+                )));
+            }
+            let n = self.u64()?;
+            let bytes = self.take(n.saturating_mul(16))?;
+            let ranges: Vec<Range<u64>> = bytes
+                .chunks_exact(16)
+                .map(|c| {
+                    let start = u64::from_le_bytes(c[..8].try_into().expect("8 bytes"));
+                    let end = u64::from_le_bytes(c[8..].try_into().expect("8 bytes"));
+                    start..end
+                })
+                .collect();
+            let mut applied = Applied {
+                worker,
+                ranges,
+                digests: Vec::new(),
+            };
+            applied.check().map_err(StateError::Malformed)?;
+            let digests = self.take(applied.len().saturating_mul(8))?;
+            applied.digests = digests
+                .chunks_exact(8)
+                .map(|c| u64::from_le_bytes(c.try_into().expect("8 bytes")))
+                .collect();
+            all.push(applied);
+        }
+        Ok(all)
+    }
+}
+
+/// A state's pixels, held in consecutive parts of whole pixels.
+struct Pixels<'a> {
+    parts: &'a [&'a [u64]],
+    cell_len: usize,
+    /// The number of the first pixel of each part, and one past the last pixel.
+    starts: Vec<usize>,
+}
+
+impl<'a> Pixels<'a> {
+    fn new(parts: &'a [&'a [u64]], cell_len: usize) -> Pixels<'a> {
+        let mut starts = vec![0];
+        for p in parts {
+            assert_eq!(p.len() % cell_len, 0, "parts hold whole pixels");
+            starts.push(starts[starts.len() - 1] + p.len() / cell_len);
+        }
+        Pixels {
+            parts,
+            cell_len,
+            starts,
+        }
+    }
+
+    fn count(&self) -> usize {
+        self.starts[self.starts.len() - 1]
+    }
+
+    /// Whether each pixel holds something, in order.
+    fn occupied(&self) -> impl Iterator<Item = bool> + '_ {
+        self.parts
+            .iter()
+            .flat_map(|p| p.chunks_exact(self.cell_len))
+            .map(|cell| cell.iter().any(|&c| c != 0))
+    }
+
+    /// The maximal runs of pixels that hold something.
+    fn runs(&self) -> impl Iterator<Item = Range<usize>> + '_ {
+        let mut occupied = self.occupied().enumerate().peekable();
+        std::iter::from_fn(move || {
+            let start = occupied.find(|&(_, o)| o)?.0;
+            let mut end = start + 1;
+            while occupied.next_if(|&(_, o)| o).is_some() {
+                end += 1;
+            }
+            Some(start..end)
+        })
+    }
+
+    /// The cells of the pixels `run`, as slices of the parts.
+    fn cells(&self, run: Range<usize>) -> impl Iterator<Item = &'a [u64]> + '_ {
+        self.parts.iter().enumerate().filter_map(move |(i, part)| {
+            let (lo, hi) = (self.starts[i], self.starts[i + 1]);
+            let (a, b) = (run.start.max(lo), run.end.min(hi));
+            (a < b).then(|| &part[(a - lo) * self.cell_len..(b - lo) * self.cell_len])
         })
     }
 }
@@ -397,6 +781,10 @@ mod tests {
             cells: (0..54)
                 .map(|i| i * 0x0101_0101_0101 + u64::MAX / 3)
                 .collect(),
+            batches: vec![
+                Applied::from_batches(3, [(0, Some(11)), (1, Some(12)), (5, None)]),
+                Applied::from_batches(9, [(7, Some(u64::MAX))]),
+            ],
         }
     }
 
@@ -427,33 +815,117 @@ mod tests {
 
     #[test]
     fn geometry_and_limits_are_checked_before_allocating() {
-        let mut d = dump();
-        d.cells.pop();
-        assert!(matches!(
-            StateDump::decode(&d.encode(), u64::MAX),
-            Err(StateError::Shape { .. })
-        ));
-        // A header declaring a huge frame, with no cells behind it.
-        let mut huge = dump();
-        huge.width = u32::MAX;
-        huge.height = u32::MAX;
-        huge.rows_end = u32::MAX;
-        let mut bytes = StateDump {
+        // A header declaring a huge frame, with nothing behind it.
+        let huge = StateDump {
+            width: u32::MAX,
+            height: u32::MAX,
+            rows_end: u32::MAX,
             cells: vec![],
-            ..huge.clone()
-        }
-        .encode();
-        // Patch the declared count to match the huge geometry.
-        let count = huge.expected_cells();
-        let at = bytes.len() - 8;
-        bytes[at..].copy_from_slice(&count.to_le_bytes());
+            batches: vec![],
+            ..dump()
+        };
+        let mut bytes = STATE_MAGIC.to_vec();
+        bytes.extend_from_slice(&STATE_VERSION.to_le_bytes());
+        bytes.extend(huge.header_bytes());
         assert!(matches!(
             StateDump::decode(&bytes, 1 << 30),
             Err(StateError::TooLarge { .. })
         ));
+        // Counts of applied batches are checked against the bytes present.
+        let mut bytes = dump().encode();
+        let at = bytes.len() - dump().batches_bytes().len();
+        bytes[at..at + 8].copy_from_slice(&u64::MAX.to_le_bytes());
         assert!(matches!(
             StateDump::decode(&bytes, u64::MAX),
             Err(StateError::Truncated { .. })
+        ));
+    }
+
+    /// Empty pixels are not sent: runs of the pixels that hold something, and a state of a
+    /// frame where 1 % of the pixels changed is about 1 % of the full state.
+    #[test]
+    fn only_pixels_holding_something_are_sent() {
+        let cell = 4 * 2 + 1;
+        let pixels = 100 * 100;
+        let mut sparse = StateDump {
+            width: 100,
+            height: 100,
+            rows_end: 100,
+            cells: vec![0; pixels * cell],
+            batches: vec![],
+            ..dump()
+        };
+        for p in (0..pixels).step_by(100) {
+            sparse.cells[p * cell + 3] = 1 << 26;
+        }
+        // Two neighbours make one run of 2 pixels; the last pixel is a run that ends the list.
+        sparse.cells[101 * cell + 2] = 5;
+        sparse.cells[(pixels - 1) * cell + cell - 1] = 1;
+        let bytes = sparse.encode();
+        assert_eq!(StateDump::decode(&bytes, u64::MAX).unwrap(), sparse);
+        let full = StateDump {
+            cells: vec![1; pixels * cell],
+            ..sparse.clone()
+        };
+        let full_len = full.encode().len();
+        assert_eq!(
+            full_len as u64,
+            full.encoded_len_with_cell_parts(&[&full.cells])
+        );
+        assert_eq!(
+            bytes.len() as u64,
+            sparse.encoded_len_with_cell_parts(&[&sparse.cells])
+        );
+        // 102 pixels of 72 bytes in 101 runs (8 bytes each), plus the header, the end of the
+        // list and the (empty) batches; the full state is one run.
+        let header = full_len - 8 * pixels * cell - 8 - 8 - 8;
+        assert_eq!(bytes.len(), header + 101 * 8 + 102 * 8 * cell + 8 + 8);
+        assert!((bytes.len() as f64) < 0.0125 * full_len as f64);
+        // The same state split into parts (bands) encodes to the same bytes.
+        let (a, b) = sparse.cells.split_at(37 * 100 * cell);
+        let mut parts = Vec::new();
+        sparse.write_with_cell_parts(&[a, b], &mut parts).unwrap();
+        assert_eq!(parts, bytes);
+    }
+
+    /// A decoder accepts only the canonical encoding: runs apart and full, workers in order.
+    #[test]
+    fn non_canonical_runs_and_batches_are_refused() {
+        let cell = 4 * 2 + 1;
+        let mut d = StateDump {
+            cells: vec![0; 54],
+            batches: vec![],
+            ..dump()
+        };
+        d.cells[0] = 1;
+        d.cells[2 * cell] = 1;
+        let bytes = d.encode();
+        let runs_at = bytes.len() - 8 - 8 - 2 * (8 + 8 * cell);
+        // Run 2 starts at pixel 2; moving it to pixel 1 makes it touch run 1.
+        let mut touching = bytes.clone();
+        touching[runs_at + 8 + 8 * cell..][..4].copy_from_slice(&1u32.to_le_bytes());
+        assert!(matches!(
+            StateDump::decode(&touching, u64::MAX),
+            Err(StateError::Malformed(m)) if m.contains("previous run")
+        ));
+        // An empty pixel inside a run.
+        let mut hollow = bytes.clone();
+        hollow[runs_at + 8..][..8].copy_from_slice(&0u64.to_le_bytes());
+        assert!(matches!(
+            StateDump::decode(&hollow, u64::MAX),
+            Err(StateError::Malformed(m)) if m.contains("holds nothing")
+        ));
+        let mut swapped = dump();
+        swapped.batches.reverse();
+        assert!(matches!(
+            StateDump::decode(&swapped.encode(), u64::MAX),
+            Err(StateError::Malformed(m)) if m.contains("out of order")
+        ));
+        let mut touching = dump();
+        touching.batches[0].ranges = vec![0..2, 2..3];
+        assert!(matches!(
+            StateDump::decode(&touching.encode(), u64::MAX),
+            Err(StateError::Malformed(m)) if m.contains("apart")
         ));
     }
 
@@ -478,11 +950,11 @@ mod tests {
         let v1 = StateDump {
             frac_bits: 32,
             cells: (0..48).collect(),
+            batches: vec![],
             ..dump()
         };
-        let mut bytes = v1.encode();
-        bytes[4..6].copy_from_slice(&1u16.to_le_bytes());
-        // The header's count is the encoder's, 48 = 3 * 2 * 4 * 2: a version 1 count.
+        // 48 = 3 * 2 * 4 * 2 cells: a version 1 count.
+        let bytes = v1.encode_v1();
         let err = StateDump::decode(&bytes, u64::MAX).unwrap_err();
         assert_eq!(
             err,

@@ -3,7 +3,7 @@
 //! mutations that happen to be well-formed, which then re-encode to the same bytes).
 
 use proptest::prelude::*;
-use splatd_proto::{Batch, DecodeLimits, Origin, Record, StateDump};
+use splatd_proto::{Applied, Batch, DecodeLimits, Origin, Record, StateDump};
 
 fn batch_strategy() -> impl Strategy<Value = Batch> {
     (
@@ -31,7 +31,14 @@ fn batch_strategy() -> impl Strategy<Value = Batch> {
 fn state_strategy() -> impl Strategy<Value = StateDump> {
     (1u32..6, 1u32..5, 2u32..5, any::<bool>()).prop_flat_map(|(w, h, k, origin)| {
         let cells = (w * h * (4 * k + 1)) as usize;
-        prop::collection::vec(any::<u64>(), cells).prop_map(move |cells| StateDump {
+        // Mostly zeros, so that states have empty pixels and runs between them.
+        let cell = prop_oneof![3 => Just(0u64), 1 => any::<u64>()];
+        let batches = prop::collection::btree_map(
+            any::<u64>(),
+            prop::collection::btree_map(0u64..40, any::<u64>(), 0..6),
+            0..3,
+        );
+        (prop::collection::vec(cell, cells), batches).prop_map(move |(cells, batches)| StateDump {
             frame: "f".into(),
             width: w,
             height: h,
@@ -47,6 +54,16 @@ fn state_strategy() -> impl Strategy<Value = StateDump> {
                 seq: 3,
             }),
             cells,
+            batches: batches
+                .into_iter()
+                .filter(|(_, seqs)| !seqs.is_empty())
+                .map(|(worker, seqs)| {
+                    Applied::from_batches(
+                        worker,
+                        seqs.into_iter().map(|(s, d)| (s, (d != 0).then_some(d))),
+                    )
+                })
+                .collect(),
         })
     })
 }

@@ -11,6 +11,7 @@
 use std::collections::{BTreeSet, HashMap};
 
 use serde::{Deserialize, Serialize};
+use splatd_proto::Applied;
 
 /// Sequence numbers seen from one sender: everything below `floor`, plus the set `above`.
 ///
@@ -49,6 +50,19 @@ impl SeqSet {
     pub fn gaps(&self) -> usize {
         self.above.len()
     }
+
+    /// Every recorded number, in increasing order.
+    pub fn iter(&self) -> impl Iterator<Item = u64> + '_ {
+        (0..self.floor).chain(self.above.iter().copied())
+    }
+
+    /// The first recorded number in `range`.
+    fn first_in(&self, range: std::ops::Range<u64>) -> Option<u64> {
+        if range.start < self.floor {
+            return (range.start < range.end).then_some(range.start);
+        }
+        self.above.range(range).next().copied()
+    }
 }
 
 /// The senders a frame has heard from: render workers by worker id, pushing nodes by node id.
@@ -61,6 +75,17 @@ pub struct Seen {
     /// The content digest of every applied batch, by worker id and sequence number. Batches
     /// restored from snapshots written before digests were kept have none.
     pub digests: HashMap<u64, HashMap<u64, u64>>,
+}
+
+/// Batches of a state that a frame has applied already (so the state would count them twice).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Overlap {
+    /// The worker of the first such batch.
+    pub worker: u64,
+    /// Its sequence number.
+    pub seq: u64,
+    /// How many batches of the state were applied already.
+    pub count: u64,
 }
 
 /// What a batch id was, before [`Seen::check_batch`] or [`Seen::insert_batch`].
@@ -99,6 +124,63 @@ impl Seen {
             self.digests.entry(worker).or_default().insert(seq, digest);
         }
         id
+    }
+
+    /// The batches applied, in the form states carry them.
+    pub fn applied(&self) -> Vec<Applied> {
+        self.applied_since(&Seen::default())
+    }
+
+    /// The batches applied that `base` (an earlier copy of this set) does not hold.
+    pub fn applied_since(&self, base: &Seen) -> Vec<Applied> {
+        let mut workers: Vec<u64> = self.workers.keys().copied().collect();
+        workers.sort_unstable();
+        workers
+            .into_iter()
+            .map(|w| {
+                let old = base.workers.get(&w);
+                let digests = self.digests.get(&w);
+                let seqs = self.workers[&w]
+                    .iter()
+                    .filter(|&s| !old.is_some_and(|o| o.contains(s)))
+                    .map(|s| (s, digests.and_then(|d| d.get(&s)).copied()));
+                Applied::from_batches(w, seqs)
+            })
+            .filter(|a| !a.is_empty())
+            .collect()
+    }
+
+    /// The first batch of `batches` that was applied here, and how many of them were.
+    pub fn overlap(&self, batches: &[Applied]) -> Option<Overlap> {
+        let mut first = None;
+        let mut count = 0u64;
+        for a in batches {
+            let Some(set) = self.workers.get(&a.worker) else {
+                continue;
+            };
+            for r in &a.ranges {
+                let mut from = r.start;
+                while let Some(seq) = set.first_in(from..r.end) {
+                    first.get_or_insert((a.worker, seq));
+                    count += 1;
+                    from = seq + 1;
+                }
+            }
+        }
+        first.map(|(worker, seq)| Overlap { worker, seq, count })
+    }
+
+    /// Records `batches` (none of which may have been applied: see [`Seen::overlap`]).
+    pub fn insert_applied(&mut self, batches: &[Applied]) {
+        for a in batches {
+            let set = self.workers.entry(a.worker).or_default();
+            for (seq, digest) in a.batches() {
+                set.insert(seq);
+                if let Some(d) = digest {
+                    self.digests.entry(a.worker).or_default().insert(seq, d);
+                }
+            }
+        }
     }
 
     /// Records delta `seq` of `node`; false for a duplicate.
@@ -149,6 +231,63 @@ mod tests {
         // Ids restored without digests (old snapshots) can only be taken for retries.
         seen.workers.entry(8).or_default().insert(0);
         assert_eq!(seen.check_batch(8, 0, 1), BatchId::Retry);
+    }
+
+    /// The set round-trips through the states' form, a delta holds what was added since a
+    /// copy, and overlaps are found wherever they lie (below the floor or above it).
+    #[test]
+    fn applied_batches_travel_and_overlaps_are_found() {
+        let mut seen = Seen::default();
+        for seq in [0, 1, 2, 5, 9] {
+            seen.insert_batch(4, seq, 100 + seq);
+        }
+        seen.workers.entry(8).or_default().insert(3); // an old snapshot's id, no digest
+        let applied = seen.applied();
+        assert_eq!(applied.len(), 2);
+        assert_eq!(applied[0].ranges, vec![0..3, 5..6, 9..10]);
+        assert_eq!(applied[0].digests, vec![100, 101, 102, 105, 109]);
+        assert_eq!(applied[1].digests, vec![0]);
+        let mut copy = Seen::default();
+        copy.insert_applied(&applied);
+        assert_eq!(copy.applied(), applied);
+        assert_eq!(
+            copy.check_batch(4, 9, 1),
+            BatchId::Conflict { applied: 109 }
+        );
+        assert_eq!(copy.check_batch(8, 3, 1), BatchId::Retry);
+
+        let base = seen.clone();
+        seen.insert_batch(4, 3, 103);
+        seen.insert_batch(6, 0, 600);
+        let delta = seen.applied_since(&base);
+        assert_eq!(delta.len(), 2);
+        let spans = |a: &Applied| {
+            (
+                a.worker,
+                a.ranges.iter().map(|r| (r.start, r.end)).collect(),
+            )
+        };
+        assert_eq!(spans(&delta[0]), (4, vec![(3, 4)]));
+        assert_eq!(spans(&delta[1]), (6, vec![(0, 1)]));
+        assert_eq!(base.overlap(&delta), None);
+        assert_eq!(
+            seen.overlap(&delta),
+            Some(Overlap {
+                worker: 4,
+                seq: 3,
+                count: 2
+            })
+        );
+        // Below the floor (seq 1) and above it (seq 9).
+        let probe = [Applied::from_batches(4, [(1, None), (7, None), (9, None)])];
+        assert_eq!(
+            base.overlap(&probe),
+            Some(Overlap {
+                worker: 4,
+                seq: 1,
+                count: 2
+            })
+        );
     }
 
     #[test]

@@ -530,11 +530,7 @@ async fn run_blocking(
 
 /// Bytes of a band's state encoding, without encoding it.
 fn encoded_len(band: &FrameState, frame: &str) -> io::Result<u64> {
-    // The header does not depend on the cells, so encode it for an empty band of the same frame.
-    let empty = FrameState::band(band.width(), band.height(), 0..0, band.layout().clone());
-    let mut header = Vec::new();
-    crate::export::write(&empty, frame, None, &mut header)?;
-    Ok(header.len() as u64 + 8 * band.cells().len() as u64)
+    Ok(crate::export::encoded_len(band, frame))
 }
 
 /// Counts a CRC-32 of everything written through it.
@@ -804,12 +800,10 @@ mod tests {
         if let Some(pixel) = saturate {
             cells[pixel * 4 * k + 4 * (k - 1)] = u64::MAX;
         }
-        let mut dump = crate::export::dump(state, id, None);
+        let mut dump = crate::export::dump(state, id, None, vec![]);
         dump.frac_bits = 32;
         dump.cells = cells;
-        let mut body = dump.encode();
-        body[4..6].copy_from_slice(&1u16.to_le_bytes());
-        body
+        dump.encode_v1()
     }
 
     /// A snapshot of `version` with metadata `meta` and `states` as its bands.

@@ -4,7 +4,7 @@
 //! The dump is the state's fixed-point cells verbatim, so export followed by import is exact, and
 //! importing into a frame that has samples of its own adds the two exactly.
 
-use splatd_proto::{Origin, StateDump};
+use splatd_proto::{Applied, Origin, StateDump};
 
 use splatd_estimator::{CascadeLayout, CellsError, FrameState, ParamError, FRAC_BITS};
 
@@ -25,15 +25,22 @@ pub enum ImportError {
     Cells(#[from] CellsError),
 }
 
-/// The wire form of a state (a whole frame or a band).
-pub fn dump(state: &FrameState, frame: &str, origin: Option<Origin>) -> StateDump {
+/// The wire form of a state (a whole frame or a band) holding the samples of `batches`.
+pub fn dump(
+    state: &FrameState,
+    frame: &str,
+    origin: Option<Origin>,
+    batches: Vec<Applied>,
+) -> StateDump {
     StateDump {
         cells: state.cells().to_vec(),
+        batches,
         ..header(state, state.rows(), frame, origin)
     }
 }
 
-/// Streams the wire form of a state (a whole frame or a band) to `out` without copying its cells.
+/// Streams the wire form of a state (a whole frame or a band) to `out` without copying its cells,
+/// naming no applied batches (a snapshot band: the snapshot keeps the frame's batches itself).
 pub fn write(
     state: &FrameState,
     frame: &str,
@@ -43,8 +50,14 @@ pub fn write(
     header(state, state.rows(), frame, origin).write_with_cells(state.cells(), out)
 }
 
-/// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) to
-/// `out`: the same bytes as [`dump`] of the merged frame, without merging or copying the bands.
+/// The length of what [`write`] writes, without encoding it.
+pub fn encoded_len(state: &FrameState, frame: &str) -> u64 {
+    header(state, state.rows(), frame, None).encoded_len_with_cell_parts(&[state.cells()])
+}
+
+/// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) and
+/// holding the samples of `batches` to `out`: the same bytes as [`dump`] of the merged frame,
+/// without merging or copying the bands.
 ///
 /// # Panics
 /// If `bands` is empty.
@@ -52,6 +65,7 @@ pub fn write_bands(
     bands: &[FrameState],
     frame: &str,
     origin: Option<Origin>,
+    batches: Vec<Applied>,
     out: &mut impl std::io::Write,
 ) -> std::io::Result<()> {
     let first = &bands[0];
@@ -63,7 +77,11 @@ pub fn write_bands(
     );
     let rows = first.rows().start..bands[bands.len() - 1].rows().end;
     let parts: Vec<&[u64]> = bands.iter().map(|b| b.cells()).collect();
-    header(first, rows, frame, origin).write_with_cell_parts(&parts, out)
+    StateDump {
+        batches,
+        ..header(first, rows, frame, origin)
+    }
+    .write_with_cell_parts(&parts, out)
 }
 
 /// A dump without cells describing `state`'s frame and layout for `rows`.
@@ -87,6 +105,7 @@ fn header(
         frac_bits: FRAC_BITS,
         origin,
         cells: Vec::new(),
+        batches: Vec::new(),
     }
 }
 
@@ -146,7 +165,7 @@ mod tests {
         });
         let mut streamed = Vec::new();
         write(&state, "f", origin.clone(), &mut streamed).unwrap();
-        assert_eq!(streamed, dump(&state, "f", origin).encode());
+        assert_eq!(streamed, dump(&state, "f", origin, vec![]).encode());
     }
 
     #[test]
@@ -163,8 +182,8 @@ mod tests {
             }
         }
         let mut streamed = Vec::new();
-        write_bands(&bands, "f", None, &mut streamed).unwrap();
-        assert_eq!(streamed, dump(&whole, "f", None).encode());
+        write_bands(&bands, "f", None, vec![], &mut streamed).unwrap();
+        assert_eq!(streamed, dump(&whole, "f", None, vec![]).encode());
     }
 
     #[test]
@@ -174,7 +193,7 @@ mod tests {
         for pass in 0..20 {
             state.splat_all(scene.pass(pass));
         }
-        let bytes = dump(&state, "f", None).encode();
+        let bytes = dump(&state, "f", None, vec![]).encode();
         let back = load(StateDump::decode(&bytes, u64::MAX).unwrap()).unwrap();
         assert_eq!(back, state);
     }
@@ -182,10 +201,10 @@ mod tests {
     #[test]
     fn nonsense_states_are_refused_by_name() {
         let state = FrameState::new(2, 2, CascadeLayout::with_defaults());
-        let mut d = dump(&state, "f", None);
+        let mut d = dump(&state, "f", None, vec![]);
         d.frac_bits = 16;
         assert_eq!(load(d).unwrap_err(), ImportError::FracBits { found: 16 });
-        let mut d = dump(&state, "f", None);
+        let mut d = dump(&state, "f", None, vec![]);
         d.base = 1.0;
         assert!(matches!(load(d), Err(ImportError::Params(p)) if p.name == "base"));
     }

@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 use splatd_proto::api::{CreateFrame, FrameInfo};
-use splatd_proto::{Batch, Origin};
+use splatd_proto::{Applied, Batch, Origin};
 
 use splatd_estimator::{
     self as estimator, cell_len, cell_spp, resolve_bands, CascadeLayout, FrameState, MergeError,
@@ -163,6 +163,22 @@ pub enum ImportRefused {
     Deleted {
         /// The frame.
         frame: String,
+    },
+    /// The state holds batches the frame has applied already: adding it would count them twice.
+    #[error(
+        "state holds {count} batch(es) that frame {frame:?} has applied already, the first \
+         (worker {worker}, seq {seq}); adding it would count them twice (a worker resent them \
+         to another node?)"
+    )]
+    Overlap {
+        /// The frame.
+        frame: String,
+        /// The first such batch's worker.
+        worker: u64,
+        /// Its sequence number.
+        seq: u64,
+        /// How many batches of the state the frame has applied.
+        count: u64,
     },
 }
 
@@ -536,17 +552,20 @@ impl ShardedFrame {
         lock(&self.bands[0]).check_same_frame(state)
     }
 
-    /// Adds an exported state (or a pushed delta) to this frame. A delta carrying an origin
-    /// that was applied before is recognised and not applied again (returns `Ok(false)`).
+    /// Adds an exported state (or a pushed delta) holding the samples of `batches` to this
+    /// frame. A delta carrying an origin that was applied before is recognised and not applied
+    /// again (returns `Ok(false)`); a state holding a batch the frame has applied is refused
+    /// ([`ImportRefused::Overlap`]), since adding it would count that batch twice.
     ///
-    /// All or nothing: everything that can refuse the state is checked before the origin is
-    /// recorded or any band changes. The state may hold any rows of the frame (a band of
-    /// another node's frame, say): each band adds the rows it shares with it.
+    /// All or nothing: everything that can refuse the state is checked before the origin and
+    /// the batches are recorded or any band changes. The state may hold any rows of the frame (a
+    /// band of another node's frame, say): each band adds the rows it shares with it.
     pub fn import(
         &self,
         frame: &str,
         state: &FrameState,
         origin: Option<&Origin>,
+        batches: &[Applied],
     ) -> Result<bool, ImportRefused> {
         if frame != self.id() {
             return Err(ImportRefused::WrongFrame {
@@ -566,22 +585,31 @@ impl ShardedFrame {
             });
         }
         // Every band, locked top to bottom (as every holder of several bands locks them), so
-        // that the room check and the additions see the same cells.
+        // that the room check and the additions see the same cells; then the applied set, so
+        // that no batch is recorded between the overlap check and the recording.
         let mut bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
+        let mut seen = lock(&self.seen);
         if let Some(o) = origin {
-            let seen = lock(&self.seen);
             if seen.nodes.get(&o.node).is_some_and(|s| s.contains(o.seq)) {
                 return Ok(false);
             }
+        }
+        if let Some(o) = seen.overlap(batches) {
+            return Err(ImportRefused::Overlap {
+                frame: self.id().to_owned(),
+                worker: o.worker,
+                seq: o.seq,
+                count: o.count,
+            });
         }
         for band in &bands {
             band.check_room_for(state).map_err(mismatch)?;
         }
         if let Some(o) = origin {
-            if !lock(&self.seen).insert_delta(&o.node, o.seq) {
-                return Ok(false);
-            }
+            seen.insert_delta(&o.node, o.seq);
         }
+        seen.insert_applied(batches);
+        drop(seen);
         for band in &mut bands {
             // Every band has the frame's size and layout, checked above for band 0, and room.
             band.merge_overlap(state)
@@ -845,14 +873,14 @@ mod tests {
             node: "n1".into(),
             seq: 0,
         };
-        assert!(frame.import("f", &other, Some(&origin)).unwrap());
-        assert!(!frame.import("f", &other, Some(&origin)).unwrap());
+        assert!(frame.import("f", &other, Some(&origin), &[]).unwrap());
+        assert!(!frame.import("f", &other, Some(&origin), &[]).unwrap());
         let mut expected = other.clone();
         expected.merge(&other).unwrap();
         assert_eq!(frame.cut().whole(), expected);
 
         let wrong = FrameState::new(9, 31, CascadeLayout::with_defaults());
-        let err = frame.import("f", &wrong, None).unwrap_err();
+        let err = frame.import("f", &wrong, None, &[]).unwrap_err();
         assert!(err.to_string().contains("9x30"), "{err}");
         assert_eq!(frame.cut().whole(), expected);
     }
@@ -933,7 +961,7 @@ mod tests {
             node: "n".into(),
             seq: 0,
         };
-        assert!(frame.import("f", &part, Some(&origin)).unwrap());
+        assert!(frame.import("f", &part, Some(&origin), &[]).unwrap());
         assert_eq!(frame.cut().whole(), whole);
         assert_eq!(frame.version(), 1);
 
@@ -949,7 +977,7 @@ mod tests {
             node: "m".into(),
             seq: 0,
         };
-        let err = frame.import("f", &misfit, Some(&retry)).unwrap_err();
+        let err = frame.import("f", &misfit, Some(&retry), &[]).unwrap_err();
         assert!(matches!(err, ImportRefused::Mismatch { .. }), "{err}");
         assert_eq!(frame.cut().whole(), whole);
         assert_eq!(frame.version(), 1);
@@ -991,7 +1019,7 @@ mod tests {
             let copy = full.clone();
             full.merge(&copy).unwrap();
         }
-        assert!(frame.import("f", &full, None).unwrap());
+        assert!(frame.import("f", &full, None, &[]).unwrap());
         let before = frame.cut().whole();
         let recs = vec![
             Record::new(0, 0, [1.0; 3]),
@@ -1013,7 +1041,7 @@ mod tests {
         let mut one = FrameState::new(4, 40, frame.spec().layout.clone());
         one.splat(2, 3, [1.0; 3]).unwrap();
         one.splat(0, 39, [1.0; 3]).unwrap();
-        let err = frame.import("f", &one, None).unwrap_err();
+        let err = frame.import("f", &one, None, &[]).unwrap_err();
         assert_eq!(
             err,
             ImportRefused::Mismatch {
@@ -1045,7 +1073,7 @@ mod tests {
         assert!(matches!(err, IngestError::Deleted { .. }), "{err}");
         let state = frame.cut().whole();
         assert!(matches!(
-            frame.import("f", &state, None),
+            frame.import("f", &state, None, &[]),
             Err(ImportRefused::Deleted { .. })
         ));
         assert_eq!(frame.info().samples, 1);

@@ -38,10 +38,18 @@
 //!
 //! # Costs
 //!
-//! The baseline is a full copy of each pushed frame's cascades (the state's size again: 398 MB
+//! The baseline is a full copy of each pushed frame's cascades (the state's size again: 415 MB
 //! for a 1080p frame with six cascades), and every round that finds a frame changed takes a
-//! consistent cut of it, subtracts and encodes on the blocking pool. A delta is as large as a
-//! whole state (unchanged cells are zeros), so the interval should be seconds for large frames.
+//! consistent cut of it, subtracts and encodes on the blocking pool. A delta carries only the
+//! pixels that changed (the state format sends runs of non-empty pixels), so a round in which 1 %
+//! of the pixels changed sends about 1 % of the state.
+//!
+//! # Batches in two nodes
+//!
+//! A delta also lists the batches it holds (those applied since the baseline). A worker whose
+//! node failed may have resent a batch to another node, and then both nodes' deltas hold it; the
+//! upstream refuses the second with 409 `batches_overlap` naming the batch, rather than counting
+//! it twice. That refusal is counted as `refused` and logged; it needs an operator.
 //!
 //! Results are counted in `splatd_pushes_total{result}`: `applied`, `duplicate` (a retry that
 //! had reached the upstream before), `failed` (transient; resent next round) and `refused` (the
@@ -56,6 +64,7 @@ use bytes::Bytes;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Client, ClientError, Origin, RetryPolicy};
 
+use super::dedup::Seen;
 use super::frame::ShardedFrame;
 use super::AppState;
 use splatd_estimator::FrameState;
@@ -117,7 +126,7 @@ struct Pending {
     seq: u64,
     body: Bytes,
     /// The frame's state the delta was computed from: the baseline once acknowledged.
-    whole: FrameState,
+    whole: Baseline,
     /// The frame's version at that state.
     version: u64,
     /// Samples the delta adds, for the logs.
@@ -128,13 +137,20 @@ struct Pending {
     request: CreateFrame,
 }
 
+/// A frame as of one cut: its cells and the batches they hold.
+#[derive(Debug)]
+struct Baseline {
+    state: FrameState,
+    seen: Seen,
+}
+
 /// What this node knows about one frame id's pushes.
 #[derive(Debug, Default)]
 struct Track {
     /// The local frame the baseline belongs to (a deleted and re-created frame is another).
     frame: Weak<ShardedFrame>,
     /// State as of the last acknowledged push; `None` means empty.
-    baseline: Option<FrameState>,
+    baseline: Option<Baseline>,
     /// The frame's version at the baseline; `None` before the first look.
     version: Option<u64>,
     /// Sequence number of the next new delta.
@@ -393,17 +409,24 @@ async fn next_delta(frame: &Arc<ShardedFrame>, track: &mut Track, node: &str) ->
     };
     let computed = tokio::task::spawn_blocking(move || {
         let cut = frame2.cut();
-        let whole = cut.whole();
-        let delta = match &baseline {
-            Some(b) => whole
-                .delta_since(b)
-                .expect("a frame's states share its size and layout"),
-            None => whole.clone(),
+        let whole = Baseline {
+            state: cut.whole(),
+            seen: cut.seen,
+        };
+        let (delta, batches) = match &baseline {
+            Some(b) => (
+                whole
+                    .state
+                    .delta_since(&b.state)
+                    .expect("a frame's states share its size and layout"),
+                whole.seen.applied_since(&b.seen),
+            ),
+            None => (whole.state.clone(), whole.seen.applied()),
         };
         let samples = delta.total_samples();
         let empty = delta.cells().iter().all(|&c| c == 0);
-        let body =
-            (!empty).then(|| crate::export::dump(&delta, frame2.id(), Some(origin)).encode());
+        let body = (!empty)
+            .then(|| crate::export::dump(&delta, frame2.id(), Some(origin), batches).encode());
         (baseline, whole, cut.version, samples, body)
     })
     .await;

@@ -168,6 +168,9 @@ impl From<ImportRefused> for ApiError {
             ImportRefused::Deleted { .. } => {
                 ApiError::new(StatusCode::NOT_FOUND, "unknown_frame", e.to_string())
             }
+            ImportRefused::Overlap { .. } => {
+                ApiError::new(StatusCode::CONFLICT, "batches_overlap", e.to_string())
+            }
         }
     }
 }

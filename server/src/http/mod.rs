@@ -24,6 +24,8 @@ pub mod states;
 mod tests;
 #[cfg(test)]
 mod tests_budget;
+#[cfg(test)]
+mod tests_overlap;
 
 use axum::extract::Request;
 use axum::handler::Handler;

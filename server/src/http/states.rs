@@ -19,9 +19,12 @@ pub struct StateBody;
 impl Upload for StateBody {
     const CONTENT_TYPE: &'static str = STATE_CONTENT_TYPE;
 
-    /// A state of this frame is its cells plus a header; allow a generous header.
+    /// A state of this frame is at most its cells, plus a header and the batches it holds
+    /// (16 bytes per worker, 16 per range of sequence numbers, 8 per batch): allow a generous
+    /// header and one batch per cell.
     fn limit(_: &AppState, frame: &ShardedFrame) -> usize {
-        frame.spec().memory_bytes() as usize + 64 * 1024
+        let cells = frame.spec().memory_bytes() as usize;
+        cells + cells / 8 + 64 * 1024
     }
 }
 
@@ -41,7 +44,7 @@ pub async fn export(
         let _reservation = reservation;
         let cut = frame.cut();
         let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
-        crate::export::write_bands(&cut.bands, frame.id(), None, &mut out)
+        crate::export::write_bands(&cut.bands, frame.id(), None, cut.seen.applied(), &mut out)
             .expect("writing into a Vec<u8> is infallible");
         Ok(out)
     })
@@ -51,7 +54,8 @@ pub async fn export(
 }
 
 /// `POST /v1/frames/{id}/state`: adds another node's state (or pushed delta) to the frame,
-/// exactly once per origin, and answers once the result is durable.
+/// exactly once per origin, and answers once the result is durable. A state holding a batch the
+/// frame has applied already is refused (409 `batches_overlap`).
 pub async fn import(
     State(app): State<AppState>,
     FrameBody { frame, bytes, .. }: FrameBody<StateBody>,
@@ -61,11 +65,12 @@ pub async fn import(
     let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
     let (samples, applied) = blocking("import", move || {
-        let dump = StateDump::decode(&bytes, cells)?;
+        let mut dump = StateDump::decode(&bytes, cells)?;
         let origin = dump.origin.clone();
         let name = dump.frame.clone();
+        let batches = std::mem::take(&mut dump.batches);
         let state = crate::export::load(dump)?;
-        let applied = target.import(&name, &state, origin.as_ref())?;
+        let applied = target.import(&name, &state, origin.as_ref(), &batches)?;
         Ok((state.total_samples(), applied))
     })
     .await?;
