@@ -138,3 +138,33 @@ fn damaged_frames_are_set_aside_and_the_rest_served() {
     assert_eq!(health["status"], "degraded");
     assert_eq!(health["frames_quarantined"], serde_json::json!(["lost"]));
 }
+
+/// A frame whose first snapshot failed (a full disk, injected) was never snapshotted: after a
+/// restart it is served empty, as it legitimately is, not set aside as damaged. (The mark that
+/// makes a missing snapshot count as damage used to be made before the first snapshot was
+/// written; the soak found frames quarantined this way after a full-disk phase.)
+#[test]
+fn a_failed_first_snapshot_is_not_damage() {
+    let dir = tempfile::tempdir().unwrap();
+    let args = common::durable_args(dir.path());
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let server = Server::start_with_env(
+        &args,
+        &[("SPLATD_FAILPOINTS", "snapshot.bin:before_write=full")],
+    );
+    create(&server, "f", 4, 4);
+    post(&server, "f", 4, 4);
+    let (status, body) = sync(&server, "f");
+    assert_eq!(status, 507, "{body}");
+    server.kill();
+
+    let server = Server::start(&args);
+    let list = get(&server, "/v1/frames");
+    assert_eq!(list["quarantined"], serde_json::json!([]), "{list}");
+    assert_eq!(list["frames"][0]["id"], "f", "{list}");
+    assert_eq!(list["frames"][0]["samples"], 0, "{list}");
+    // And it is snapshotted normally from now on.
+    post(&server, "f", 4, 4);
+    assert_eq!(sync(&server, "f").0, 200);
+    assert!(dir.path().join("frames/f/snapshot.bin").exists());
+}

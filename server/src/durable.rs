@@ -401,13 +401,6 @@ impl Durable {
         };
         let meta = bincode::serde::encode_to_vec(&meta, bincode::config::legacy())
             .expect("snapshot metadata serialises");
-        let marker = dir.join(SNAPSHOT_MARKER);
-        if !marker.exists() {
-            File::create(&marker)
-                .and_then(|f| f.sync_all())
-                .map_err(io_err("creating", &marker))?;
-            sync_dir(&dir)?;
-        }
         write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, |w| {
             let mut w = CrcWriter::new(w);
             w.write_all(&SNAPSHOT_MAGIC)?;
@@ -422,7 +415,18 @@ impl Durable {
             }
             let crc = w.crc.clone().finalize();
             w.inner.write_all(&crc.to_le_bytes())
-        })
+        })?;
+        // From now on a missing snapshot is damage, not a frame that never had one. Marked only
+        // after a snapshot exists: a first snapshot that failed (a full disk) leaves the frame
+        // as it was, legitimately empty after a restart, not quarantined.
+        let marker = dir.join(SNAPSHOT_MARKER);
+        if !marker.exists() {
+            File::create(&marker)
+                .and_then(|f| f.sync_all())
+                .map_err(io_err("creating", &marker))?;
+            sync_dir(&dir)?;
+        }
+        Ok(())
     }
 
     /// Snapshots every changed frame until `stop` changes (spawned by the server). A round in

@@ -6,7 +6,8 @@
 //!
 //! * `abort`: the process aborts on the spot, with no unwinding and no flushing, as a SIGKILL
 //!   would leave it;
-//! * `error`: the operation fails with an injected I/O error, as a failing disk would make it.
+//! * `error`: the operation fails with an injected I/O error, as a failing disk would make it;
+//! * `full`: the operation fails as on a full disk (`StorageFull`, what `ENOSPC` reads as).
 //!
 //! With `@n` the action happens on the `n`-th hit only (counting from 1), otherwise on every hit.
 //! Points: `snapshot.bin:before_rename` (a snapshot is written to `snapshot.tmp` and synced, not
@@ -25,6 +26,7 @@ pub const ENV: &str = "SPLATD_FAILPOINTS";
 enum Action {
     Abort,
     Error,
+    Full,
 }
 
 #[derive(Debug)]
@@ -60,6 +62,7 @@ fn parse(spec: &str) -> Result<HashMap<String, Point>, String> {
         let action = match action {
             "abort" => Action::Abort,
             "error" => Action::Error,
+            "full" => Action::Full,
             other => return Err(format!("{entry:?}: unknown action {other:?}")),
         };
         points.insert(
@@ -104,6 +107,10 @@ fn act(name: &str, point: &Point) -> io::Result<()> {
         Action::Error => Err(io::Error::other(format!(
             "injected fault at failpoint {name} (hit {n})"
         ))),
+        Action::Full => Err(io::Error::new(
+            io::ErrorKind::StorageFull,
+            format!("injected full disk at failpoint {name} (hit {n})"),
+        )),
     }
 }
 
