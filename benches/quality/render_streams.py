@@ -234,7 +234,110 @@ def scene_smalllight(mi, res):
     return d
 
 
-SCENES = {"caustic": scene_caustic, "smalllight": scene_smalllight}
+def scene_slit(mi, res):
+    """A closed room lit only through a narrow slit in its ceiling by a small sun outside.
+
+    Not a Cornell box: the camera is inside a closed grey room with a glossy floor. The sun's
+    light enters through a slit 0.06 wide and paints a thin bright stripe on the floor; the rest
+    of the room is lit by that stripe (diffuse bounces that find it by chance are fireflies) and
+    by glossy floor reflections of the slit and the sun (found by BSDF sampling only when the
+    floor's lobe is narrow).
+    """
+    T = mi.ScalarTransform4f
+    grey = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.7, 0.68, 0.64]}}
+    d = {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 8},
+        "sensor": {
+            "type": "perspective", "fov": 70.0, "fov_axis": "smaller",
+            "near_clip": 0.001, "far_clip": 100.0,
+            "to_world": T().look_at(origin=[0.6, 0.2, 0.95], target=[-0.1, -0.45, -1.0],
+                                    up=[0, 1, 0]),
+            "sampler": {"type": "independent", "sample_count": 1, "seed": 0},
+            "film": {"type": "hdrfilm", "width": res, "height": res,
+                     "pixel_format": "rgb", "component_format": "float32",
+                     "rfilter": {"type": "box"}},
+        },
+        "grey": grey,
+        "floor": {"type": "rectangle",
+                  "bsdf": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.03,
+                           "diffuse_reflectance": {"type": "rgb", "value": [0.35, 0.22, 0.12]}},
+                  "to_world": T().translate([0, -1, 0]).rotate([1, 0, 0], -90)},
+        # The ceiling leaves a slit x in [0, 0.06], the whole depth of the room.
+        "ceiling-left": {"type": "rectangle", "bsdf": {"type": "ref", "id": "grey"},
+                         "to_world": T().translate([-0.5, 1, 0]).rotate([1, 0, 0], 90)
+                         .scale([0.5, 1, 1])},
+        "ceiling-right": {"type": "rectangle", "bsdf": {"type": "ref", "id": "grey"},
+                          "to_world": T().translate([0.53, 1, 0]).rotate([1, 0, 0], 90)
+                          .scale([0.47, 1, 1])},
+        "back": {"type": "rectangle", "bsdf": {"type": "ref", "id": "grey"},
+                 "to_world": T().translate([0, 0, -1])},
+        "front": {"type": "rectangle", "bsdf": {"type": "ref", "id": "grey"},
+                  "to_world": T().translate([0, 0, 1]).rotate([0, 1, 0], 180)},
+        "left": {"type": "rectangle", "bsdf": {"type": "ref", "id": "grey"},
+                 "to_world": T().translate([-1, 0, 0]).rotate([0, 1, 0], 90)},
+        "right": {"type": "rectangle", "bsdf": {"type": "ref", "id": "grey"},
+                  "to_world": T().translate([1, 0, 0]).rotate([0, 1, 0], -90)},
+        "sun": {"type": "sphere", "center": [-1.0, 5.0, 0.3], "radius": 0.2,
+                "emitter": {"type": "area",
+                            "radiance": {"type": "rgb", "value": [4000.0, 3600.0, 3000.0]}}},
+        "chrome-ball": {"type": "sphere", "center": [-0.5, -0.75, -0.4], "radius": 0.25,
+                        "bsdf": {"type": "roughconductor", "material": "Cr",
+                                 "distribution": "ggx", "alpha": 0.02}},
+        "block": {"type": "cube", "bsdf": {"type": "ref", "id": "grey"},
+                  "to_world": T().translate([0.45, -0.7, -0.5]).rotate([0, 1, 0], 25)
+                  .scale([0.25, 0.3, 0.25])},
+    }
+    return d
+
+
+def scene_pool(mi, res):
+    """Glass on a terrace under a small sun and a dim sky.
+
+    Not a Cornell box: an open ground plane seen from above at an angle, a glass sphere and a
+    glass slab throwing caustics on it (diffuse -> glass -> sun: only BSDF sampling finds the
+    sun through glass, so every caustic sample is a firefly), and the caustics also seen
+    through the glass; a near-mirror metal sphere shows the tiny sun.
+    """
+    T = mi.ScalarTransform4f
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 10},
+        "sensor": {
+            "type": "perspective", "fov": 40.0, "fov_axis": "smaller",
+            "near_clip": 0.001, "far_clip": 100.0,
+            "to_world": T().look_at(origin=[0.0, 2.6, 4.2], target=[0.0, 0.0, 0.2],
+                                    up=[0, 1, 0]),
+            "sampler": {"type": "independent", "sample_count": 1, "seed": 0},
+            "film": {"type": "hdrfilm", "width": res, "height": res,
+                     "pixel_format": "rgb", "component_format": "float32",
+                     "rfilter": {"type": "box"}},
+        },
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": [0.05, 0.07, 0.1]}},
+        "sun": {"type": "sphere", "center": [-3.0, 14.0, -7.0], "radius": 1.0,
+                "emitter": {"type": "area",
+                            "radiance": {"type": "rgb", "value": [1100.0, 1000.0, 850.0]}}},
+        "ground": {"type": "rectangle",
+                   "bsdf": {"type": "diffuse",
+                            "reflectance": {"type": "checkerboard",
+                                            "color0": {"type": "rgb", "value": [0.55, 0.5, 0.45]},
+                                            "color1": {"type": "rgb", "value": [0.3, 0.3, 0.32]},
+                                            "to_uv": T().scale([6, 6, 1])}},
+                   "to_world": T().rotate([1, 0, 0], -90).scale([4, 4, 1])},
+        "glass-ball": {"type": "sphere", "center": [-0.6, 0.5, -0.2], "radius": 0.5,
+                       "bsdf": {"type": "dielectric", "int_ior": 1.5, "ext_ior": 1.0}},
+        "glass-slab": {"type": "cube",
+                       "bsdf": {"type": "dielectric", "int_ior": 1.33, "ext_ior": 1.0},
+                       "to_world": T().translate([0.7, 0.35, 0.1]).rotate([0, 1, 0], 30)
+                       .rotate([1, 0, 0], 20).scale([0.35, 0.35, 0.08])},
+        "steel-ball": {"type": "sphere", "center": [0.3, 0.25, 1.0], "radius": 0.25,
+                       "bsdf": {"type": "roughconductor", "material": "Cr",
+                                "distribution": "ggx", "alpha": 0.05}},
+    }
+
+
+SCENES = {"caustic": scene_caustic, "smalllight": scene_smalllight, "slit": scene_slit,
+          "pool": scene_pool}
 
 
 # --------------------------------------------------------------------------

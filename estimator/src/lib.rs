@@ -15,6 +15,7 @@
 
 mod layout;
 mod resolve;
+mod resolve_spread;
 mod state;
 
 pub use layout::{
@@ -26,6 +27,7 @@ pub use resolve::{
     resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
+pub use resolve_spread::{DEFAULT_SPREAD_SUPPORT, SPREAD_RADII};
 pub use state::{
     cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, MergeError,
     SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,

@@ -18,6 +18,7 @@
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
 use super::layout::{CascadeLayout, ParamError, COUNT_ONE, FRAC_BITS};
+use super::resolve_spread::{spread, BAND_FLOATS, DEFAULT_SPREAD_SUPPORT};
 use super::state::{cascade_units, cell_len, FrameState};
 
 /// Which weight formula to use.
@@ -31,6 +32,9 @@ pub enum Variant {
     Shader,
     /// All weights 1: the plain Monte Carlo mean.
     Off,
+    /// The paper's weights, then each band's removed energy given back over the smallest window
+    /// (3x3 .. 17x17) where the band is supported (see the `resolve_spread` module).
+    Spread,
 }
 
 /// Resolve parameters; they may change from one resolve to the next without touching the state.
@@ -40,6 +44,7 @@ pub struct ResolveParams {
     kappa: f64,
     kappa_min: f64,
     kappa_exponent: f64,
+    spread_support: f64,
 }
 
 /// splatd's default resolve variant.
@@ -91,7 +96,29 @@ impl ResolveParams {
             kappa,
             kappa_min,
             kappa_exponent,
+            spread_support: DEFAULT_SPREAD_SUPPORT,
         })
+    }
+
+    /// The same parameters with another support threshold for [`Variant::Spread`]: samples of a
+    /// band a window needs before the band's removed energy is given back over it (finite, in
+    /// `[1, 1e6]`).
+    pub fn with_spread_support(self, support: f64) -> Result<Self, ParamError> {
+        if !(support.is_finite() && (1.0..=1e6).contains(&support)) {
+            return Err(ParamError::new(
+                "spread_support",
+                format!("must be a number in [1, 1e6], got {support}"),
+            ));
+        }
+        Ok(Self {
+            spread_support: support,
+            ..self
+        })
+    }
+
+    /// The support threshold of [`Variant::Spread`].
+    pub fn spread_support(&self) -> f64 {
+        self.spread_support
     }
 
     /// splatd's defaults: the paper's formula with the benchmark's `kappa`.
@@ -155,7 +182,9 @@ pub struct Resolved {
     pub reweighted: Vec<[f32; 3]>,
     /// The plain Monte Carlo mean `Σ_j B_j / N`.
     pub mean: Vec<[f32; 3]>,
-    /// Energy removed as fireflies, `Σ_j (1 - w_j) B_j / N` (never negative).
+    /// Energy removed as fireflies, `Σ_j (1 - w_j) B_j / N`: never negative, except with
+    /// [`Variant::Spread`], where a pixel may receive more removed energy from its neighbours
+    /// than it lost itself (the frame's sum stays non-negative).
     pub removed: Vec<[f32; 3]>,
     /// Samples per pixel.
     pub spp: Vec<u64>,
@@ -226,11 +255,23 @@ pub fn resolve_bands(
     if pixels == 0 {
         return Ok(out);
     }
+    let k = first.layout().cascades();
+    let spreading = params.variant == Variant::Spread;
+    let mut bands_out = vec![
+        0.0f32;
+        if spreading {
+            pixels * k * BAND_FLOATS
+        } else {
+            0
+        }
+    ];
+    let band_chunk = if spreading { k * BAND_FLOATS } else { 0 };
     let threads = threads.clamp(1, h);
     let chunk = h.div_ceil(threads) * w;
     let layout = first.layout();
     let rows = &rows;
     std::thread::scope(|scope| {
+        let mut band_parts = bands_out.chunks_mut((chunk * band_chunk).max(1));
         let parts = out
             .reweighted
             .chunks_mut(chunk)
@@ -245,6 +286,7 @@ pub fn resolve_bands(
                 mean,
                 removed,
                 spp,
+                bands: band_parts.next().unwrap_or_default(),
             };
             if i + 1 == threads.min(pixels.div_ceil(chunk)) {
                 // The last part runs on this thread.
@@ -254,6 +296,17 @@ pub fn resolve_bands(
             }
         }
     });
+    if spreading {
+        spread(
+            layout,
+            w,
+            h,
+            &bands_out,
+            params.spread_support,
+            &mut out.reweighted,
+            &mut out.removed,
+        );
+    }
     Ok(out)
 }
 
@@ -264,6 +317,8 @@ struct Part<'o> {
     mean: &'o mut [[f32; 3]],
     removed: &'o mut [[f32; 3]],
     spp: &'o mut [u64],
+    /// Per pixel and band `[removed r, g, b, support]` for the spread stage, or empty.
+    bands: &'o mut [f32],
 }
 
 /// Working memory of one resolve: per-pixel support counts of three rows, own and pooled
@@ -360,8 +415,10 @@ impl<'a> Resolver<'a> {
                     *p = a.pooled[at + i] + b.pooled[at + i] + c.pooled[at + i];
                 }
                 let own = &b.own[at..at + n];
-                let px = pixel(self.layout, self.params, cell, own, &pooled);
                 let i = (y - part.y0) * w + x;
+                let stride = k * BAND_FLOATS;
+                let bands = part.bands.get_mut(i * stride..(i + 1) * stride);
+                let px = pixel(self.layout, self.params, cell, own, &pooled, bands);
                 part.reweighted[i] = px.reweighted;
                 part.mean[i] = px.mean;
                 part.removed[i] = px.removed;
@@ -380,6 +437,7 @@ fn pixel(
     cell: &[u64],
     own: &[f64],
     pooled: &[f64],
+    mut bands: Option<&mut [f32]>,
 ) -> Pixel {
     let k = layout.cascades();
     let n = own[k];
@@ -410,7 +468,7 @@ fn pixel(
         let lf = layout.luminance(f);
         let w = match params.variant {
             Variant::Off => 1.0,
-            Variant::Paper => {
+            Variant::Paper | Variant::Spread => {
                 let w_c = (pooled[j] * pool_scale - kmin) * inv_kappa;
                 let w_v = lf * inv_kappa * inv_c;
                 w_c.max(w_v).clamp(0.0, 1.0)
@@ -430,6 +488,19 @@ fn pixel(
             f[c] += w * b[c];
             total[c] += b[c];
             removed[c] += (1.0 - w) * b[c];
+        }
+        if let Some(bands) = bands.as_deref_mut() {
+            let out = &mut bands[j * BAND_FLOATS..(j + 1) * BAND_FLOATS];
+            for c in 0..3 {
+                out[c] = ((1.0 - w) * b[c] / n) as f32;
+            }
+        }
+    }
+    if let Some(bands) = bands {
+        // The band's support, also where the band is empty in this pixel (its neighbours'
+        // samples count in the windows around it).
+        for j in 0..k {
+            bands[j * BAND_FLOATS + 3] = own[j] as f32;
         }
     }
     let inv = 1.0 / n;

@@ -127,6 +127,9 @@ impl Reference {
                             let wv = f64::max(lf / n, 0.05) * n / (kappa * c) * factor;
                             ((wc + wv) / 2.0).clamp(0.0, 1.0)
                         }
+                        // Its second stage moves energy between pixels; resolve_spread's own
+                        // tests check it (this reference is per pixel).
+                        Variant::Spread => unreachable!("the per-pixel reference has no spread"),
                     };
                     for ch in 0..3 {
                         f[ch] += wj * sums[j][ch];

@@ -104,6 +104,9 @@ pub enum Variant {
     Shader,
     /// No firefly removal: the plain mean of all samples.
     Off,
+    /// The paper's weights, then each brightness band's removed energy given back blurred over
+    /// the smallest window (3x3 .. 17x17) where that band is supported.
+    Spread,
 }
 
 impl Variant {
@@ -113,6 +116,7 @@ impl Variant {
             estimator::Variant::Paper => Variant::Paper,
             estimator::Variant::Shader => Variant::Shader,
             estimator::Variant::Off => Variant::Off,
+            estimator::Variant::Spread => Variant::Spread,
         }
     }
 
@@ -122,11 +126,17 @@ impl Variant {
             Variant::Paper => estimator::Variant::Paper,
             Variant::Shader => estimator::Variant::Shader,
             Variant::Off => estimator::Variant::Off,
+            Variant::Spread => estimator::Variant::Spread,
         }
     }
 
     /// All variants, in documentation order.
-    pub const ALL: [Variant; 3] = [Variant::Paper, Variant::Shader, Variant::Off];
+    pub const ALL: [Variant; 4] = [
+        Variant::Paper,
+        Variant::Shader,
+        Variant::Off,
+        Variant::Spread,
+    ];
 
     /// The name used in JSON and query strings.
     pub fn as_str(self) -> &'static str {
@@ -134,6 +144,7 @@ impl Variant {
             Variant::Paper => "paper",
             Variant::Shader => "shader",
             Variant::Off => "off",
+            Variant::Spread => "spread",
         }
     }
 }
@@ -146,7 +157,7 @@ impl fmt::Display for Variant {
 
 /// A string that names no [`Variant`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown resolve variant {0:?}; expected \"paper\", \"shader\" or \"off\"")]
+#[error("unknown resolve variant {0:?}; expected \"paper\", \"shader\", \"off\" or \"spread\"")]
 pub struct UnknownVariant(pub String);
 
 impl FromStr for Variant {

@@ -5,7 +5,9 @@
 //!   a glass sphere, a small bright lamp), rendered pass by pass with any seed;
 //! * [`synth`]: synthetic streams with an exactly known per-pixel mean (heavy-tailed, caustic-like
 //!   and tame regions), a pure function of `(seed, pass, x, y)`;
+//! * [`anchors`]: the robust estimators the resolve is benchmarked against (clamp, MoN, G-MoN);
 //! * [`quality`]: the error metrics every benchmark and test reports (relMSE, energy bias).
+pub mod anchors;
 pub mod quality;
 pub mod synth;
 pub mod tracer;

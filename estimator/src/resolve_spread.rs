@@ -1,0 +1,299 @@
+//! The `spread` resolve: the paper's reweighting, then each band's removed energy given back
+//! blurred wherever that band is supported at a wider scale (docs/ALGORITHM.md, "Two scales").
+//!
+//! A firefly is unsupported at every scale: no other sample of its brightness band lands near
+//! it. A caustic or a small highlight that is sparsely sampled *per pixel* is supported over a
+//! wider window: its band has many samples a few pixels around. The paper's resolve judges
+//! support over 3x3 pixels only and removes both. Here, for every pixel `q` and band `j`, the
+//! energy the paper removed, `r_j(q) = (1 - w_j) B_j(q) / N_q` (in pixel-value units), is
+//! *scattered* uniformly over the smallest square window around `q` (radius `1, 2, 3, 4, 6, 8`,
+//! clamped to the frame) holding at least `support` samples of band `j` (with its neighbouring
+//! bands, the same support count the paper uses); if even the widest window holds fewer, the
+//! energy stays removed.
+//!
+//! This is an adaptive ("sample-point") box-kernel density estimate of the removed energy whose
+//! bandwidth shrinks where the band is dense, so:
+//! * every pixel's given-back energy is a sum of non-negative shares of removed energy, and each
+//!   source gives back exactly what it removed or nothing: the frame's removed energy stays
+//!   `>= 0`, in every realization, not only in expectation;
+//! * it is consistent: as `N` grows every band of positive probability is fully trusted by the
+//!   paper's weights, `r_j -> 0`, and the estimate converges to the mean like the paper's;
+//! * it reads only the state: bit-identical for any arrival order or merge, and the scatter runs
+//!   in a fixed order on one thread whatever the resolve's thread count.
+
+use super::layout::CascadeLayout;
+
+/// Window radii tried, smallest first: 3x3 up to 17x17.
+pub const SPREAD_RADII: [usize; 6] = [1, 2, 3, 4, 6, 8];
+/// splatd's default support a band needs in a window before its removed energy is given back
+/// over that window, chosen by the quality benchmark.
+pub const DEFAULT_SPREAD_SUPPORT: f64 = 8.0;
+
+/// Per pixel and band, what the first (paper) stage leaves for the spread stage: the removed
+/// energy in pixel-value units (RGB) and the band's support count.
+pub(crate) const BAND_FLOATS: usize = 4;
+
+/// Gives removed energy back. `bands` holds, per pixel (row-major) and band, `[r, g, b, n_j]`;
+/// `reweighted` and `removed` are the paper's images, updated in place.
+pub(crate) fn spread(
+    layout: &CascadeLayout,
+    width: usize,
+    height: usize,
+    bands: &[f32],
+    support: f64,
+    reweighted: &mut [[f32; 3]],
+    removed: &mut [[f32; 3]],
+) {
+    let k = layout.cascades();
+    let (w, h) = (width, height);
+    let pixels = w * h;
+    debug_assert_eq!(bands.len(), pixels * k * BAND_FLOATS);
+    let stride = w + 1;
+    // Summed-area table of one band's support, and a 2D difference array of its give-back.
+    let mut sat = vec![0.0f64; stride * (h + 1)];
+
+    let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
+    let mut given = vec![[0.0f64; 3]; pixels];
+    for j in 0..k {
+        let at = |p: usize| &bands[(p * k + j) * BAND_FLOATS..(p * k + j + 1) * BAND_FLOATS];
+        if (0..pixels).all(|p| at(p)[..3] == [0.0; 3]) {
+            continue;
+        }
+        for y in 0..h {
+            let mut row = 0.0;
+            for x in 0..w {
+                row += at(y * w + x)[3] as f64;
+                sat[(y + 1) * stride + x + 1] = sat[y * stride + x + 1] + row;
+            }
+        }
+        let boxed = |sat: &[f64], x0: usize, x1: usize, y0: usize, y1: usize| {
+            sat[y1 * stride + x1] - sat[y0 * stride + x1] - sat[y1 * stride + x0]
+                + sat[y0 * stride + x0]
+        };
+        diff.iter_mut().for_each(|d| *d = [0.0; 3]);
+        for y in 0..h {
+            for x in 0..w {
+                let band = at(y * w + x);
+                if band[..3] == [0.0; 3] {
+                    continue;
+                }
+                let window = SPREAD_RADII.iter().find_map(|&r| {
+                    let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+                    let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+                    (boxed(&sat, x0, x1, y0, y1) >= support).then_some((x0, x1, y0, y1))
+                });
+                let Some((x0, x1, y0, y1)) = window else {
+                    continue;
+                };
+                // Every pixel of the window (clamped to the frame) gets an equal share.
+                let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
+                for c in 0..3 {
+                    let v = band[c] as f64 * share;
+                    diff[y0 * stride + x0][c] += v;
+                    diff[y0 * stride + x1][c] -= v;
+                    diff[y1 * stride + x0][c] -= v;
+                    diff[y1 * stride + x1][c] += v;
+                }
+            }
+        }
+        // Prefix sums turn the corners into boxes: first along rows, then down columns.
+        for y in 0..h {
+            let mut run = [0.0; 3];
+            for x in 0..w {
+                let d = &mut diff[y * stride + x];
+                for c in 0..3 {
+                    run[c] += d[c];
+                }
+                *d = run;
+            }
+        }
+        for x in 0..w {
+            let mut run = [0.0; 3];
+            for y in 0..h {
+                for c in 0..3 {
+                    run[c] += diff[y * stride + x][c];
+                    // Rounding of the running sums may leave a hair below 0 where nothing was
+                    // given; nothing is ever taken.
+                    given[y * w + x][c] += run[c].max(0.0);
+                }
+            }
+        }
+    }
+    for ((g, f), r) in given.iter().zip(reweighted).zip(removed) {
+        for c in 0..3 {
+            f[c] = (f[c] as f64 + g[c]) as f32;
+            r[c] = (r[c] as f64 - g[c]) as f32;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::{resolve_bands, CascadeLayout, FrameState, ResolveParams, Variant};
+    use splatd_scenes::synth::SplitMix64;
+
+    fn spread_params() -> ResolveParams {
+        ResolveParams::new(Variant::Spread, 4.0, 1.0, 0.0).unwrap()
+    }
+
+    fn paper_params() -> ResolveParams {
+        ResolveParams::new(Variant::Paper, 4.0, 1.0, 0.0).unwrap()
+    }
+
+    /// A `size` x `size` frame of grey samples: 0.5 everywhere, and in a disc a rare caustic,
+    /// `1/p` with probability `p = 1/48`, else 0 (mean 1).
+    fn caustic_state(size: u32, spp: u64, seed: u64) -> FrameState {
+        let mut state = FrameState::new(size, size, CascadeLayout::with_defaults());
+        let mut rng = SplitMix64::new(seed);
+        let c = size as f64 / 2.0;
+        for _ in 0..spp {
+            for y in 0..size {
+                for x in 0..size {
+                    let (dx, dy) = (x as f64 + 0.5 - c, y as f64 + 0.5 - c);
+                    let v = if dx * dx + dy * dy < (c * 0.6) * (c * 0.6) {
+                        if rng.next_f64() <= 1.0 / 48.0 {
+                            48.0
+                        } else {
+                            0.0
+                        }
+                    } else {
+                        0.5
+                    };
+                    state.splat(x, y, [v as f32; 3]).unwrap();
+                }
+            }
+        }
+        state
+    }
+
+    fn sum(image: &[[f32; 3]]) -> f64 {
+        image.iter().map(|p| p[0] as f64).sum()
+    }
+
+    #[test]
+    fn a_band_supported_in_a_wider_window_gets_its_energy_back_and_a_lone_firefly_does_not() {
+        // Background 0.5 (cascades 0 and 1, 16 spp: fully trusted), a lone firefly of 3000 (cascades 4 and 5) at (1, 1).
+        let mut lone = FrameState::new(15, 15, CascadeLayout::with_defaults());
+        for y in 0..15 {
+            for x in 0..15 {
+                for _ in 0..16 {
+                    lone.splat(x, y, [0.5; 3]).unwrap();
+                }
+            }
+        }
+        lone.splat(1, 1, [3000.0; 3]).unwrap();
+        let paper = lone.resolve(&paper_params());
+        assert!(sum(&paper.removed) > 100.0, "the paper removes the firefly");
+        assert_eq!(
+            lone.resolve(&spread_params()),
+            paper,
+            "nothing supports it anywhere"
+        );
+        // Nine samples of 30 (cascades 2 and 3) three pixels apart: every one is alone in its
+        // 3x3 neighbourhood, so the paper removes most of their cascade-3 part, but a 7x7 or
+        // 13x13 window holds all nine (support >= 8). (Within 8 pixels of the firefly they add
+        // only 4 * 0.39 to its support.)
+        let mut both = lone.clone();
+        for y in [6, 9, 12] {
+            for x in [6, 9, 12] {
+                both.splat(x, y, [30.0; 3]).unwrap();
+            }
+        }
+        let paper_both = both.resolve(&paper_params());
+        let spread = both.resolve(&spread_params());
+        let cluster_removed = sum(&paper_both.removed) - sum(&paper.removed);
+        assert!(
+            cluster_removed > 1.0,
+            "the paper removes the cluster: {cluster_removed}"
+        );
+        assert!(
+            (sum(&spread.removed) - sum(&paper.removed)).abs() < 1e-3,
+            "only the firefly stays removed: {} vs {}",
+            sum(&spread.removed),
+            sum(&paper.removed)
+        );
+        assert!(
+            (sum(&spread.reweighted) + sum(&spread.removed) - sum(&spread.mean)).abs() < 1e-3,
+            "energy is moved, not made"
+        );
+        // Windows reach at most 8 pixels from a cluster sample: row 0 and column 0 lie 6 away
+        // from (6, 6) and get some; the firefly's own pixel gets a share like its neighbours.
+        for i in 0..15 * 15 {
+            assert!(spread.reweighted[i][0] >= paper_both.reweighted[i][0]);
+        }
+    }
+
+    #[test]
+    fn removed_energy_of_the_frame_is_never_negative() {
+        for seed in 0..6 {
+            for spp in [4, 16, 64] {
+                let state = caustic_state(24, spp, seed);
+                let r = state.resolve(&spread_params());
+                let removed = sum(&r.removed);
+                let paper = sum(&state.resolve(&paper_params()).removed);
+                assert!(
+                    removed >= -1e-6 * sum(&r.mean),
+                    "seed {seed} spp {spp}: {removed}"
+                );
+                assert!(
+                    removed <= paper + 1e-6,
+                    "gives back at most what the paper removed"
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn consistent_the_estimate_converges_to_the_mean() {
+        // The removed fraction shrinks to 0 as N grows, and at 2048 spp every band of the
+        // caustic is trusted: the estimate is the mean, whose error goes as 1/sqrt(N).
+        let mut last_removed = f64::INFINITY;
+        for spp in [16, 256, 2048] {
+            let state = caustic_state(16, spp, 3);
+            let r = state.resolve(&spread_params());
+            let removed = sum(&r.removed) / sum(&r.mean);
+            assert!(
+                removed <= last_removed + 1e-6,
+                "{spp}: {removed} after {last_removed}"
+            );
+            last_removed = removed;
+        }
+        assert!(
+            last_removed.abs() < 1e-6,
+            "fully trusted at 2048 spp: {last_removed}"
+        );
+        let state = caustic_state(16, 2048, 3);
+        let r = state.resolve(&spread_params());
+        assert_eq!(r.reweighted, r.mean, "at 2048 spp every band is supported");
+    }
+
+    #[test]
+    fn bit_identical_for_any_merge_split_and_thread_count() {
+        // The same samples split over three partial states, merged in another order.
+        let parts: Vec<FrameState> = (0..3).map(|s| caustic_state(20, 8, 100 + s)).collect();
+        let mut a = parts[0].clone();
+        a.merge(&parts[1]).unwrap();
+        a.merge(&parts[2]).unwrap();
+        let mut b = parts[2].clone();
+        b.merge(&parts[0]).unwrap();
+        b.merge(&parts[1]).unwrap();
+        let p = spread_params();
+        let ra = a.resolve(&p);
+        assert_eq!(ra, b.resolve(&p));
+        for threads in [2, 3, 7] {
+            assert_eq!(resolve_bands(&[&a], &p, threads).unwrap(), ra);
+        }
+        // The frame held as bands (as a sharded server holds it) resolves the same.
+        let mut bands = FrameState::bands(20, 20, 3, a.layout());
+        for band in &mut bands {
+            band.merge_overlap(&a).unwrap();
+        }
+        let refs: Vec<&FrameState> = bands.iter().collect();
+        assert_eq!(resolve_bands(&refs, &p, 2).unwrap(), ra);
+        assert_ne!(
+            ra.reweighted,
+            a.resolve(&paper_params()).reweighted,
+            "spread did act"
+        );
+    }
+}
