@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Render real path-traced per-sample streams (with fireflies) plus a ground truth.
 
-Input data for splatd's estimator quality benchmark. Two small scenes are
+Input data for splatd's estimator quality benchmark. Four small scenes are
 defined inline (Python dicts, no external files) and rendered with Mitsuba 3's
 unidirectional `path` integrator:
 
@@ -13,6 +13,12 @@ unidirectional `path` integrator:
               diffuse shade hides from the camera and from most of the room,
               plus rough-conductor (glossy) objects: glossy bounces of the tiny
               light seen from diffuse surfaces produce fireflies.
+  slit        Not a Cornell box: a closed grey room lit only through a narrow
+              slit in its ceiling by a small sun; glossy floor, chrome ball.
+              Diffuse bounces that find the thin sunlit stripe are fireflies.
+  pool        Not a room: glass on a terrace under a small sun and a dim sky;
+              caustics through a glass ball and a slab (BSDF sampling only)
+              and the sun seen in a near-mirror ball.
 
 Every "pass" is one full-image render with spp=1, the `independent` sampler,
 seed = pass index, and a box reconstruction filter, so each pixel of a pass is
@@ -24,7 +30,16 @@ chunk its own seed; box filter => per-pixel mean of the samples).
 Run (from the repository root):
 
     python3 benches/quality/render_streams.py [--out DIR] [--passes P] [--gt-spp G] [--res N]
-        [--scenes caustic,smalllight] [--variant auto|llvm_ad_rgb|scalar_rgb] [--check-spp C]
+        [--scenes caustic,smalllight,slit,pool] [--variant auto|llvm_ad_rgb|scalar_rgb]
+        [--check-spp C]
+
+The table in docs/ALGORITHM.md was measured on 64x64 streams of 1024 passes
+(4 independent realizations of 256 spp for the benchmark):
+
+    S=benches/quality/render_streams.py; O="--res 64 --passes 1024 --check-spp 1024"
+    python3 $S $O --scenes pool --gt-spp 32768
+    python3 $S $O --scenes slit,caustic,smalllight --gt-spp 8192
+    cargo run --release --bin quality
 
 Requirements: see benches/quality/requirements.txt (pip install -r ...).
 The fast `llvm_ad_rgb` variant needs a libLLVM that Dr.Jit can use: on Debian 12

@@ -299,12 +299,10 @@ pub fn resolve_bands(
     if spreading {
         spread(
             layout,
-            w,
-            h,
             &bands_out,
             params.spread_support,
-            &mut out.reweighted,
-            &mut out.removed,
+            params.kappa + params.kappa_min,
+            &mut out,
         );
     }
     Ok(out)

@@ -243,6 +243,12 @@ fn main() -> Result<()> {
         "{:<10} {:>4} {:>3}  {:<36} {:>9} {:>7} {:>8}",
         "scene", "spp", "R", "estimator", "relMSE", "ratio", "bias"
     );
+    // Every grid setting's relMSE over all scenes and spp, for the one-setting ranking.
+    let mut grid: Vec<(String, Vec<f64>)> = Vec::new();
+    let mut record = |setting: &str, err: f64| match grid.iter_mut().find(|g| g.0 == setting) {
+        Some(g) => g.1.push(err),
+        None => grid.push((setting.to_owned(), vec![err])),
+    };
     for scene in &scenes {
         let runs = scene.runs.len();
         let default_layout = CascadeLayout::with_defaults();
@@ -310,7 +316,10 @@ fn main() -> Result<()> {
             for (c0, states) in &tuned_states {
                 for &kappa in &KAPPAS {
                     let p = ResolveParams::new(Variant::Paper, kappa, DEFAULT_KAPPA_MIN, 0.0)?;
-                    paper_grid.push((format!("c0={c0} kappa={kappa}"), resolve(states, &p)));
+                    let setting = format!("c0={c0} kappa={kappa}");
+                    let score = resolve(states, &p);
+                    record(&format!("paper {setting}"), score.err());
+                    paper_grid.push((setting, score));
                 }
             }
             rows.push(best_of("paper (tuned)", true, paper_grid));
@@ -341,7 +350,12 @@ fn main() -> Result<()> {
                     DEFAULT_KAPPA_EXPONENT,
                 )?
                 .with_spread_support(support)?;
-                spread_grid.push((format!("support={support}"), resolve(&default_states, &p)));
+                let score = resolve(&default_states, &p);
+                record(
+                    &format!("spread c0={DEFAULT_LOWEST_SCALE} support={support}"),
+                    score.err(),
+                );
+                spread_grid.push((format!("support={support}"), score));
             }
             rows.push(best_of("spread (tuned)", false, spread_grid));
             let best = rows
@@ -364,5 +378,13 @@ fn main() -> Result<()> {
         }
     }
     println!("* = anchor");
+    // One setting for every scene: the grid ranked by the geometric mean of relMSE over every
+    // scene and spp (how a default is chosen without an oracle per row).
+    let geo = |v: &[f64]| (v.iter().map(|e| e.ln()).sum::<f64>() / v.len() as f64).exp();
+    grid.sort_by(|a, b| geo(&a.1).total_cmp(&geo(&b.1)));
+    println!("\nsingle settings, best first (geometric mean of relMSE over scenes x spp):");
+    for (setting, errs) in grid.iter().take(12) {
+        println!("  {:.5}  {setting}", geo(errs));
+    }
     Ok(())
 }
