@@ -280,7 +280,7 @@ class Client:
         """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults.
 
         ``cascades``: ``base``, ``cascades``, ``lowest_scale`` (the scale c0 of cascade 0; cascade j
-        has scale c0 * base**j), ``luminance``. ``resolve``: ``variant`` (paper, shader, off),
+        has scale c0 * base**j), ``luminance``. ``resolve``: ``variant`` (paper, shader, off, spread),
         ``kappa`` (support, in samples beyond ``kappa_min``, at which a brightness band gets full
         weight; bands with less are down-weighted, not rejected), ``kappa_min`` (subtracted from a
         band's support count; not a bound on kappa), ``kappa_exponent`` (kappa grows as
