@@ -1,6 +1,6 @@
 //! splatd's estimator quality benchmark; not part of the test suite.
 //!
-//! `quality [--data bench-data] [--scenes a,b] [--realizations R]`
+//! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time]`
 //!
 //! For every scene (the synthetic stream with its exact mean, and every path-traced stream in
 //! `--data` written by `benches/quality/render_streams.py`) at 16, 64 and 256 spp, averaged over
@@ -12,7 +12,8 @@
 //!   the best `c0` and `kappa` of a grid;
 //! * splatd's resolve variants with their defaults, and `spread` over a grid of its support;
 //!
-//! with every row's ratio to the best anchor of its scene and spp.
+//! with every row's ratio to the best anchor of its scene and spp. `--time` adds what `spread`'s
+//! second stage costs, as the ratio of a 1080p resolve's time to `paper`'s.
 
 use std::path::{Path, PathBuf};
 
@@ -116,6 +117,37 @@ impl Scene {
             gt: floats("gt.f32", pixels)?,
         })
     }
+}
+
+/// What `spread`'s second stage costs: a 1080p resolve (default layout, 8 M samples of the
+/// synthetic stream's heavy tail, scattered) with `spread` vs `paper`, best of 3, as a ratio.
+fn resolve_time() -> Result<()> {
+    use splatd_scenes::synth::SplitMix64;
+    let (w, h) = (1920u32, 1080u32);
+    let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
+    let mut rng = SplitMix64::new(1);
+    for _ in 0..8_000_000 {
+        let x = (rng.next_u64() % w as u64) as u32;
+        let y = (rng.next_u64() % h as u64) as u32;
+        let z = 0.2 * rng.next_f64().powf(-1.0 / 1.3);
+        state.splat_checked(x, y, [z as f32, (z * 0.8) as f32, (z * 0.5) as f32]);
+    }
+    let time = |variant| -> Result<f64> {
+        let p = ResolveParams::new(variant, DEFAULT_KAPPA, DEFAULT_KAPPA_MIN, 0.0)?;
+        Ok((0..3)
+            .map(|_| {
+                let t = std::time::Instant::now();
+                std::hint::black_box(state.resolve(&p));
+                t.elapsed().as_secs_f64()
+            })
+            .fold(f64::INFINITY, f64::min))
+    };
+    let (paper, spread) = (time(Variant::Paper)?, time(Variant::Spread)?);
+    println!(
+        "\nresolve 1080p, 1 thread: paper {paper:.3} s, spread {spread:.3} s, ratio {:.2}",
+        spread / paper
+    );
+    Ok(())
 }
 
 /// States of one run after 16, 64 and 256 passes.
@@ -385,6 +417,9 @@ fn main() -> Result<()> {
     println!("\nsingle settings, best first (geometric mean of relMSE over scenes x spp):");
     for (setting, errs) in grid.iter().take(12) {
         println!("  {:.5}  {setting}", geo(errs));
+    }
+    if args.iter().any(|a| a == "--time") {
+        resolve_time()?;
     }
     Ok(())
 }
