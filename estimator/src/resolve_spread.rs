@@ -59,6 +59,7 @@ pub(crate) fn spread(
 
     let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
     let mut given = vec![[0.0f64; 3]; pixels];
+    let mut col = vec![[0.0f64; 3]; w];
     for j in 0..k {
         let at = |p: usize| &bands[(p * k + j) * BAND_FLOATS..(p * k + j + 1) * BAND_FLOATS];
         if (0..pixels).all(|p| at(p)[..3] == [0.0; 3]) {
@@ -114,25 +115,20 @@ pub(crate) fn spread(
                 }
             }
         }
-        // Prefix sums turn the corners into boxes: first along rows, then down columns.
+        // Prefix sums turn the corners into boxes: along each row, then down each column (kept
+        // as one running sum per column, so the frame is read in memory order).
+        col.iter_mut().for_each(|c| *c = [0.0; 3]);
         for y in 0..h {
             let mut run = [0.0; 3];
             for x in 0..w {
-                let d = &mut diff[y * stride + x];
+                let d = &diff[y * stride + x];
+                let (col, given) = (&mut col[x], &mut given[y * w + x]);
                 for c in 0..3 {
                     run[c] += d[c];
-                }
-                *d = run;
-            }
-        }
-        for x in 0..w {
-            let mut run = [0.0; 3];
-            for y in 0..h {
-                for c in 0..3 {
-                    run[c] += diff[y * stride + x][c];
+                    col[c] += run[c];
                     // Rounding of the running sums may leave a hair below 0 where nothing was
                     // given; nothing is ever taken.
-                    given[y * w + x][c] += run[c].max(0.0);
+                    given[c] += col[c].max(0.0);
                 }
             }
         }
