@@ -257,21 +257,21 @@ pub fn resolve_bands(
     }
     let k = first.layout().cascades();
     let spreading = params.variant == Variant::Spread;
-    let mut bands_out = vec![
-        0.0f32;
-        if spreading {
-            pixels * k * BAND_FLOATS
-        } else {
-            0
-        }
-    ];
-    let band_chunk = if spreading { k * BAND_FLOATS } else { 0 };
+    // Band-major, so that the spread stage reads each band's plane contiguously.
+    let mut bands_out: Vec<Vec<f32>> = if spreading {
+        (0..k).map(|_| vec![0.0; pixels * BAND_FLOATS]).collect()
+    } else {
+        Vec::new()
+    };
     let threads = threads.clamp(1, h);
     let chunk = h.div_ceil(threads) * w;
     let layout = first.layout();
     let rows = &rows;
     std::thread::scope(|scope| {
-        let mut band_parts = bands_out.chunks_mut((chunk * band_chunk).max(1));
+        let mut band_parts: Vec<_> = bands_out
+            .iter_mut()
+            .map(|b| b.chunks_mut(chunk * BAND_FLOATS))
+            .collect();
         let parts = out
             .reweighted
             .chunks_mut(chunk)
@@ -286,7 +286,10 @@ pub fn resolve_bands(
                 mean,
                 removed,
                 spp,
-                bands: band_parts.next().unwrap_or_default(),
+                bands: band_parts
+                    .iter_mut()
+                    .map(|b| b.next().expect("one chunk per part"))
+                    .collect(),
             };
             if i + 1 == threads.min(pixels.div_ceil(chunk)) {
                 // The last part runs on this thread.
@@ -315,8 +318,8 @@ struct Part<'o> {
     mean: &'o mut [[f32; 3]],
     removed: &'o mut [[f32; 3]],
     spp: &'o mut [u64],
-    /// Per pixel and band `[removed r, g, b, support]` for the spread stage, or empty.
-    bands: &'o mut [f32],
+    /// Per band, per pixel `[removed r, g, b, support]` for the spread stage, or empty.
+    bands: Vec<&'o mut [f32]>,
 }
 
 /// Working memory of one resolve: per-pixel support counts of three rows, own and pooled
@@ -396,7 +399,7 @@ impl<'a> Resolver<'a> {
         row.y = y;
     }
 
-    fn run(mut self, rows: &[&[u64]], part: Part<'_>) {
+    fn run(mut self, rows: &[&[u64]], mut part: Part<'_>) {
         let (w, h, k) = (self.width, rows.len(), self.k);
         let n = k + 1;
         let mut pooled = vec![0.0; n];
@@ -414,8 +417,7 @@ impl<'a> Resolver<'a> {
                 }
                 let own = &b.own[at..at + n];
                 let i = (y - part.y0) * w + x;
-                let stride = k * BAND_FLOATS;
-                let bands = part.bands.get_mut(i * stride..(i + 1) * stride);
+                let bands = (!part.bands.is_empty()).then_some((&mut part.bands[..], i));
                 let px = pixel(self.layout, self.params, cell, own, &pooled, bands);
                 part.reweighted[i] = px.reweighted;
                 part.mean[i] = px.mean;
@@ -435,7 +437,7 @@ fn pixel(
     cell: &[u64],
     own: &[f64],
     pooled: &[f64],
-    mut bands: Option<&mut [f32]>,
+    mut bands: Option<(&mut [&mut [f32]], usize)>,
 ) -> Pixel {
     let k = layout.cascades();
     let n = own[k];
@@ -487,18 +489,18 @@ fn pixel(
             total[c] += b[c];
             removed[c] += (1.0 - w) * b[c];
         }
-        if let Some(bands) = bands.as_deref_mut() {
-            let out = &mut bands[j * BAND_FLOATS..(j + 1) * BAND_FLOATS];
+        if let Some((bands, i)) = &mut bands {
+            let out = &mut bands[j][*i * BAND_FLOATS..(*i + 1) * BAND_FLOATS];
             for c in 0..3 {
                 out[c] = ((1.0 - w) * b[c] / n) as f32;
             }
         }
     }
-    if let Some(bands) = bands {
+    if let Some((bands, i)) = bands {
         // The band's support, also where the band is empty in this pixel (its neighbours'
         // samples count in the windows around it).
         for j in 0..k {
-            bands[j * BAND_FLOATS + 3] = own[j] as f32;
+            bands[j][i * BAND_FLOATS + 3] = own[j] as f32;
         }
     }
     let inv = 1.0 / n;

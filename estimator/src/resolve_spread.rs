@@ -38,11 +38,11 @@ pub const DEFAULT_SPREAD_SUPPORT: f64 = 32.0;
 /// energy in pixel-value units (RGB) and the band's support count.
 pub(crate) const BAND_FLOATS: usize = 4;
 
-/// Gives removed energy back. `bands` holds, per pixel (row-major) and band, `[r, g, b, n_j]`;
+/// Gives removed energy back. `bands` holds, per band and pixel (row-major), `[r, g, b, n_j]`;
 /// `out` holds the paper's images, updated in place.
 pub(crate) fn spread(
     layout: &CascadeLayout,
-    bands: &[f32],
+    bands: &[Vec<f32>],
     support: f64,
     solid: f64,
     out: &mut Resolved,
@@ -51,7 +51,7 @@ pub(crate) fn spread(
     let k = layout.cascades();
     let (w, h) = (width, height);
     let pixels = w * h;
-    debug_assert_eq!(bands.len(), pixels * k * BAND_FLOATS);
+    debug_assert!(bands.len() == k && bands.iter().all(|b| b.len() == pixels * BAND_FLOATS));
     let stride = w + 1;
     // Summed-area table of one band's support, and a 2D difference array of its give-back.
     let mut sat = vec![0.0f64; stride * (h + 1)];
@@ -61,7 +61,7 @@ pub(crate) fn spread(
     let mut given = vec![[0.0f64; 3]; pixels];
     let mut col = vec![[0.0f64; 3]; w];
     for j in 0..k {
-        let at = |p: usize| &bands[(p * k + j) * BAND_FLOATS..(p * k + j + 1) * BAND_FLOATS];
+        let at = |p: usize| &bands[j][p * BAND_FLOATS..(p + 1) * BAND_FLOATS];
         if (0..pixels).all(|p| at(p)[..3] == [0.0; 3]) {
             continue;
         }
