@@ -60,8 +60,8 @@ pub(crate) fn spread(
     let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
     let mut given = vec![[0.0f64; 3]; pixels];
     let mut col = vec![[0.0f64; 3]; w];
-    for j in 0..k {
-        let at = |p: usize| &bands[j][p * BAND_FLOATS..(p + 1) * BAND_FLOATS];
+    for plane in bands {
+        let at = |p: usize| &plane[p * BAND_FLOATS..(p + 1) * BAND_FLOATS];
         if (0..pixels).all(|p| at(p)[..3] == [0.0; 3]) {
             continue;
         }
