@@ -60,7 +60,7 @@ pub mod writer;
 
 pub use api::{
     BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
-    ResolveParams, SyncAck, Variant,
+    PutFrame, ResolveParams, SyncAck, Variant,
 };
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
