@@ -3,6 +3,7 @@
 # the tests need beyond cargo's own crates, then runs every test.
 #
 #   Python 3 + numpy + OpenEXR   independent EXR reader/writer, the Python client's tests (pip)
+#   python3-venv                 the Python client package installed into a fresh venv
 #   nginx                        the load balancer in front of several nodes (Debian package)
 #   chromium + chromedriver      the live page, driven headless (Debian packages)
 #
@@ -28,6 +29,7 @@ python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ig
 # Installed up front, once: the tests call the same scripts, which then find the tools present
 # (two tests running apt-get at the same time would fight over its lock).
 bash tests/setup/nginx.sh >/dev/null
+bash tests/setup/python_venv.sh >/dev/null
 bash tests/setup/chromium.sh >/dev/null
 
 cargo test --workspace

@@ -24,7 +24,8 @@
 //!
 //! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
 //! and the HTTP endpoints for implementers in other languages;
-//! `python/splatd_client.py` is a numpy implementation.
+//! `python/` holds a numpy implementation, the package `splatd-client`
+//! (`pip install ./proto/python`).
 //!
 //! # Example
 //!

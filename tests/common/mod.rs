@@ -151,3 +151,61 @@ pub fn free_port() -> u16 {
         .expect("binding 127.0.0.1:0")
         .port()
 }
+
+/// A fresh Python virtual environment in `dir` with the client package installed by pip from a
+/// copy of `proto/python` (so no build files land in the checkout); returns its `python`.
+///
+/// Needs `python3 -m venv` (`tests/setup/python_venv.sh` installs it) and pip's index or cache
+/// for numpy, the package's one dependency.
+pub fn python_package_venv(dir: &Path) -> std::path::PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let setup = Command::new("bash")
+        .arg(root.join("tests/setup/python_venv.sh"))
+        .output()
+        .expect("running tests/setup/python_venv.sh");
+    assert!(
+        setup.status.success(),
+        "tests/setup/python_venv.sh failed: {}",
+        String::from_utf8_lossy(&setup.stderr)
+    );
+    let source = dir.join("splatd-client-src");
+    let package = source.join("splatd_client");
+    std::fs::create_dir_all(&package).unwrap();
+    for file in ["pyproject.toml", "README.md"] {
+        std::fs::copy(root.join("proto/python").join(file), source.join(file)).unwrap();
+    }
+    for entry in std::fs::read_dir(root.join("proto/python/splatd_client")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, package.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let venv = dir.join("venv");
+    let run = |cmd: &mut Command, what: &str| {
+        let out = cmd.output().unwrap_or_else(|e| panic!("{what}: {e}"));
+        assert!(
+            out.status.success(),
+            "{what} failed:\n{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    run(
+        Command::new("python3").args(["-m", "venv"]).arg(&venv),
+        "python3 -m venv",
+    );
+    let python = venv.join("bin/python");
+    run(
+        Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+            ])
+            .arg(&source),
+        "pip install ./proto/python into a fresh venv",
+    );
+    python
+}
