@@ -13,7 +13,7 @@ use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_proto::batchfile::BatchReader;
 use splatd_proto::{DecodeLimits, StateDump};
 use splatd_server::frame::core_resolve_params;
-use splatd_server::image::{cascade_layers, encode_exr};
+use splatd_server::image::{cascade_layers, encode_exr, Provenance};
 use splatd_server::server::{shutdown_signal, Server};
 
 #[derive(Parser)]
@@ -409,7 +409,11 @@ fn resolve(args: ResolveArgs) -> Result<()> {
     } else {
         Vec::new()
     };
-    let bytes = encode_exr(&resolved, &extra)?;
+    let provenance = Provenance {
+        layout: state.layout(),
+        params: &params,
+    };
+    let bytes = encode_exr(&resolved, &extra, &provenance)?;
     std::fs::write(&args.output, bytes)
         .with_context(|| format!("writing {}", args.output.display()))?;
     println!(

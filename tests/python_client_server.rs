@@ -9,7 +9,7 @@ use std::process::Command;
 
 use common::{python_package_venv, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
-use splatd_server::image::encode_exr;
+use splatd_server::image::{encode_exr, Provenance};
 
 #[test]
 fn the_installed_python_client_posts_what_the_core_resolves() {
@@ -72,7 +72,12 @@ fn the_installed_python_client_posts_what_the_core_resolves() {
         let p = (i % (w * h) as usize) as u32;
         reference.splat(p % w, p / w, [f(0), f(4), f(8)]).unwrap();
     }
-    let expected = encode_exr(&reference.resolve(&ResolveParams::with_defaults()), &[]).unwrap();
+    let params = ResolveParams::with_defaults();
+    let provenance = Provenance {
+        layout: reference.layout(),
+        params: &params,
+    };
+    let expected = encode_exr(&reference.resolve(&params), &[], &provenance).unwrap();
     let served = std::fs::read(dir.path().join("served.exr")).unwrap();
     assert!(
         served == expected,

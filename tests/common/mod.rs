@@ -41,18 +41,7 @@ impl Server {
 
 /// Channels of an EXR as read by the OpenEXR project's Python bindings (an independent reader).
 pub fn read_exr_with_python(path: &Path) -> (u32, u32, Vec<(String, Vec<f64>)>) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/read_exr.py");
-    let out = Command::new("python3")
-        .arg(script)
-        .arg(path)
-        .output()
-        .expect("running python3 (tests/run.sh installs its packages)");
-    assert!(
-        out.status.success(),
-        "python EXR reader failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("reader prints JSON");
+    let v = read_exr_json(path);
     let width = v["width"].as_u64().expect("width") as u32;
     let height = v["height"].as_u64().expect("height") as u32;
     let mut channels: Vec<(String, Vec<f64>)> = v["channels"]
@@ -71,6 +60,28 @@ pub fn read_exr_with_python(path: &Path) -> (u32, u32, Vec<(String, Vec<f64>)>) 
         .collect();
     channels.sort_by(|a, b| a.0.cmp(&b.0));
     (width, height, channels)
+}
+
+/// The `software` and `splatd:` header attributes of an EXR as OpenEXR's Python bindings read
+/// them: strings, numbers, and lists for vectors.
+pub fn read_exr_attributes_with_python(path: &Path) -> serde_json::Value {
+    read_exr_json(path)["attributes"].clone()
+}
+
+/// What `tests/py/read_exr.py` prints for `path`.
+fn read_exr_json(path: &Path) -> serde_json::Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/read_exr.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(path)
+        .output()
+        .expect("running python3 (tests/run.sh installs its packages)");
+    assert!(
+        out.status.success(),
+        "python EXR reader failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
 
 /// A multi-threaded runtime for tests that drive servers with async clients.
