@@ -27,7 +27,9 @@
 //!
 //! Only the beauty's `R`, `G` and `B` are read, as 32-bit floats whatever their stored type
 //! (`f16`, `f32` or `u32`), from scanline or tiled parts with any compression the `exr` crate
-//! reads (of a mip- or rip-mapped part, the full-resolution level). Alpha, other channels and
+//! reads: none, RLE, ZIPS, ZIP, PIZ, PXR24, B44, B44A, DWAA, DWAB (not OpenEXR 3.3's HTJ2K and
+//! ZSTD, refused as [`PassError::Exr`] "unknown compression method"); of a mip- or rip-mapped
+//! part, the full-resolution level. Alpha, other channels and
 //! other parts are not decoded. The pass must cover exactly its display window: a cropped
 //! (border) render or an overscan would put its pixels at the wrong place in the frame, so it
 //! is refused rather than guessed at.
