@@ -12,7 +12,7 @@ use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, DecodeLimits, Record, StateDump};
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
-use splatd_server::image::encode_exr;
+use splatd_server::image::{encode_exr, Provenance};
 
 const W: u32 = 16;
 const H: u32 = 12;
@@ -205,7 +205,12 @@ fn ten_thousand_malformed_bodies_leave_the_server_well_and_the_frame_exact() {
     let image = rt
         .block_on(client.image("f", &ImageQuery::default()))
         .unwrap();
-    let expected = encode_exr(&reference.resolve(&ResolveParams::with_defaults()), &[]).unwrap();
+    let params = ResolveParams::with_defaults();
+    let provenance = Provenance {
+        layout: reference.layout(),
+        params: &params,
+    };
+    let expected = encode_exr(&reference.resolve(&params), &[], &provenance).unwrap();
     assert!(
         image[..] == expected[..],
         "the frame is not what the valid batches make it"

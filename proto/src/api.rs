@@ -227,7 +227,54 @@ impl CreateFrame {
     }
 }
 
-/// State of a frame: response of `POST /v1/frames` and `GET /v1/frames/{id}`.
+/// Body of `PUT /v1/frames/{id}` (create-or-get, allowed to `write` tokens): the creation
+/// parameters of [`CreateFrame`], the id coming from the path. An `id` in the body is
+/// optional and must then equal the path's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PutFrame {
+    /// Frame id; when given, it must be the path's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Cascade layout; defaults when omitted.
+    #[serde(default)]
+    pub cascades: CascadeParams,
+    /// Default resolve settings; defaults when omitted.
+    #[serde(default)]
+    pub resolve: ResolveParams,
+}
+
+impl PutFrame {
+    /// The create request this body makes for frame `id`.
+    pub fn into_create(self, id: impl Into<String>) -> CreateFrame {
+        CreateFrame {
+            id: id.into(),
+            width: self.width,
+            height: self.height,
+            cascades: self.cascades,
+            resolve: self.resolve,
+        }
+    }
+}
+
+impl From<&CreateFrame> for PutFrame {
+    fn from(c: &CreateFrame) -> PutFrame {
+        PutFrame {
+            id: Some(c.id.clone()),
+            width: c.width,
+            height: c.height,
+            cascades: c.cascades.clone(),
+            resolve: c.resolve.clone(),
+        }
+    }
+}
+
+/// State of a frame: response of `POST /v1/frames`, `PUT /v1/frames/{id}` and
+/// `GET /v1/frames/{id}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameInfo {
     /// Frame id.

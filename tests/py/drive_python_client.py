@@ -1,4 +1,4 @@
-"""Drives proto/python/splatd_client.py (and the Mitsuba worker's posting helper) against a real
+"""Drives the splatd_client package (and the Mitsuba worker's posting helper) against a real
 splatd server, for tests/python_client_server.rs.
 
     python3 tests/py/drive_python_client.py URL OUT_DIR
@@ -17,9 +17,20 @@ import sys
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, "..", "..", "proto", "python"))
+WORKERS = os.path.join(HERE, "..", "..", "proto", "python")
+if os.environ.get("SPLATD_CLIENT_INSTALLED") == "1":
+    # The installed package first; the workers' directory only after it, so that the Mitsuba
+    # worker's `import splatd_client` gets the installed package too, not the checkout's.
+    import splatd_client as sc
+
+    sys.path.append(WORKERS)
+    assert not os.path.abspath(sc.__file__).startswith(os.path.abspath(WORKERS)), sc.__file__
+else:
+    sys.path.insert(0, WORKERS)
+    import splatd_client as sc  # noqa: E402
 import mitsuba_worker  # noqa: E402  (only its helpers; Mitsuba itself is not imported)
-import splatd_client as sc  # noqa: E402
+
+assert mitsuba_worker.sc is sc
 
 W, H, PASSES = 23, 17, 6
 
@@ -28,6 +39,14 @@ def main(url, out):
     client = sc.Client(url, max_attempts=3)
     info = client.create_frame("py", W, H)
     assert info["samples"] == 0, info
+    again = client.create_or_get("py", W, H)
+    assert again == info, (again, info)
+    try:
+        client.create_or_get("py", W + 1, H)
+        raise AssertionError("a create-or-get with another size was accepted")
+    except sc.SplatdError as e:
+        assert e.status == 409 and e.error == "frame_exists", (e.status, e.error)
+        assert f"size {W}x{H} here, {W + 1}x{H} requested" in e.message, e.message
     rng = np.random.default_rng(5)
     passes = []
     for seq in range(PASSES):

@@ -13,7 +13,7 @@ use bytes::Bytes;
 use crate::frame::{core_resolve_params, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
-use crate::image::{cascade_layers, encode_exr};
+use crate::image::{cascade_layers, encode_exr, Provenance};
 use crate::AppState;
 
 /// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now.
@@ -45,7 +45,11 @@ pub async fn get_image(
                 Vec::new()
             };
             drop(cut);
-            encode_exr(&resolved, &extra)
+            let provenance = Provenance {
+                layout: &frame.spec().layout,
+                params: &params,
+            };
+            encode_exr(&resolved, &extra, &provenance)
                 .map(Bytes::from)
                 .map_err(|e| ApiError::internal("EXR encoding", e))
         })

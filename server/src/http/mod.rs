@@ -4,7 +4,7 @@
 //! answers [`error::ApiError`]s. The domain below them (`store`, `frame`, `durable`) knows
 //! nothing of HTTP: its errors become statuses and codes in [`error`] alone.
 //!
-//! * [`frames`]: create, list, inspect, delete; [`ingest`]: samples and passes;
+//! * [`frames`]: create (or get), list, inspect, delete; [`ingest`]: samples and passes;
 //!   [`images`]: EXR and PNG; [`states`]: export and import; [`operations`]: the page, health,
 //!   metrics, sync;
 //! * [`extract`]: request extractors with JSON refusals; [`error`]: the one error type;
@@ -71,6 +71,7 @@ fn routes(app: &AppState) -> Routes {
         .route(M::POST, "/v1/frames", Admin, frames::create)
         .route(M::GET, "/v1/frames", Read, frames::list)
         .route(M::GET, "/v1/frames/{id}", Read, frames::info)
+        .route(M::PUT, "/v1/frames/{id}", Write, frames::put)
         .route(M::DELETE, "/v1/frames/{id}", Admin, frames::delete)
         .route(
             M::POST,
