@@ -616,47 +616,49 @@ impl FrameState {
 
     /// Accumulates every valid sample of `samples` (pixel, RGB) and counts the rest.
     ///
-    /// This is the fast path for batches. Random pixels of a large frame miss every cache, so the
-    /// work is done in chunks: first the splits of a chunk are computed and the cascades they
-    /// will touch are prefetched, then the adds are applied, by which time the memory is on its
-    /// way. The result is identical to splatting the samples one by one.
+    /// This is the fast path for batches in no particular order. Random pixels of a large frame
+    /// miss every cache, so the work is pipelined: a sample's split is computed and the
+    /// cascades it will touch are prefetched, and it is applied 16 samples later, by which time
+    /// the memory is on its way. The result is identical to splatting the samples one by one.
     pub fn splat_all<I>(&mut self, samples: I) -> SplatReport
     where
         I: IntoIterator<Item = (u32, u32, [f32; 3])>,
     {
-        const CHUNK: usize = 32;
+        // Samples in flight: prepared and prefetched, applied this many samples later.
+        const AHEAD: usize = 16;
         let mut report = SplatReport::default();
-        let mut pending = [Pending::default(); CHUNK];
-        let mut samples = samples.into_iter().peekable();
-        while samples.peek().is_some() {
-            let mut n = 0;
-            for (x, y, rgb) in samples.by_ref() {
-                let checked = self
-                    .check_pixel(x, y)
-                    .and_then(|()| self.layout.check_sample(rgb))
-                    .and_then(|()| {
-                        // The `n` samples of this chunk are not applied yet: at first count them
-                        // as if they all were in this pixel (exactly only near the limit).
-                        if self.has_room(x, y, n as u64 + 1) || self.room_exact(x, y, &pending[..n])
-                        {
-                            Ok(())
-                        } else {
-                            Err(SampleError::PixelFull { x, y })
-                        }
-                    });
-                report.count(checked);
-                if checked.is_ok() {
-                    pending[n] = self.prepare(x, y, rgb);
-                    prefetch(&self.cells, pending[n].at);
-                    n += 1;
-                    if n == CHUNK {
-                        break;
+        let mut ring = [Pending::default(); AHEAD];
+        let (mut head, mut len) = (0, 0);
+        for (x, y, rgb) in samples {
+            let checked = self
+                .check_pixel(x, y)
+                .and_then(|()| self.layout.check_sample(rgb))
+                .and_then(|()| {
+                    // The `len` samples in flight are not applied yet: at first count them as if
+                    // they all were in this pixel (exactly only near the limit).
+                    let in_flight = (0..len).map(|i| &ring[(head + i) % AHEAD]);
+                    if self.has_room(x, y, len as u64 + 1) || self.room_exact(x, y, in_flight) {
+                        Ok(())
+                    } else {
+                        Err(SampleError::PixelFull { x, y })
                     }
+                });
+            report.count(checked);
+            if checked.is_ok() {
+                if len == AHEAD {
+                    self.apply(&ring[head]);
+                    head = (head + 1) % AHEAD;
+                    len -= 1;
                 }
+                let p = self.prepare(x, y, rgb);
+                prefetch(&self.cells, p.at);
+                ring[(head + len) % AHEAD] = p;
+                len += 1;
             }
-            for p in &pending[..n] {
-                self.apply(p);
-            }
+        }
+        for i in 0..len {
+            let p = ring[(head + i) % AHEAD];
+            self.apply(&p);
         }
         report
     }
@@ -788,11 +790,10 @@ impl FrameState {
 
     /// Whether pixel `(x, y)` can take one more sample besides those of `pending` in it.
     #[cold]
-    fn room_exact(&self, x: u32, y: u32, pending: &[Pending]) -> bool {
+    fn room_exact<'p>(&self, x: u32, y: u32, pending: impl Iterator<Item = &'p Pending>) -> bool {
         let k = self.layout.cascades();
         let pixel = (y - self.y0) as usize * self.width as usize + x as usize;
         let here = pending
-            .iter()
             .filter(|p| (p.at - 4 * p.split.lo) / cell_len(k) == pixel)
             .count() as u64;
         self.spp(x, y) + here < MAX_PIXEL_SAMPLES
