@@ -27,6 +27,6 @@ pub use resolve::{
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
 pub use state::{
-    cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, MergeError,
-    SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
+    cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, Kernel,
+    MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
 };

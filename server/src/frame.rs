@@ -533,7 +533,7 @@ impl ShardedFrame {
         }
         for (guard, samples) in guards.iter_mut().zip(buckets) {
             if let Some(mut band) = guard.take() {
-                let report = band.splat_all(samples);
+                let report = band.splat_records(&samples);
                 debug_assert_eq!(report.rejected(), 0, "records were checked above");
             }
         }
