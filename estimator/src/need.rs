@@ -23,7 +23,7 @@
 //! `[0, 1]`; dividing by the tile's spp after one more pass makes it a gain per sample: a tile
 //! with the same doubt and twice the samples needs them half as much. Tiles with the highest
 //! need are where the next samples help most; [`NeedMap::plan`] spreads a sample budget over
-//! tiles in proportion to it.
+//! tiles in proportion to its square root.
 //!
 //! The frame's convergence ([`Convergence`]) is the sum over tiles: the removed energy as a
 //! fraction of the mean's, which falls toward 0 as samples accumulate (the estimator is
@@ -294,18 +294,25 @@ impl NeedMap {
         c
     }
 
-    /// Spreads a budget of `samples` over the tiles in proportion to their need: the number of
-    /// passes (one sample for every pixel of the tile) each tile should get, row-major.
+    /// Spreads a budget of `samples` over the tiles in proportion to the square root of their
+    /// need: the number of passes (one sample for every pixel of the tile) each tile should get,
+    /// row-major.
     ///
-    /// Every tile gets `floor(share / pixels)` passes of its share `samples * need / Σ need`;
+    /// The square root, as in the classic allocation of samples to strata in proportion to
+    /// their standard deviation, was chosen by `bench need`: in proportion to the need itself,
+    /// the smooth tiles of the demo scene were starved and its relMSE at 64 spp came out 2 %
+    /// worse than uniform sampling, with the square root 3 % better.
+    ///
+    /// Every tile gets `floor(share / pixels)` passes of its share
+    /// `samples * sqrt(need) / Σ sqrt(need)`;
     /// what is left goes one pass at a time to the tiles with the largest remainders that still
     /// fit, so the plan never spends more than `samples`. Without any need (a black or
     /// converged frame) the budget is spread evenly.
     pub fn plan(&self, samples: u64) -> Vec<u64> {
-        let total: f64 = self.tiles.iter().map(|t| t.need).sum();
+        let total: f64 = self.tiles.iter().map(|t| t.need.sqrt()).sum();
         let weight = |t: &TileNeed| {
             if total > 0.0 {
-                t.need / total
+                t.need.sqrt() / total
             } else {
                 t.pixels() as f64 / (u64::from(self.width) * u64::from(self.height)) as f64
             }
@@ -329,6 +336,22 @@ impl NeedMap {
             }
         }
         passes
+    }
+}
+
+impl NeedMap {
+    /// The pixels a [`NeedMap::plan`] asks for, once per pass: for each tile in order, its
+    /// pixels row by row, repeated `plan[i]` times. A worker renders one sample of each.
+    pub fn planned_pixels(&self, plan: &[u64]) -> Vec<(u32, u32)> {
+        let mut out = Vec::new();
+        for (t, &passes) in self.tiles.iter().zip(plan) {
+            for _ in 0..passes {
+                for y in t.y..t.y + t.height {
+                    out.extend((t.x..t.x + t.width).map(|x| (x, y)));
+                }
+            }
+        }
+        out
     }
 }
 
@@ -447,7 +470,7 @@ mod tests {
                 TileNeed {
                     width: 2,
                     height: 2,
-                    need: 3.0,
+                    need: 9.0,
                     ..TileNeed::default()
                 },
                 TileNeed {
@@ -459,7 +482,7 @@ mod tests {
                 },
             ],
         };
-        // 40 samples: shares 30 and 10, i.e. 7.5 and 2.5 passes of 4 pixels; floors 7 and 2
+        // 40 samples: square roots 3 and 1, shares 30 and 10, i.e. 7.5 and 2.5 passes of 4 pixels; floors 7 and 2
         // spend 36, the 4 left go to the first tile (remainders tie; the earlier tile wins).
         assert_eq!(m.plan(40), [8, 2]);
         assert_eq!(m.plan(3), [0, 0], "less than one pass of any tile");
@@ -472,6 +495,11 @@ mod tests {
             ..m.clone()
         };
         assert_eq!(flat.plan(16), [2, 2], "no need: spread evenly");
+        let pixels = m.planned_pixels(&[1, 2]);
+        assert_eq!(pixels.len(), 12);
+        assert_eq!(&pixels[..4], [(0, 0), (1, 0), (0, 1), (1, 1)]);
+        assert_eq!(&pixels[4..8], [(2, 0), (3, 0), (2, 1), (3, 1)]);
+        assert_eq!(pixels[4..8], pixels[8..]);
     }
 
     #[test]
