@@ -70,7 +70,8 @@ def main(url, out):
     scores = sorted(need["need"], reverse=True)
     assert [need["need"][(y // 8) * 3 + x // 8] for x, y, _, _ in windows] == scores[:3], windows
     assert all(x + w <= W and y + h <= H for x, y, w, h in windows), windows
-    assert sc.neediest_tiles(need, 9)[-1] is not None and len(sc.neediest_tiles(need, 20)) == 9
+    every = sc.neediest_tiles(need, 20)
+    assert len(every) == 9 and sum(w * h for _, _, w, h in every) == W * H, every
     assert info["convergence"]["spp_min"] == PASSES, info
     np.stack(passes).astype("<f4").tofile(os.path.join(out, "samples.f32"))
     with open(os.path.join(out, "served.exr"), "wb") as f:
