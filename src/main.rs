@@ -77,6 +77,10 @@ struct DemoArgs {
     /// Keep serving the live page after the demo, until Ctrl-C.
     #[arg(long)]
     serve: bool,
+    /// Steer the workers by the server's need map: a quarter of the samples uniformly, the rest
+    /// on the tiles that need them most (same total).
+    #[arg(long)]
+    guided: bool,
 }
 
 #[derive(Args)]
@@ -172,6 +176,7 @@ fn main() -> Result<()> {
             workers: a.workers,
             addr: a.addr,
             keep_serving: a.serve,
+            guided: a.guided,
         })
         .map(|_| ()),
         Command::Serve(args) => run_server(args),

@@ -25,7 +25,8 @@ use reqwest::{Method, StatusCode};
 use serde::de::DeserializeOwned;
 
 use crate::api::{
-    BatchAck, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck, PutFrame,
+    BatchAck, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck, NeedMap,
+    PutFrame,
 };
 use crate::batch::{validate_frame_id, Batch, WireError};
 use crate::BATCH_CONTENT_TYPE;
@@ -364,6 +365,16 @@ impl Client {
         let query = image_query_string(query);
         let path = format!("/v1/frames/{id}/image.exr{query}");
         self.send(Method::GET, &path, None).await.map(|(_, b)| b)
+    }
+
+    /// `GET /v1/frames/{id}/need?tile=T`: the frame's need map as JSON (tile edge `tile`, or
+    /// the server's default, [`crate::api::DEFAULT_NEED_TILE`]).
+    pub async fn need(&self, id: &str, tile: Option<u32>) -> Result<NeedMap, ClientError> {
+        validate_frame_id(id)?;
+        let query = tile.map(|t| format!("?tile={t}")).unwrap_or_default();
+        let path = format!("/v1/frames/{id}/need{query}");
+        let (status, bytes) = self.send(Method::GET, &path, None).await?;
+        parse_json(&format!("GET {path}"), status, &bytes)
     }
 
     /// `GET /v1/frames/{id}/state`: the frame's accumulated state (see [`crate::StateDump`]).

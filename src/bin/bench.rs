@@ -12,6 +12,9 @@
 //!   cells in the same order, no arithmetic; plain RGB + count accumulation for reference),
 //!   resolve against one read of the state and its scaling with threads, merge against memcpy,
 //!   and the state size. Default size 1920x1080.
+//! * `bench need`: need-guided against uniform sampling at the same total number of samples, on
+//!   the synthetic scene (exact mean) and the demo's path-traced scene (against a reference of
+//!   many more samples): relMSE of the reweighted image for both, and their ratio.
 
 use std::hint::black_box;
 use std::path::{Path, PathBuf};
@@ -19,12 +22,13 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use splatd_estimator::{
-    cell_len, resolve_bands, CascadeLayout, FrameState, Kernel, ResolveParams, Variant,
+    cell_len, resolve_bands, CascadeLayout, FrameState, Kernel, NeedMap, ResolveParams, Variant,
     DEFAULT_KAPPA, DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_LOWEST_SCALE,
     REC709_LUMINANCE,
 };
 use splatd_scenes::quality::{energy_bias, rel_mse};
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
+use splatd_scenes::tracer::Tracer;
 
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -42,7 +46,10 @@ fn main() -> Result<()> {
         Some("speed") => speed(parse_size(
             value("--size").as_deref().unwrap_or("1920x1080"),
         )?),
-        _ => bail!("usage: bench quality [--data DIR] [--grid] | bench speed [--size WxH]"),
+        Some("need") => need(),
+        _ => bail!(
+            "usage: bench quality [--data DIR] [--grid] | bench need | bench speed [--size WxH]"
+        ),
     }
 }
 
@@ -296,6 +303,181 @@ fn sweep(streams: &[Stream]) -> Result<()> {
             cells.join(" ")
         );
     }
+    Ok(())
+}
+
+// ---------------------------------------------------------------------------------------------
+// Need-guided sampling
+
+/// Edge of the need map's tiles in this benchmark (the images are multiples of it, so every
+/// tile has the same number of pixels and a plan spends its budget exactly).
+const NEED_TILE: u32 = 8;
+/// Share of the budget rendered uniformly before the need map is first asked.
+const WARM_UP_DIVISOR: u64 = 4;
+/// How many times the need map is asked for the rest of the budget.
+const ROUNDS: u64 = 6;
+
+/// A scene that renders sample `k` of any pixel on demand, with a ground truth.
+struct Source {
+    name: String,
+    width: u32,
+    height: u32,
+    sample: Box<dyn Fn(u32, u32, u64) -> [f32; 3] + Sync>,
+    gt: Vec<[f32; 3]>,
+}
+
+/// Renders `(x, y)` once more: its next sample index is its count so far.
+fn render_one(source: &Source, state: &mut FrameState, counts: &mut [u64], x: u32, y: u32) {
+    let i = (y * source.width + x) as usize;
+    state.splat_checked(x, y, (source.sample)(x, y, counts[i]));
+    counts[i] += 1;
+}
+
+/// `spp` passes of every pixel.
+fn uniform(source: &Source, spp: u64) -> FrameState {
+    let mut state = FrameState::new(source.width, source.height, CascadeLayout::with_defaults());
+    let mut counts = vec![0u64; source.gt.len()];
+    for _ in 0..spp {
+        for y in 0..source.height {
+            for x in 0..source.width {
+                render_one(source, &mut state, &mut counts, x, y);
+            }
+        }
+    }
+    state
+}
+
+/// The same total as `uniform(source, spp)`: a uniform warm-up of `spp / WARM_UP_DIVISOR`
+/// passes, then the rest in `ROUNDS` rounds, each spread over the tiles by the need map of the
+/// state so far, as a worker using `GET /v1/frames/{id}/need` would.
+fn guided(source: &Source, spp: u64, params: &ResolveParams) -> Result<FrameState> {
+    let warm = spp / WARM_UP_DIVISOR;
+    let mut state = uniform(source, warm);
+    let mut counts = vec![warm; source.gt.len()];
+    let pixels = source.gt.len() as u64;
+    let per_round = (spp - warm) / ROUNDS;
+    let mut left = (spp - warm) * pixels;
+    for round in 0..ROUNDS {
+        let budget = if round + 1 == ROUNDS {
+            left
+        } else {
+            per_round * pixels
+        };
+        let resolved = state.resolve(params);
+        let map = NeedMap::build(&[&state], &resolved, params, NEED_TILE)?;
+        let plan = map.plan(budget);
+        let planned = map.planned_pixels(&plan);
+        for &(x, y) in &planned {
+            render_one(source, &mut state, &mut counts, x, y);
+        }
+        left -= planned.len() as u64;
+    }
+    let total: u64 = counts.iter().sum();
+    if total != spp * pixels || left != 0 {
+        bail!(
+            "{}: need-guided sampling took {total} samples, uniform {}",
+            source.name,
+            spp * pixels
+        );
+    }
+    Ok(state)
+}
+
+fn need() -> Result<()> {
+    let synth = FireflyScene::new(128, 128, 7);
+    let (tw, th, reference_spp) = (128u32, 96u32, 8192u64);
+    let tracer = Tracer::new(tw, th);
+    let started = Instant::now();
+    // The reference uses another seed than the benchmarked renders, so its own noise is
+    // independent of theirs (it adds the same amount to both columns' relMSE).
+    let reference = {
+        let tracer = &tracer;
+        let rows: Vec<Vec<[f32; 3]>> = std::thread::scope(|scope| {
+            let threads = std::thread::available_parallelism().map_or(1, |n| n.get()) as u32;
+            let handles: Vec<_> = (0..threads)
+                .map(|t| {
+                    scope.spawn(move || {
+                        (t..th)
+                            .step_by(threads as usize)
+                            .map(|y| {
+                                (0..tw)
+                                    .map(|x| {
+                                        let mut acc = [0.0f64; 3];
+                                        for k in 0..reference_spp {
+                                            let s = tracer.sample(x, y, k, 1);
+                                            for c in 0..3 {
+                                                acc[c] += f64::from(s[c]);
+                                            }
+                                        }
+                                        acc.map(|v| (v / reference_spp as f64) as f32)
+                                    })
+                                    .collect::<Vec<_>>()
+                            })
+                            .collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            let parts: Vec<Vec<Vec<[f32; 3]>>> =
+                handles.into_iter().map(|h| h.join().unwrap()).collect();
+            (0..th)
+                .map(|y| parts[(y % threads) as usize][(y / threads) as usize].clone())
+                .collect()
+        });
+        rows.concat()
+    };
+    println!(
+        "demo scene reference: {tw}x{th} at {reference_spp} spp in {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    let sources = [
+        Source {
+            name: "synthetic".into(),
+            width: synth.width,
+            height: synth.height,
+            sample: Box::new(move |x, y, k| synth.sample(k, x, y)),
+            gt: (0..synth.height)
+                .flat_map(|y| (0..synth.width).map(move |x| synth.mean(x, y).map(|v| v as f32)))
+                .collect(),
+        },
+        Source {
+            name: "demo".into(),
+            width: tw,
+            height: th,
+            sample: Box::new(move |x, y, k| tracer.sample(x, y, k, 2018)),
+            gt: reference,
+        },
+    ];
+    let params = ResolveParams::with_defaults();
+    println!(
+        "need-guided: {} of the budget uniform, then {ROUNDS} rounds planned by the need map ({NEED_TILE}x{NEED_TILE} tiles); same total samples as uniform",
+        format_args!("1/{WARM_UP_DIVISOR}")
+    );
+    println!(
+        "{:<10} {:>4}  {:>14} {:>14} {:>14} {:>8}",
+        "scene", "spp", "uniform mean", "uniform", "need-guided", "ratio"
+    );
+    for source in &sources {
+        for spp in [16u64, 64] {
+            let uniform = uniform(source, spp);
+            let guided = guided(source, spp, &params)?;
+            let e_mean = rel_mse(
+                &uniform.resolve(&ResolveParams::off()).reweighted,
+                &source.gt,
+            );
+            let e_uniform = rel_mse(&uniform.resolve(&params).reweighted, &source.gt);
+            let e_guided = rel_mse(&guided.resolve(&params).reweighted, &source.gt);
+            println!(
+                "{:<10} {:>4}  {:>14.4} {:>14.4} {:>14.4} {:>8.3}",
+                source.name,
+                spp,
+                e_mean,
+                e_uniform,
+                e_guided,
+                e_guided / e_uniform
+            );
+        }
+    }
+    println!("(relMSE of the reweighted image; ratio = need-guided / uniform, below 1 is better)");
     Ok(())
 }
 

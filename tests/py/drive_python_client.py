@@ -5,7 +5,8 @@ splatd server, for tests/python_client_server.rs.
 
 Creates frame `py` (23x17), posts 6 passes of seeded random samples with fireflies (the
 Mitsuba worker's `post_image`, as a renderer would), retries one (a duplicate), checks a bad
-batch is refused with its error code, syncs, and writes the samples it sent to OUT_DIR/samples.f32
+batch is refused with its error code, syncs, reads the need map and its neediest crop windows,
+and writes the samples it sent to OUT_DIR/samples.f32
 (float32, (passes, H, W, 3)) and the served EXR to OUT_DIR/served.exr, for the Rust side to
 compare with the core's resolve of the same samples.
 """
@@ -81,6 +82,16 @@ def main(url, out):
     assert sync["frame"] == "py" and sync["durable"] is False, sync
     info = client.frame_info("py")
     assert info["samples"] == PASSES * W * H and info["spp_min"] == PASSES, info
+    # The need map, and the crop windows a worker would render next: 23x17 in 8 px tiles.
+    need = client.need("py", tile=8)
+    assert (need["tiles_x"], need["tiles_y"], need["samples"]) == (3, 3, PASSES * W * H), need
+    windows = sc.neediest_tiles(need, 3)
+    scores = sorted(need["need"], reverse=True)
+    assert [need["need"][(y // 8) * 3 + x // 8] for x, y, _, _ in windows] == scores[:3], windows
+    assert all(x + w <= W and y + h <= H for x, y, w, h in windows), windows
+    every = sc.neediest_tiles(need, 20)
+    assert len(every) == 9 and sum(w * h for _, _, w, h in every) == W * H, every
+    assert info["convergence"]["spp_min"] == PASSES, info
     np.stack(passes).astype("<f4").tofile(os.path.join(out, "samples.f32"))
     with open(os.path.join(out, "served.exr"), "wb") as f:
         f.write(client.image("py"))

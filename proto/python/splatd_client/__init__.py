@@ -362,6 +362,12 @@ class Client:
         qs = "&".join(f"{k}={v}" for k, v in query.items())
         return self._request("GET", f"/v1/frames/{frame}/image.exr" + (f"?{qs}" if qs else ""), binary=True)
 
+    def need(self, frame: str, tile: Optional[int] = None) -> dict:
+        """``GET /v1/frames/{id}/need``: the need map (JSON ``NeedMap``), tiles row-major."""
+        validate_frame_id(frame)
+        qs = "" if tile is None else f"?tile={_check_u64('tile', tile)}"
+        return self._request("GET", f"/v1/frames/{frame}/need{qs}")
+
     def delete_frame(self, frame: str) -> None:
         """``DELETE /v1/frames/{id}``."""
         validate_frame_id(frame)
@@ -424,6 +430,18 @@ class Client:
             except ValueError as e:
                 raise SplatdError(status, "unexpected_response", f"{operation}: body is not JSON ({e})") from None
         raise SplatdError(None, "gave_up", f"{operation} failed after {self.max_attempts} attempts; last failure: {last}")
+
+
+def neediest_tiles(need_map: Dict[str, Any], count: int) -> List[Tuple[int, int, int, int]]:
+    """The ``count`` neediest tiles of a need map as crop windows ``(x, y, width, height)``,
+    neediest first (tiles at the right and bottom edge may be smaller than ``tile``)."""
+    tile, tx = need_map["tile"], need_map["tiles_x"]
+    order = sorted(range(len(need_map["need"])), key=lambda i: (-need_map["need"][i], i))
+    windows = []
+    for i in order[:count]:
+        x, y = (i % tx) * tile, (i // tx) * tile
+        windows.append((x, y, min(tile, need_map["width"] - x), min(tile, need_map["height"] - y)))
+    return windows
 
 
 def selftest_batch() -> Tuple[str, int, int, np.ndarray, np.ndarray, np.ndarray]:

@@ -6,7 +6,7 @@
 //!
 //! | role    | may                                                                          |
 //! |---------|------------------------------------------------------------------------------|
-//! | `read`  | list and inspect frames, fetch images, previews and states, read `/metrics`   |
+//! | `read`  | list and inspect frames, fetch images, previews, need maps and states, read `/metrics` |
 //! | `write` | create-or-get a frame (`PUT`), post samples and passes, sync                  |
 //! | `admin` | create and delete frames, import states (merges and pushes); implies both above |
 //!

@@ -84,11 +84,27 @@ pub async fn list(State(app): State<AppState>) -> Result<Json<FrameList>, ApiErr
     }))
 }
 
-/// `GET /v1/frames/{id}`.
-pub async fn info(Frame(frame): Frame) -> Result<Json<FrameInfo>, ApiError> {
-    blocking("frame info", move || Ok(frame.info()))
-        .await
-        .map(Json)
+/// `GET /v1/frames/{id}`, with the frame's convergence from its latest render (rendered now
+/// if the frame changed since; without it when the working memory stayed busy).
+pub async fn info(
+    State(app): State<AppState>,
+    Frame(frame): Frame,
+) -> Result<Json<FrameInfo>, ApiError> {
+    let convergence = match crate::converge::convergence(&app, &frame).await {
+        Ok(c) => Some(c),
+        Err(e) if e.code == "busy" => {
+            tracing::warn!(
+                frame = frame.id(),
+                "frame info without convergence: {}",
+                e.message
+            );
+            None
+        }
+        Err(e) => return Err(e),
+    };
+    let mut info = blocking("frame info", move || Ok(frame.info())).await?;
+    info.convergence = convergence;
+    Ok(Json(info))
 }
 
 /// `DELETE /v1/frames/{id}`: answered once the frame is gone, from disk too (see

@@ -5,8 +5,8 @@
 //! nothing of HTTP: its errors become statuses and codes in [`error`] alone.
 //!
 //! * [`frames`]: create (or get), list, inspect, delete; [`ingest`]: samples and passes;
-//!   [`images`]: EXR and PNG; [`states`]: export and import; [`operations`]: the page, health,
-//!   metrics, sync;
+//!   [`images`]: EXR and PNG; [`need`]: where a frame needs samples; [`states`]: export and
+//!   import; [`operations`]: the page, health, metrics, sync;
 //! * [`extract`]: request extractors with JSON refusals; [`error`]: the one error type;
 //!   [`blocking`]: heavy work off the reactor;
 //! * [`auth`]: bearer tokens, roles, and the guard each route is declared with.
@@ -18,12 +18,15 @@ pub mod extract;
 pub mod frames;
 pub mod images;
 pub mod ingest;
+pub mod need;
 pub mod operations;
 pub mod states;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod tests_budget;
+#[cfg(test)]
+mod tests_need;
 #[cfg(test)]
 mod tests_overlap;
 
@@ -88,6 +91,7 @@ fn routes(app: &AppState) -> Routes {
             Read,
             images::get_preview,
         )
+        .route(M::GET, "/v1/frames/{id}/need", Read, need::get_need)
         .route(M::GET, "/v1/frames/{id}/state", Read, export)
         .route(M::POST, "/v1/frames/{id}/state", Admin, states::import)
 }

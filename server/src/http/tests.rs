@@ -103,6 +103,7 @@ fn every_route_declares_the_documented_role() {
         (M::POST, "/v1/frames/{id}/sync", Some(Write)),
         (M::GET, "/v1/frames/{id}/image.exr", Some(Read)),
         (M::GET, "/v1/frames/{id}/preview.png", Some(Read)),
+        (M::GET, "/v1/frames/{id}/need", Some(Read)),
         (M::GET, "/v1/frames/{id}/state", Some(Read)),
         (M::POST, "/v1/frames/{id}/state", Some(Admin)),
     ];
