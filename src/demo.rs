@@ -13,6 +13,11 @@
 //! the reweighted image's (see [`splatd_server::preview::auto_exposure`]), so that the panels compare
 //! fairly.
 //!
+//! With `guided`, a quarter of the passes are rendered as above and the rest in rounds: each
+//! round fetches the frame's need map (`GET /v1/frames/demo/need`) and renders the samples its
+//! plan gives each tile, so the total is the same and lands where the reweighting still removes
+//! energy or lacks support.
+//!
 //! Nothing in here is privileged: the demo uses the same endpoints, client and batch format as
 //! any worker, so it doubles as an end-to-end check of the whole stack.
 
@@ -62,7 +67,13 @@ pub struct DemoOptions {
     pub addr: String,
     /// After writing the results, keep serving (for the live page) until Ctrl-C or SIGTERM.
     pub keep_serving: bool,
+    /// Steer the workers by the need map: a quarter of the samples uniformly, the rest in
+    /// [`GUIDED_ROUNDS`] rounds on the tiles `GET /v1/frames/demo/need` scores neediest.
+    pub guided: bool,
 }
+
+/// Rounds of need-guided rendering after the uniform warm-up (see [`DemoOptions::guided`]).
+pub const GUIDED_ROUNDS: u64 = 6;
 
 impl Default for DemoOptions {
     /// 640x480 at 64 spp with two workers: 19.7 M samples, few enough per pixel that the plain
@@ -77,6 +88,7 @@ impl Default for DemoOptions {
             workers: 2,
             addr: "127.0.0.1:0".to_owned(),
             keep_serving: false,
+            guided: false,
         }
     }
 }
@@ -181,11 +193,17 @@ async fn render(opts: &DemoOptions, base: &str) -> Result<(u64, bytes::Bytes, by
     let expected = pixels * opts.spp;
     let progress = progress_bar(expected);
     let tracer = Arc::new(Tracer::new(opts.width, opts.height));
+    // Guided: a quarter of the passes uniformly, so the need map has something to judge by.
+    let uniform_spp = if opts.guided {
+        (opts.spp / 4).max(1)
+    } else {
+        opts.spp
+    };
     // Bands of about one batch, so that rendering and sending interleave finely.
     let band = (BATCH_RECORDS as u32 / opts.width).clamp(1, opts.height);
     let mut workers = tokio::task::JoinSet::new();
     for worker in 0..opts.workers {
-        let passes = (worker as u64..opts.spp).step_by(opts.workers);
+        let passes = (worker as u64..uniform_spp).step_by(opts.workers);
         let jobs: Vec<(u64, Range<u32>)> = passes
             .flat_map(|pass| {
                 (0..opts.height)
@@ -204,6 +222,11 @@ async fn render(opts: &DemoOptions, base: &str) -> Result<(u64, bytes::Bytes, by
     }
     while let Some(done) = workers.join_next().await {
         done.context("a render worker panicked")??;
+    }
+    if opts.guided {
+        let counts = vec![uniform_spp; pixels as usize];
+        let left = (opts.spp - uniform_spp) * pixels;
+        guided_rounds(opts, &client, &tracer, counts, left, &progress).await?;
     }
     progress.finish_and_clear();
 
@@ -228,6 +251,86 @@ async fn render(opts: &DemoOptions, base: &str) -> Result<(u64, bytes::Bytes, by
         .await
         .context("fetching the mean image")?;
     Ok((info.samples, reweighted, mean))
+}
+
+/// Renders `left` more samples in [`GUIDED_ROUNDS`] rounds, each spread over the tiles by the
+/// server's need map ([`splatd_estimator::NeedMap::plan`]); `counts` are the samples of every
+/// pixel so far, so that each new sample of a pixel is the next pass of its stream. What a
+/// round's plan cannot spend (tiles at the frame's edge are smaller) carries over; the last
+/// round's remainder goes to the pixels of the neediest tiles, one each.
+async fn guided_rounds(
+    opts: &DemoOptions,
+    client: &Client,
+    tracer: &Arc<Tracer>,
+    mut counts: Vec<u64>,
+    mut left: u64,
+    progress: &ProgressBar,
+) -> Result<()> {
+    let pixels = counts.len() as u64;
+    let per_round = left / GUIDED_ROUNDS;
+    for round in 0..GUIDED_ROUNDS {
+        let last = round + 1 == GUIDED_ROUNDS;
+        let budget = if last { left } else { per_round.min(left) };
+        let map = client
+            .need(FRAME_ID, None)
+            .await
+            .context("fetching the need map")?
+            .to_estimator()
+            .map_err(anyhow::Error::msg)?;
+        let mut planned = map.planned_pixels(&map.plan(budget));
+        if last {
+            let mut tiles: Vec<_> = map.tiles.iter().collect();
+            tiles.sort_by(|a, b| b.need.total_cmp(&a.need));
+            let extra = tiles.iter().flat_map(|t| {
+                (t.y..t.y + t.height).flat_map(move |y| (t.x..t.x + t.width).map(move |x| (x, y)))
+            });
+            let short = (budget - planned.len() as u64) as usize;
+            planned.extend(extra.take(short));
+        }
+        left -= planned.len() as u64;
+        // Every planned sample with its pass: the pixel's count so far.
+        let jobs: Vec<(u32, u32, u64)> = planned
+            .into_iter()
+            .map(|(x, y)| {
+                let i = (y * opts.width + x) as usize;
+                counts[i] += 1;
+                (x, y, counts[i] - 1)
+            })
+            .collect();
+        let share = jobs.len().div_ceil(opts.workers).max(1);
+        let mut workers = tokio::task::JoinSet::new();
+        for (w, chunk) in jobs.chunks(share).enumerate() {
+            // A fresh worker id per round and worker: each numbers its batches from 0.
+            let worker = (opts.workers as u64) * (round + 1) + w as u64;
+            let mut writer = client.batch_writer(FRAME_ID, worker, 0, BATCH_RECORDS)?;
+            let (tracer, chunk, progress) = (tracer.clone(), chunk.to_vec(), progress.clone());
+            workers.spawn(async move {
+                for part in chunk.chunks(BATCH_RECORDS) {
+                    let (tracer, part) = (tracer.clone(), part.to_vec());
+                    let records = tokio::task::spawn_blocking(move || {
+                        part.iter()
+                            .map(|&(x, y, pass)| Record::new(x, y, tracer.sample(x, y, pass, SEED)))
+                            .collect::<Vec<Record>>()
+                    })
+                    .await
+                    .context("a render task panicked")?;
+                    let acks = writer.extend(records).await?;
+                    advance(&progress, acks.iter().map(|a| a.accepted).sum(), pixels);
+                }
+                let acks = writer.flush().await?;
+                advance(&progress, acks.iter().map(|a| a.accepted).sum(), pixels);
+                anyhow::Ok(())
+            });
+        }
+        while let Some(done) = workers.join_next().await {
+            done.context("a guided render worker panicked")??;
+        }
+    }
+    ensure!(
+        left == 0,
+        "{left} samples of the guided rounds were not planned"
+    );
+    Ok(())
 }
 
 /// One render worker: renders its `(pass, rows)` jobs in order, each while the previous one is
@@ -440,6 +543,41 @@ mod tests {
             (3 * 48 + 2 * PANEL_GAP, 36),
             "three panels with two gaps"
         );
+    }
+
+    #[test]
+    fn a_guided_demo_renders_the_same_total_unevenly_where_the_need_map_says() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let opts = DemoOptions {
+            out: dir.path().join("out"),
+            width: 48,
+            height: 32,
+            spp: 16,
+            workers: 2,
+            guided: true,
+            ..DemoOptions::default()
+        };
+        let report = run(&opts).expect("the guided demo runs");
+        assert_eq!(
+            report.samples,
+            48 * 32 * 16,
+            "the same total as a uniform run"
+        );
+        let exr = std::fs::read(opts.out.join("reweighted.exr")).expect("written");
+        let channels = decode_exr_channels(&exr).expect("EXR decodes");
+        let spp = &channels.iter().find(|(n, _)| n == "spp.Y").expect("spp").1;
+        let (min, max) = spp
+            .iter()
+            .fold((f32::MAX, 0.0f32), |(a, b), &n| (a.min(n), b.max(n)));
+        assert!(
+            min >= 4.0,
+            "every pixel has at least the uniform quarter: min {min}"
+        );
+        assert!(
+            min < 16.0 && max > 16.0,
+            "some tiles got more than a uniform share, others less: {min} to {max}"
+        );
+        assert_eq!(spp.iter().sum::<f32>(), (48 * 32 * 16) as f32);
     }
 
     #[test]

@@ -14,7 +14,7 @@ use splatd_proto::batchfile::BatchReader;
 use splatd_proto::{Applied, DecodeLimits, StateDump};
 use splatd_server::dedup::Seen;
 use splatd_server::frame::core_resolve_params;
-use splatd_server::image::{cascade_layers, encode_exr};
+use splatd_server::image::{cascade_layers, encode_exr, Provenance};
 use splatd_server::server::{shutdown_signal, Server};
 
 #[derive(Parser)]
@@ -77,6 +77,10 @@ struct DemoArgs {
     /// Keep serving the live page after the demo, until Ctrl-C.
     #[arg(long)]
     serve: bool,
+    /// Steer the workers by the server's need map: a quarter of the samples uniformly, the rest
+    /// on the tiles that need them most (same total).
+    #[arg(long)]
+    guided: bool,
 }
 
 #[derive(Args)]
@@ -87,9 +91,14 @@ struct PostArgs {
     /// Frame id.
     #[arg(long)]
     frame: String,
-    /// Create the frame (default parameters, the size of the first pass) if it does not exist.
+    /// Create the frame (default parameters, the size of the first pass) if it does not exist,
+    /// with `PUT /v1/frames/{id}`: a `write` token is enough.
     #[arg(long)]
     create: bool,
+    /// The layer holding the beauty (`ViewLayer.Combined`, `beauty` ...; an error lists a
+    /// file's layers). Without it the server finds the beauty in the order PROTOCOL.md gives.
+    #[arg(long)]
+    layer: Option<String>,
     /// Worker id the passes are sent under. Each pass is numbered by a digest of its file, so
     /// posting a file again (a rerun, or from another machine) adds nothing twice, and new files
     /// are never mistaken for old ones; a different `--worker` makes the same files count again.
@@ -167,6 +176,7 @@ fn main() -> Result<()> {
             workers: a.workers,
             addr: a.addr,
             keep_serving: a.serve,
+            guided: a.guided,
         })
         .map(|_| ()),
         Command::Serve(args) => run_server(args),
@@ -203,15 +213,25 @@ fn post(args: PostArgs) -> Result<()> {
         if args.create {
             let first = std::fs::read(&args.passes[0])
                 .with_context(|| format!("reading {}", args.passes[0].display()))?;
-            let pass = splatd_server::passes::decode_pass(&first)
-                .with_context(|| format!("decoding {}", args.passes[0].display()))?;
+            let pass = splatd_server::passes::decode_pass_with(
+                &first,
+                args.layer.as_deref(),
+                splatd_server::passes::MAX_PASS_PIXELS,
+            )
+            .with_context(|| format!("decoding {}", args.passes[0].display()))?;
             let request = splatd_proto::CreateFrame::new(&args.frame, pass.width, pass.height);
-            match client.create_frame(&request).await {
+            match client.create_or_get(&request).await {
+                Ok(info) if info.batches > 0 => println!(
+                    "frame {:?} exists with {} samples; adding to it",
+                    args.frame, info.samples
+                ),
                 Ok(_) => {}
+                // Made by someone else with other parameters (a lead's kappa, say): the passes
+                // go to it as they are, and each is still refused if its size differs.
                 Err(splatd_proto::ClientError::Rejected { status: 409, body })
                     if body.error == "frame_exists" =>
                 {
-                    println!("frame {:?} exists; adding to it", args.frame);
+                    println!("{}; adding to it", body.message);
                 }
                 Err(e) => return Err(e).context("creating the frame"),
             }
@@ -228,7 +248,13 @@ fn post(args: PostArgs) -> Result<()> {
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             let seq = pass_seq(&bytes);
             let ack = client
-                .post_pass(&args.frame, worker, seq, bytes.into())
+                .post_pass_layer(
+                    &args.frame,
+                    worker,
+                    seq,
+                    args.layer.as_deref(),
+                    bytes.into(),
+                )
                 .await
                 .with_context(|| format!("posting {}", path.display()))?;
             samples += ack.accepted;
@@ -242,10 +268,14 @@ fn post(args: PostArgs) -> Result<()> {
             .sync(&args.frame)
             .await
             .context("waiting for the passes to be on disk")?;
-        let info = client.frame_info(&args.frame).await?;
+        // A worker's token may have `write` only: then the frame's totals are not its to read.
+        let total = match client.frame_info(&args.frame).await {
+            Ok(info) => format!("; it now has {:.1} spp on average", info.spp_mean),
+            Err(splatd_proto::ClientError::Rejected { status: 403, .. }) => String::new(),
+            Err(e) => return Err(e).context("reading the frame's totals"),
+        };
         println!(
-            "posted {} passes ({samples} samples{}) to frame {:?} as worker {worker}; it now has \
-             {:.1} spp on average",
+            "posted {} passes ({samples} samples{}) to frame {:?} as worker {worker}{total}",
             args.passes.len(),
             if duplicates > 0 {
                 format!(", {duplicates} already there")
@@ -253,7 +283,6 @@ fn post(args: PostArgs) -> Result<()> {
                 String::new()
             },
             args.frame,
-            info.spp_mean
         );
         Ok(())
     })
@@ -401,7 +430,11 @@ fn resolve(args: ResolveArgs) -> Result<()> {
     } else {
         Vec::new()
     };
-    let bytes = encode_exr(&resolved, &extra)?;
+    let provenance = Provenance {
+        layout: state.layout(),
+        params: &params,
+    };
+    let bytes = encode_exr(&resolved, &extra, &provenance)?;
     std::fs::write(&args.output, bytes)
         .with_context(|| format!("writing {}", args.output.display()))?;
     println!(

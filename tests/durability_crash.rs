@@ -20,7 +20,7 @@ use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{BatchWriter, Client, Record, RetryPolicy};
 use splatd_scenes::synth::FireflyScene;
-use splatd_server::image::encode_exr;
+use splatd_server::image::{encode_exr, Provenance};
 
 const W: u32 = 64;
 const H: u32 = 48;
@@ -126,7 +126,12 @@ fn reference() -> (u64, Vec<u8>) {
             state.splat_all(records(w, p).into_iter().map(|r| (r.x, r.y, r.rgb)));
         }
     }
-    let exr = encode_exr(&state.resolve(&ResolveParams::with_defaults()), &[]).unwrap();
+    let params = ResolveParams::with_defaults();
+    let provenance = Provenance {
+        layout: state.layout(),
+        params: &params,
+    };
+    let exr = encode_exr(&state.resolve(&params), &[], &provenance).unwrap();
     (state.total_samples(), exr)
 }
 

@@ -3,8 +3,8 @@
 //!
 //! The browser is installed by `tests/setup/chromium.sh` (Debian's `chromium` and
 //! `chromium-driver`); a failure to install is a test failure. Set `SPLATD_SKIP_BROWSER=1` to
-//! skip this test on machines that cannot have a browser. Set `SPLATD_SCREENSHOT=1` to save a
-//! screenshot of the page to `docs/live.png`.
+//! skip this test on machines that cannot have a browser. Every run stores a screenshot of the
+//! page in `docs/live_page.png` (README shows it).
 
 mod common;
 
@@ -211,6 +211,17 @@ impl Session {
     }
 
     async fn click(&self, css: &str) {
+        let element = self.element(css).await;
+        self.cmd(
+            "POST",
+            &format!("/element/{element}/click"),
+            Some(json!({})),
+        )
+        .await;
+    }
+
+    /// The element matching `css`; panics naming it when there is none.
+    async fn element(&self, css: &str) -> String {
         let found = self
             .cmd(
                 "POST",
@@ -218,16 +229,43 @@ impl Session {
                 Some(json!({"using": "css selector", "value": css})),
             )
             .await;
-        let element = found[ELEMENT_KEY]
+        found[ELEMENT_KEY]
             .as_str()
             .unwrap_or_else(|| panic!("no element reference for {css:?}: {found}"))
-            .to_owned();
+            .to_owned()
+    }
+
+    /// Types `text` into the element matching `css`, as a user would.
+    async fn type_into(&self, css: &str, text: &str) {
+        let element = self.element(css).await;
         self.cmd(
             "POST",
-            &format!("/element/{element}/click"),
-            Some(json!({})),
+            &format!("/element/{element}/value"),
+            Some(json!({ "text": text })),
         )
         .await;
+    }
+
+    /// Drags the mouse from `from` to `to` (viewport pixels) with the left button held, in a
+    /// few steps, then releases it.
+    async fn drag(&self, from: (f64, f64), to: (f64, f64)) {
+        let at = |(x, y): (f64, f64)| {
+            json!({"type": "pointerMove", "duration": 0, "origin": "viewport",
+                   "x": x.round() as i64, "y": y.round() as i64})
+        };
+        let mut steps = vec![at(from), json!({"type": "pointerDown", "button": 0})];
+        for i in 1..=4 {
+            let t = f64::from(i) / 4.0;
+            steps.push(at((
+                from.0 + (to.0 - from.0) * t,
+                from.1 + (to.1 - from.1) * t,
+            )));
+        }
+        steps.push(json!({"type": "pointerUp", "button": 0}));
+        let actions = json!({"actions": [{"type": "pointer", "id": "mouse",
+            "parameters": {"pointerType": "mouse"}, "actions": steps}]});
+        self.cmd("POST", "/actions", Some(actions)).await;
+        self.cmd("DELETE", "/actions", None).await;
     }
 
     async fn screenshot(&self) -> Vec<u8> {
@@ -326,52 +364,59 @@ async fn post_passes(client: &Client, tracer: &Tracer, passes: std::ops::Range<u
     }
 }
 
-/// What the page shows of the preview: its `src`, size, a hash of its pixels and the spp text;
-/// `null` while the current `src` has not loaded.
-const PREVIEW_PROBE: &str = r#"
-const img = document.getElementById("preview");
-if (!img || !img.src || !img.complete || img.naturalWidth === 0) return null;
-const canvas = document.createElement("canvas");
-canvas.width = img.naturalWidth;
-canvas.height = img.naturalHeight;
-const ctx = canvas.getContext("2d");
-ctx.drawImage(img, 0, 0);
-const data = ctx.getImageData(0, 0, canvas.width, canvas.height).data;
-let hash = 2166136261 >>> 0, sum = 0;
-for (let i = 0; i < data.length; i++) {
-  hash = Math.imul(hash ^ data[i], 16777619) >>> 0;
-  sum += data[i];
-}
-return { src: img.src, width: img.naturalWidth, height: img.naturalHeight, hash, sum,
-         spp: document.getElementById("spp").textContent };
-"#;
+/// What the page shows: both images (which request they show, size, pixel sum), their
+/// on-screen box, the divider's, the split, the stats and the plot's points. `null` while an
+/// image has not loaded.
+const PAGE_PROBE: &str = r##"
+const shot = (id) => {
+  const img = document.getElementById(id);
+  if (!img || !img.dataset.src || !img.complete || img.naturalWidth === 0) return null;
+  const canvas = document.createElement("canvas");
+  canvas.width = img.naturalWidth;
+  canvas.height = img.naturalHeight;
+  const ctx = canvas.getContext("2d");
+  ctx.drawImage(img, 0, 0);
+  const data = ctx.getImageData(0, 0, canvas.width, canvas.height).data;
+  let sum = 0;
+  for (let i = 0; i < data.length; i += 4) sum += data[i] + data[i + 1] + data[i + 2];
+  return { src: img.dataset.src, width: img.naturalWidth, height: img.naturalHeight, sum };
+};
+const mean = shot("mean"), reweighted = shot("reweighted");
+if (!mean || !reweighted) return null;
+const box = (id) => {
+  const r = document.getElementById(id).getBoundingClientRect();
+  return { left: r.left, top: r.top, width: r.width, height: r.height };
+};
+const points = [...document.querySelectorAll("#plot circle")].map(
+  (c) => [Number(c.dataset.spp), Number(c.dataset.removed)]);
+const heat = document.getElementById("heat");
+return { mean, reweighted, image: box("reweighted"), viewport: box("viewport"),
+         divider: box("divider"), clip: document.getElementById("reweighted").style.clipPath,
+         spp: document.getElementById("spp").textContent,
+         converged: document.getElementById("converged").textContent,
+         points, heat_tiles: Number(heat.dataset.tiles || 0),
+         heat_samples: Number(heat.dataset.samples || 0), heat_hidden: heat.hidden };
+"##;
 
-/// The preview as the probe reported it.
-#[derive(Debug, Clone, PartialEq)]
-struct Preview {
-    src: String,
-    width: u64,
-    height: u64,
-    hash: u64,
-    sum: u64,
-    spp: String,
+fn num(v: &Value, path: &[&str]) -> f64 {
+    let mut v = v;
+    for key in path {
+        v = &v[*key];
+    }
+    v.as_f64()
+        .unwrap_or_else(|| panic!("{path:?} is not a number in {v}"))
 }
 
-fn preview(v: &Value) -> Option<Preview> {
-    Some(Preview {
-        src: v["src"].as_str()?.to_owned(),
-        width: v["width"].as_u64()?,
-        height: v["height"].as_u64()?,
-        hash: v["hash"].as_u64()?,
-        sum: v["sum"].as_u64()?,
-        spp: v["spp"].as_str()?.to_owned(),
-    })
+fn close(a: f64, b: f64, what: &str) {
+    assert!((a - b).abs() <= 1.0, "{what}: {a} vs {b}");
 }
 
-/// The page lists the frame, shows its preview when clicked, and follows new samples: the
-/// preview's `src`, its pixels and the spp figures all change after more samples are posted.
+/// The page lists the frame and shows it split between mean and reweighted, fit to the
+/// window; 1:1 and panning move the image as asked, the divider follows a drag, the exposure
+/// slider brightens the images, the convergence plot gains a point as samples arrive (and falls),
+/// and the heat map shows the need map's tiles. Stores a screenshot for README.
 #[test]
-fn live_page_shows_a_frame_and_follows_new_samples() {
+fn live_page_zooms_pans_splits_exposes_and_plots_convergence() {
     let Some((chromium, chromedriver)) = browser() else {
         return;
     };
@@ -399,58 +444,262 @@ fn live_page_shows_a_frame_and_follows_new_samples() {
             .await;
         session.click(&link).await;
 
-        let before = session
-            .wait_for("the loaded preview of 4 spp", PREVIEW_PROBE, |v| {
-                preview(v).filter(|p| p.spp.starts_with("4 / "))
+        // Fit to the window: both layers at the frame's size, scaled to fill the viewport.
+        let at4 = session
+            .wait_for("both images of 4 spp and a plot point", PAGE_PROBE, |v| {
+                (v["spp"] == "4 / 4.0 / 4" && v["points"].as_array()?.len() == 1).then(|| v.clone())
             })
             .await;
-        assert_eq!(
-            (before.width, before.height),
-            (u64::from(WIDTH), u64::from(HEIGHT)),
-            "the preview has the frame's size"
-        );
-        assert_eq!(before.spp, "4 / 4.0 / 4", "spp min / mean / max");
-        assert!(
-            before
-                .src
-                .contains(&format!("/v1/frames/{FRAME}/preview.png")),
-            "preview src {}",
-            before.src
-        );
-        assert!(before.sum > 0, "the preview of 4 spp is not all black");
-        let hash = session.execute("return location.hash;").await;
-        assert_eq!(
-            hash,
-            json!(format!("#{FRAME}")),
-            "clicking selects the frame"
-        );
-
-        post_passes(&client, &tracer, 4..16).await;
-        // The page may catch the frame between batches; wait for the final state.
-        let final_src = format!("samples={}", 16 * u64::from(WIDTH * HEIGHT));
-        let after = session
-            .wait_for("the preview of 16 spp", PREVIEW_PROBE, |v| {
-                preview(v).filter(|p| p.spp == "16 / 16.0 / 16" && p.src.contains(&final_src))
-            })
-            .await;
-        assert_ne!(after.src, before.src, "the preview's src changed");
-        assert_ne!(
-            after.hash, before.hash,
-            "the preview's pixels changed after 12 more passes"
-        );
-        assert_eq!(
-            (after.width, after.height),
-            (u64::from(WIDTH), u64::from(HEIGHT))
-        );
-
-        if std::env::var("SPLATD_SCREENSHOT").as_deref() == Ok("1") {
-            let png = session.screenshot().await;
-            assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "the screenshot is a PNG");
-            let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/live.png");
-            std::fs::create_dir_all(path.parent().unwrap()).expect("docs/");
-            std::fs::write(&path, png).expect("writing docs/live.png");
-            eprintln!("saved {}", path.display());
+        for layer in ["mean", "reweighted"] {
+            assert_eq!(
+                (num(&at4, &[layer, "width"]), num(&at4, &[layer, "height"])),
+                (f64::from(WIDTH), f64::from(HEIGHT)),
+                "{layer} has the frame's size"
+            );
+            let src = at4[layer]["src"].as_str().unwrap();
+            assert!(
+                src.contains(&format!("/v1/frames/{FRAME}/preview.png?layer={layer}")),
+                "{src}"
+            );
+            assert!(num(&at4, &[layer, "sum"]) > 0.0, "{layer} is not black");
         }
+        let (vw, vh) = (
+            num(&at4, &["viewport", "width"]),
+            num(&at4, &["viewport", "height"]),
+        );
+        let fit = ((vw - 2.0) / f64::from(WIDTH)).min((vh - 2.0) / f64::from(HEIGHT));
+        assert!(
+            fit > 1.5,
+            "the viewport is larger than the frame: {vw}x{vh}"
+        );
+        close(
+            num(&at4, &["image", "width"]),
+            f64::from(WIDTH) * fit,
+            "fit width",
+        );
+        close(
+            num(&at4, &["image", "height"]),
+            f64::from(HEIGHT) * fit,
+            "fit height",
+        );
+        // The divider starts in the middle of the image.
+        let middle = num(&at4, &["image", "left"]) + num(&at4, &["image", "width"]) / 2.0;
+        let divider =
+            |v: &Value| num(v, &["divider", "left"]) + num(v, &["divider", "width"]) / 2.0;
+        close(divider(&at4), middle, "divider in the middle");
+
+        // 1:1: one screen pixel per frame pixel, centred.
+        session.click("#one").await;
+        let one = session
+            .wait_for("the image at 1:1", PAGE_PROBE, |v| {
+                let w = v["image"]["width"].as_f64()?;
+                ((w - f64::from(WIDTH)).abs() < 0.5).then(|| v.clone())
+            })
+            .await;
+        close(
+            num(&one, &["image", "height"]),
+            f64::from(HEIGHT),
+            "1:1 height",
+        );
+        let (left, top) = (num(&one, &["image", "left"]), num(&one, &["image", "top"]));
+        close(
+            left + f64::from(WIDTH) / 2.0,
+            num(&one, &["viewport", "left"]) + vw / 2.0,
+            "1:1 is centred",
+        );
+
+        // Pan: dragging the picture (away from the divider) moves it by the drag.
+        let grab = (left + 20.0, top + 20.0);
+        session.drag(grab, (grab.0 + 60.0, grab.1 + 40.0)).await;
+        let panned = session
+            .wait_for("the image panned", PAGE_PROBE, |v| {
+                let l = v["image"]["left"].as_f64()?;
+                ((l - left - 60.0).abs() <= 1.0).then(|| v.clone())
+            })
+            .await;
+        close(num(&panned, &["image", "top"]), top + 40.0, "panned down");
+        close(
+            num(&panned, &["image", "width"]),
+            f64::from(WIDTH),
+            "panning keeps 1:1",
+        );
+
+        // Split: dragging the divider 50 px left puts it at a quarter of the 200 px image.
+        let (left, top) = (
+            num(&panned, &["image", "left"]),
+            num(&panned, &["image", "top"]),
+        );
+        let from = (divider(&panned), top + 75.0);
+        close(from.0, left + 100.0, "divider in the middle at 1:1");
+        session.drag(from, (from.0 - 50.0, from.1)).await;
+        let split = session
+            .wait_for("the divider moved", PAGE_PROBE, |v| {
+                (v["clip"] == "inset(0px 0px 0px 25%)").then(|| v.clone())
+            })
+            .await;
+        close(divider(&split), left + 50.0, "divider at a quarter");
+        close(
+            num(&split, &["image", "left"]),
+            left,
+            "dragging the divider does not pan",
+        );
+
+        // Exposure: +2 EV makes both images brighter.
+        let before = num(&split, &["reweighted", "sum"]);
+        session
+            .execute(
+                "const s = document.getElementById('exposure'); s.value = '2'; \
+                 s.dispatchEvent(new Event('input'));",
+            )
+            .await;
+        let brighter = session
+            .wait_for("the images at +2 EV", PAGE_PROBE, |v| {
+                let ok = v["reweighted"]["src"].as_str()?.contains("stops=2")
+                    && v["mean"]["src"].as_str()?.contains("stops=2");
+                ok.then(|| v.clone())
+            })
+            .await;
+        assert!(
+            num(&brighter, &["reweighted", "sum"]) > before * 1.2,
+            "+2 EV brightens: {before} then {}",
+            brighter["reweighted"]["sum"]
+        );
+
+        // The plot gains points as samples arrive, and the removed energy falls.
+        post_passes(&client, &tracer, 4..16).await;
+        let at16 = session
+            .wait_for(
+                "the frame at 16 spp in the stats and the plot",
+                PAGE_PROBE,
+                |v| {
+                    let points = v["points"].as_array()?;
+                    let last = points.last()?.as_array()?;
+                    (v["spp"] == "16 / 16.0 / 16"
+                        && last[0].as_f64()? == 16.0
+                        && v["reweighted"]["src"].as_str()?.contains("samples=480000"))
+                    .then(|| v.clone())
+                },
+            )
+            .await;
+        let points = at16["points"].as_array().unwrap();
+        assert!(points.len() >= 2, "a point per version seen: {points:?}");
+        let removed = |p: &Value| p[1].as_f64().unwrap();
+        assert!(
+            removed(points.last().unwrap()) < removed(&points[0]),
+            "removed energy falls from 4 to 16 spp: {points:?}"
+        );
+        assert_eq!(
+            at16["converged"], "no",
+            "16 spp of a caustic is not converged"
+        );
+
+        // The heat map: the need map's 13 x 10 tiles of 16 px, for all the samples.
+        session.click("#heat-toggle").await;
+        session
+            .wait_for("the heat map", PAGE_PROBE, |v| {
+                (v["heat_tiles"] == 130
+                    && v["heat_samples"] == 480_000
+                    && v["heat_hidden"] == false)
+                    .then_some(())
+            })
+            .await;
+
+        // For the screenshot: back to the automatic exposure, fit to the window.
+        session
+            .execute(
+                "const s = document.getElementById('exposure'); s.value = '0'; \
+                 s.dispatchEvent(new Event('input'));",
+            )
+            .await;
+        session
+            .wait_for("the images at +0 EV", PAGE_PROBE, |v| {
+                v["reweighted"]["src"]
+                    .as_str()?
+                    .contains("stops=0&")
+                    .then_some(())
+            })
+            .await;
+        session.click("#fit").await;
+        session
+            .wait_for("the image fit again", PAGE_PROBE, |v| {
+                let w = v["image"]["width"].as_f64()?;
+                ((w - f64::from(WIDTH) * fit).abs() <= 1.0).then_some(())
+            })
+            .await;
+        let png = session.screenshot().await;
+        assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "the screenshot is a PNG");
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/live_page.png");
+        std::fs::write(&path, png).expect("writing docs/live_page.png");
+        eprintln!("saved {}", path.display());
+        drop(session);
+        drop(driver);
+    });
+}
+
+/// On a server with tokens the page asks for one; typed into the token field it is kept for
+/// the tab only (sessionStorage, not localStorage) and every request, images included, carries
+/// it.
+#[test]
+fn live_page_reads_with_a_token_kept_in_the_session_only() {
+    let Some((chromium, chromedriver)) = browser() else {
+        return;
+    };
+    const READ: &str = "read-token-for-the-live-page";
+    const ADMIN: &str = "admin-token-for-the-live-page";
+    let dir = tempfile::tempdir().expect("temp dir");
+    let tokens = dir.path().join("tokens");
+    std::fs::write(&tokens, format!("read {READ}\nadmin {ADMIN}\n")).expect("tokens file");
+    let server = Server::start(&["--tokens-file", tokens.to_str().unwrap()]);
+    let rt = runtime();
+    rt.block_on(async {
+        let client = Client::new(&server.url).expect("client").with_token(ADMIN);
+        client
+            .create_frame(&CreateFrame::new(FRAME, WIDTH, HEIGHT))
+            .await
+            .expect("frame created");
+        post_passes(&client, &Tracer::new(WIDTH, HEIGHT), 0..2).await;
+
+        let driver = Driver::start(&chromedriver);
+        let session = Session::open(&driver, &chromium).await;
+        session.goto(&format!("{}/#{FRAME}", server.url)).await;
+        let asks = "const a = document.getElementById('auth'); \
+                    return a.hidden ? null : a.textContent;";
+        let said = session
+            .wait_for("the page asking for a token", asks, |v| {
+                v.as_str().map(str::to_owned)
+            })
+            .await;
+        assert_eq!(said, "token needed");
+        let listed =
+            format!("return document.querySelector('nav a[data-frame=\"{FRAME}\"]') !== null;");
+        assert_eq!(
+            session.execute(&listed).await,
+            json!(false),
+            "no frames without a token"
+        );
+
+        session.type_into("#token", READ).await;
+        session
+            .wait_for("both images loaded with the token", PAGE_PROBE, |v| {
+                (v["spp"] == "2 / 2.0 / 2").then_some(())
+            })
+            .await;
+        let stored = session
+            .execute("return [sessionStorage.getItem('splatd.token'), localStorage.length];")
+            .await;
+        assert_eq!(stored, json!([READ, 0]), "kept in sessionStorage only");
+
+        // A reload in the same tab keeps it; the field shows it (masked).
+        session.goto(&format!("{}/#{FRAME}", server.url)).await;
+        session
+            .wait_for("the frame after a reload", PAGE_PROBE, |v| {
+                (v["spp"] == "2 / 2.0 / 2").then_some(())
+            })
+            .await;
+        let field = session
+            .execute("const t = document.getElementById('token'); return [t.value, t.type];")
+            .await;
+        assert_eq!(field, json!([READ, "password"]));
         drop(session);
         drop(driver);
     });

@@ -147,7 +147,7 @@ fn records_are_one_sample_per_pixel_row_major_and_unfiltered() {
 }
 
 #[test]
-fn the_first_rgb_part_of_a_multipart_file_is_read() {
+fn the_part_named_beauty_of_a_multipart_file_is_read() {
     let dir = tempfile::tempdir().expect("a temporary directory");
     let manifest = write_passes(dir.path());
     let multi = &manifest["multipart"];
@@ -164,7 +164,7 @@ fn files_that_are_not_passes_are_refused_with_what_was_found() {
     assert!(matches!(err, PassError::NoRgbLayer { .. }), "{err:?}");
     assert_eq!(
         err.to_string(),
-        "the EXR has no layer with channels R, G and B; channels found: Y"
+        "the EXR has no layer with channels R, G and B; layers found: unnamed (Y)"
     );
 
     let err = decode_file(&path(&manifest["cropped"])).unwrap_err();

@@ -3,8 +3,11 @@
 # the tests need beyond cargo's own crates, then runs every test.
 #
 #   Python 3 + numpy + OpenEXR   independent EXR reader/writer, the Python client's tests (pip)
+#   python3-venv                 the Python client package installed into a fresh venv
 #   nginx                        the load balancer in front of several nodes (Debian package)
 #   chromium + chromedriver      the live page, driven headless (Debian packages)
+#   blender, openimageio-tools   the Blender worker's test, oiiotool's view of EXR headers
+#                                (optional: skipped with a message when they cannot be installed)
 #
 # The Debian packages are installed as root (or with sudo) when missing; each script is
 # idempotent and does nothing when its tools are already there.
@@ -28,6 +31,11 @@ python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ig
 # Installed up front, once: the tests call the same scripts, which then find the tools present
 # (two tests running apt-get at the same time would fight over its lock).
 bash tests/setup/nginx.sh >/dev/null
+bash tests/setup/python_venv.sh >/dev/null
+# Optional: without them the Blender worker's test skips (saying why) and the provenance test
+# checks the EXR header with OpenEXR's Python package only.
+bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip"
+bash tests/setup/oiio.sh >/dev/null || echo "oiiotool could not be installed; not used"
 bash tests/setup/chromium.sh >/dev/null
 
 cargo test --workspace

@@ -11,7 +11,7 @@ use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Resolved};
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Record};
 use splatd_scenes::synth::FireflyScene;
-use splatd_server::image::{decode_exr_channels, encode_exr, ExtraLayer};
+use splatd_server::image::{decode_exr_channels, encode_exr, ExtraLayer, Provenance};
 
 /// Records of one pass of the synthetic scene.
 fn pass_records(scene: &FireflyScene, pass: u64) -> Vec<Record> {
@@ -102,7 +102,8 @@ fn concurrent_clients_get_the_cores_image_bit_for_bit() {
         for pass in 0..PASSES {
             reference.splat_all(f.scene.pass(pass));
         }
-        let resolved = reference.resolve(&ResolveParams::with_defaults());
+        let params = ResolveParams::with_defaults();
+        let resolved = reference.resolve(&params);
         let layers: Vec<ExtraLayer> = reference
             .cascade_means()
             .into_iter()
@@ -112,7 +113,11 @@ fn concurrent_clients_get_the_cores_image_bit_for_bit() {
                 rgb,
             })
             .collect();
-        let expected = encode_exr(&resolved, &layers).unwrap();
+        let provenance = Provenance {
+            layout: &f.layout,
+            params: &params,
+        };
+        let expected = encode_exr(&resolved, &layers, &provenance).unwrap();
         let query = ImageQuery {
             cascades: true,
             ..ImageQuery::default()

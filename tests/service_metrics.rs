@@ -76,4 +76,22 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
         text.contains("# TYPE splatd_resolve_seconds histogram"),
         "{text}"
     );
+    // The frame's convergence: 30 samples, all in pixel (1, 2) of 64.
+    let frame = |name: &str| get(&format!("{name}{{frame=\"m\"}}"));
+    assert_eq!(frame("splatd_frame_spp_min"), 0.0);
+    assert_eq!(frame("splatd_frame_spp_mean"), 30.0 / 64.0);
+    assert_eq!(frame("splatd_frame_spp_max"), 30.0);
+    assert_eq!(
+        frame("splatd_frame_converged"),
+        0.0,
+        "63 pixels have no samples"
+    );
+    assert_eq!(frame("splatd_frame_converged_below"), 0.01);
+    // 30 identical samples of one pixel: fully supported, nothing removed.
+    assert_eq!(frame("splatd_frame_removed_fraction"), 0.0);
+    assert!(frame("splatd_frame_samples_per_second") >= 0.0);
+    assert!(
+        text.contains("# TYPE splatd_frame_removed_fraction gauge"),
+        "{text}"
+    );
 }

@@ -173,3 +173,139 @@ fn passes_posted_as_exr_equal_the_same_samples_posted_as_records() {
         "a refused pass changed the frame"
     );
 }
+
+const WRITE: &str = "w-passes-0123456789abcdef";
+const READ: &str = "r-passes-0123456789abcdef";
+
+/// `splatd post` from a farm worker holding only a `write` token: `--create` makes the frame
+/// (`PUT /v1/frames/{id}`), the beauty of a Blender/Cycles multilayer pass is found by itself
+/// (`ViewLayer.Combined`, not the AOVs beside it) or taken from the layer named with `--layer`,
+/// and a pass without a beauty is refused naming the layers it has, changing nothing.
+#[test]
+fn multilayer_passes_from_a_worker_with_a_write_token() {
+    let dir = tempfile::tempdir().unwrap();
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/write_layouts.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(dir.path())
+        .args([
+            "--width",
+            &W.to_string(),
+            "--height",
+            &H.to_string(),
+            "--seed",
+            "3",
+        ])
+        .output()
+        .expect("running python3 (tests/run.sh installs numpy and OpenEXR)");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let file = |name: &str| dir.path().join(format!("{name}.exr"));
+    let server = Server::start_with_env(
+        &[],
+        &[("SPLATD_TOKENS", &format!("write {WRITE};read {READ}"))],
+    );
+    let post = |frame: &str, layer: Option<&str>, files: &[PathBuf]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_splatd"));
+        cmd.args(["post", "--url", &server.url, "--frame", frame, "--create"])
+            .env("SPLATD_TOKEN", WRITE);
+        if let Some(layer) = layer {
+            cmd.args(["--layer", layer]);
+        }
+        cmd.args(files).output().unwrap()
+    };
+
+    let done = post("cycles", None, &[file("cycles")]);
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    let done = post(
+        "background",
+        Some("Background.Combined"),
+        &[file("cycles-two-views")],
+    );
+    assert!(
+        done.status.success(),
+        "{}",
+        String::from_utf8_lossy(&done.stderr)
+    );
+    // Two view layers and no --layer: refused before anything is created, naming both.
+    let refused = post("guess", None, &[file("cycles-two-views")]);
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(
+        stderr.contains("\"Background.Combined\"") && stderr.contains("\"ViewLayer.Combined\""),
+        "{stderr}"
+    );
+
+    // What OpenEXR reads as each beauty, posted as records: the same frames.
+    let rt = runtime();
+    let write = Client::new(&server.url).unwrap().with_token(WRITE);
+    let read = Client::new(&server.url).unwrap().with_token(READ);
+    for (frame, raw) in [
+        ("cycles", "cycles"),
+        ("background", "cycles-two-views-asked"),
+    ] {
+        let records = raw_values(&dir.path().join(format!("{raw}.exr")))
+            .into_iter()
+            .enumerate()
+            .map(|(i, rgb)| Record::new(i as u32 % W, i as u32 / W, rgb))
+            .collect();
+        let id = format!("{frame}-records");
+        // A worker's create-or-get: made once, found the second time.
+        for _ in 0..2 {
+            let info = rt
+                .block_on(write.create_or_get(&CreateFrame::new(&id, W, H)))
+                .unwrap();
+            assert_eq!((info.id.as_str(), info.samples), (id.as_str(), 0));
+        }
+        let batch = Batch::new(&id, 1, 0, records).unwrap();
+        rt.block_on(write.post_batch(&batch)).unwrap();
+        let image = |id: &str| rt.block_on(read.image(id, &ImageQuery::default())).unwrap();
+        assert!(
+            image(frame) == image(&id),
+            "{frame}: the pass and its records differ"
+        );
+    }
+
+    // No RGB layer at all: 422 naming the layers; the frame keeps what it had.
+    let before = rt.block_on(read.frame_info("cycles")).unwrap();
+    let bytes = std::fs::read(file("no-rgb")).unwrap();
+    let err = rt
+        .block_on(write.post_pass("cycles", 9, 0, bytes.into()))
+        .unwrap_err();
+    match &err {
+        ClientError::Rejected { status: 422, body } => {
+            assert_eq!(body.error, "invalid_pass", "{body}");
+            assert!(
+                body.message.contains("no layer with channels R, G and B")
+                    && body.message.contains("\"depth\" (Z)")
+                    && body.message.contains("\"normal\" (X, Y, Z)"),
+                "{body}"
+            );
+        }
+        other => panic!("expected a 422, got {other}"),
+    }
+    // A named layer that is not there: the same, naming what is.
+    let bytes = std::fs::read(file("cycles")).unwrap();
+    let err = rt
+        .block_on(write.post_pass_layer("cycles", 9, 1, Some("Noisy Image"), bytes.into()))
+        .unwrap_err();
+    assert!(
+        matches!(&err, ClientError::Rejected { status: 422, body }
+            if body.message.contains("no layer \"Noisy Image\"")
+                && body.message.contains("\"ViewLayer.Noisy Image\"")),
+        "{err}"
+    );
+    let after = rt.block_on(read.frame_info("cycles")).unwrap();
+    assert_eq!(
+        (after.samples, after.batches, after.rejected_batches),
+        (before.samples, before.batches, before.rejected_batches + 2)
+    );
+    assert_eq!(after.samples, u64::from(W * H));
+}

@@ -6,7 +6,9 @@
 //!   around it ([`CascadeLayout::split`]) and counted in its pixel;
 //! * **merge** ([`FrameState::merge`]): two partial states of the same frame add up exactly;
 //! * **resolve** ([`FrameState::resolve`], [`resolve_bands`]): cascades in, the reweighted image,
-//!   the plain mean and the removed energy out.
+//!   the plain mean and the removed energy out;
+//! * and from a resolve, **need** ([`NeedMap`]): which tiles would gain most from more samples,
+//!   and how far the frame is from converged ([`Convergence`]).
 //!
 //! The core is pure: no I/O and no async; the only threads are the scoped ones
 //! [`resolve_bands`] is asked for. All accumulated quantities are fixed-point integers (see
@@ -14,6 +16,7 @@
 //! order samples arrived in and however they were split across partial states.
 
 mod layout;
+mod need;
 mod resolve;
 mod resolve_spread;
 mod state;
@@ -23,12 +26,16 @@ pub use layout::{
     DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, MAX_PIXEL_SAMPLES,
     MIN_LUMINANCE_WEIGHT, REC709_LUMINANCE, TOP_HEADROOM_BITS,
 };
+pub use need::{
+    check_converged_below, check_tile, Convergence, NeedError, NeedMap, TileNeed,
+    DEFAULT_CONVERGED_BELOW, DEFAULT_NEED_TILE, MAX_NEED_TILE,
+};
 pub use resolve::{
     resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
 pub use resolve_spread::{DEFAULT_SPREAD_SUPPORT, SPREAD_RADII};
 pub use state::{
-    cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, MergeError,
-    SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
+    cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, Kernel,
+    MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
 };

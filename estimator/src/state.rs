@@ -37,6 +37,11 @@ use std::ops::Range;
 
 use super::layout::{to_fixed, CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_PIXEL_SAMPLES};
 
+mod row;
+
+pub use row::Kernel;
+use row::{Shares, Tables, BLOCK};
+
 /// Bits of each top-cascade channel held in the cell's high word.
 const HI_BITS: u32 = 21;
 const HI_MASK: u64 = (1 << HI_BITS) - 1;
@@ -129,6 +134,15 @@ impl SplatReport {
     /// Samples not accumulated.
     pub fn rejected(&self) -> u64 {
         self.non_finite + self.negative + self.out_of_frame + self.too_bright + self.pixel_full
+    }
+
+    fn add(&mut self, other: &SplatReport) {
+        self.accepted += other.accepted;
+        self.non_finite += other.non_finite;
+        self.negative += other.negative;
+        self.out_of_frame += other.out_of_frame;
+        self.too_bright += other.too_bright;
+        self.pixel_full += other.pixel_full;
     }
 
     fn count(&mut self, result: Result<(), SampleError>) {
@@ -602,58 +616,184 @@ impl FrameState {
 
     /// Accumulates every valid sample of `samples` (pixel, RGB) and counts the rest.
     ///
-    /// This is the fast path for batches. Random pixels of a large frame miss every cache, so the
-    /// work is done in chunks: first the splits of a chunk are computed and the cascades they
-    /// will touch are prefetched, then the adds are applied, by which time the memory is on its
-    /// way. The result is identical to splatting the samples one by one.
+    /// This is the fast path for batches in no particular order. Random pixels of a large frame
+    /// miss every cache, so the work is pipelined: a sample's split is computed and the
+    /// cascades it will touch are prefetched, and it is applied 16 samples later, by which time
+    /// the memory is on its way. The result is identical to splatting the samples one by one.
     pub fn splat_all<I>(&mut self, samples: I) -> SplatReport
     where
         I: IntoIterator<Item = (u32, u32, [f32; 3])>,
     {
-        const CHUNK: usize = 32;
+        // Samples in flight: prepared and prefetched, applied this many samples later.
+        const AHEAD: usize = 16;
         let mut report = SplatReport::default();
-        let mut pending = [Pending::default(); CHUNK];
-        let mut samples = samples.into_iter().peekable();
-        while samples.peek().is_some() {
-            let mut n = 0;
-            for (x, y, rgb) in samples.by_ref() {
-                let checked = self
-                    .check_pixel(x, y)
-                    .and_then(|()| self.layout.check_sample(rgb))
-                    .and_then(|()| {
-                        // The `n` samples of this chunk are not applied yet: at first count them
-                        // as if they all were in this pixel (exactly only near the limit).
-                        if self.has_room(x, y, n as u64 + 1) || self.room_exact(x, y, &pending[..n])
-                        {
-                            Ok(())
-                        } else {
-                            Err(SampleError::PixelFull { x, y })
-                        }
-                    });
-                report.count(checked);
-                if checked.is_ok() {
-                    pending[n] = self.prepare(x, y, rgb);
-                    prefetch(&self.cells, pending[n].at);
-                    n += 1;
-                    if n == CHUNK {
-                        break;
+        let mut ring = [Pending::default(); AHEAD];
+        let (mut head, mut len) = (0, 0);
+        for (x, y, rgb) in samples {
+            let checked = self
+                .check_pixel(x, y)
+                .and_then(|()| self.layout.check_sample(rgb))
+                .and_then(|()| {
+                    // The `len` samples in flight are not applied yet: at first count them as if
+                    // they all were in this pixel (exactly only near the limit).
+                    let in_flight = (0..len).map(|i| &ring[(head + i) % AHEAD]);
+                    if self.has_room(x, y, len as u64 + 1) || self.room_exact(x, y, in_flight) {
+                        Ok(())
+                    } else {
+                        Err(SampleError::PixelFull { x, y })
                     }
+                });
+            report.count(checked);
+            if checked.is_ok() {
+                if len == AHEAD {
+                    self.apply(&ring[head]);
+                    head = (head + 1) % AHEAD;
+                    len -= 1;
+                }
+                let p = self.prepare(x, y, rgb);
+                prefetch(&self.cells, p.at);
+                ring[(head + len) % AHEAD] = p;
+                len += 1;
+            }
+        }
+        for i in 0..len {
+            let p = ring[(head + i) % AHEAD];
+            self.apply(&p);
+        }
+        report
+    }
+
+    /// Accumulates one sample in each of the consecutive pixels `x0, x0 + 1, ..` of row `y`
+    /// (`rgb[i]` goes to `x0 + i`): a rendered pass row by row, a scan line of a tile. The
+    /// arithmetic of a block of samples is vectorized (see [`Kernel`]); the state and the report
+    /// are bit-identical to splatting the samples one by one, rejected samples included.
+    pub fn splat_row(&mut self, x0: u32, y: u32, rgb: &[[f32; 3]]) -> SplatReport {
+        self.splat_row_with(Kernel::detect(), x0, y, rgb)
+    }
+
+    /// [`FrameState::splat_row`] with a chosen kernel, for tests and benchmarks.
+    ///
+    /// # Panics
+    /// If the CPU cannot run `kernel` ([`Kernel::available`]).
+    pub fn splat_row_with(
+        &mut self,
+        kernel: Kernel,
+        x0: u32,
+        y: u32,
+        rgb: &[[f32; 3]],
+    ) -> SplatReport {
+        self.splat_run(kernel, x0, y, rgb.len(), |i| rgb[i])
+    }
+
+    /// Accumulates `records` (pixel, RGB) like [`FrameState::splat_all`], with the same state and
+    /// report, but finds the runs of consecutive pixels of one row in them (a pass, a tile, any
+    /// batch in scan order) and splats those with [`FrameState::splat_row`]; records in no run
+    /// go through [`FrameState::splat_all`]. Records are applied in their order, so which
+    /// sample a full pixel refuses is the same too.
+    pub fn splat_records(&mut self, records: &[(u32, u32, [f32; 3])]) -> SplatReport {
+        self.splat_records_with(Kernel::detect(), records)
+    }
+
+    /// [`FrameState::splat_records`] with a chosen kernel, for tests and benchmarks.
+    ///
+    /// # Panics
+    /// If the CPU cannot run `kernel` ([`Kernel::available`]).
+    pub fn splat_records_with(
+        &mut self,
+        kernel: Kernel,
+        records: &[(u32, u32, [f32; 3])],
+    ) -> SplatReport {
+        /// Shorter runs are not worth a block.
+        const MIN_RUN: usize = BLOCK / 2;
+        let mut report = SplatReport::default();
+        let (mut i, mut loose) = (0, 0);
+        while i < records.len() {
+            let (x0, y, _) = records[i];
+            let len = 1 + records[i + 1..]
+                .iter()
+                .zip(1u32..)
+                .take_while(|((x, ry, _), d)| *ry == y && Some(*x) == x0.checked_add(*d))
+                .count();
+            if len >= MIN_RUN {
+                report.add(&self.splat_all(records[loose..i].iter().copied()));
+                let run = &records[i..i + len];
+                report.add(&self.splat_run(kernel, x0, y, len, |n| run[n].2));
+                loose = i + len;
+            }
+            i += len;
+        }
+        report.add(&self.splat_all(records[loose..].iter().copied()));
+        report
+    }
+
+    /// Splats `rgb(i)` into pixel `(x0 + i, y)` for `i < n`, a block at a time.
+    fn splat_run(
+        &mut self,
+        kernel: Kernel,
+        x0: u32,
+        y: u32,
+        n: usize,
+        rgb: impl Fn(usize) -> [f32; 3],
+    ) -> SplatReport {
+        let one_by_one = |state: &mut Self, from: usize, to: usize| {
+            state.splat_all((from..to).map(|i| (x0.saturating_add(i as u32), y, rgb(i))))
+        };
+        let in_frame = self.check_pixel(x0, y).is_ok() && x0 as u64 + n as u64 <= self.width as u64;
+        if !in_frame {
+            return one_by_one(self, 0, n);
+        }
+        let tables = Tables::new(&self.layout);
+        let stride = cell_len(self.layout.cascades());
+        let row_start = (y - self.y0) as usize * self.width as usize * stride;
+        let mut report = SplatReport::default();
+        let mut shares = Shares::new();
+        let mut block = [[0.0f32; 3]; BLOCK];
+        for from in (0..n).step_by(BLOCK) {
+            let len = BLOCK.min(n - from);
+            for (i, b) in block[..len].iter_mut().enumerate() {
+                *b = rgb(from + i);
+            }
+            let x = x0 + from as u32;
+            // One sample per pixel: each pixel needs room for one.
+            let room = self.samples + len as u64 <= MAX_PIXEL_SAMPLES
+                || (x..x + len as u32).all(|x| self.has_room(x, y, 1));
+            if !(room && tables.all_valid(&block[..len])) {
+                report.add(&one_by_one(self, from, from + len));
+                continue;
+            }
+            row::shares(kernel, &tables, &block[..len], &mut shares);
+            let first = row_start + x as usize * stride;
+            for i in 0..len {
+                let lo = shares.lo[i] as usize;
+                let at = first + i * stride + 4 * lo;
+                let cascades = &mut self.cells[at..at + 8];
+                let mut carry = 0;
+                for (sum, low) in cascades[..4].iter_mut().zip(&shares.low) {
+                    debug_assert!(sum.checked_add(low[i]).is_some(), "cascade sum overflows");
+                    *sum = sum.wrapping_add(low[i]);
+                }
+                for c in 0..3 {
+                    let (sum, over) = cascades[4 + c].overflowing_add(shares.high[c][i]);
+                    cascades[4 + c] = sum;
+                    carry |= u64::from(over) << (HI_BITS * c as u32);
+                }
+                cascades[7] = cascades[7].wrapping_add(shares.high[3][i]);
+                if carry != 0 {
+                    self.carry_at(lo, at, carry);
                 }
             }
-            for p in &pending[..n] {
-                self.apply(p);
-            }
+            self.samples += len as u64;
+            report.accepted += len as u64;
         }
         report
     }
 
     /// Whether pixel `(x, y)` can take one more sample besides those of `pending` in it.
     #[cold]
-    fn room_exact(&self, x: u32, y: u32, pending: &[Pending]) -> bool {
+    fn room_exact<'p>(&self, x: u32, y: u32, pending: impl Iterator<Item = &'p Pending>) -> bool {
         let k = self.layout.cascades();
         let pixel = (y - self.y0) as usize * self.width as usize + x as usize;
         let here = pending
-            .iter()
             .filter(|p| (p.at - 4 * p.split.lo) / cell_len(k) == pixel)
             .count() as u64;
         self.spp(x, y) + here < MAX_PIXEL_SAMPLES
@@ -692,20 +832,20 @@ impl FrameState {
         let units = self.layout.units_per_value(lo + 1) * (1.0 - w_lo);
         let carry = add_share_carry(high, p.s, units, COUNT_ONE - count_lo);
         if carry != 0 {
-            self.carry(p, carry);
+            self.carry_at(lo, p.at, carry);
         }
         self.samples += 1;
     }
 
     /// Adds carries out of the top cascade's words to its high word, which follows it.
     #[cold]
-    fn carry(&mut self, p: &Pending, carry: u64) {
+    fn carry_at(&mut self, lo: usize, at: usize, carry: u64) {
         debug_assert_eq!(
-            p.split.lo + 2,
+            lo + 2,
             self.layout.cascades(),
             "a carry below the top cascade"
         );
-        let hi = &mut self.cells[p.at + 8];
+        let hi = &mut self.cells[at + 8];
         *hi += carry;
         debug_assert_eq!(*hi >> (3 * HI_BITS), 0, "top cascade sum overflows 85 bits");
     }

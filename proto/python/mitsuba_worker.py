@@ -4,7 +4,8 @@
 Each pass is a full-image render with 1 sample per pixel, the `independent` sampler seeded with
 the pass number, and a box reconstruction filter, so every pixel of a pass is exactly one Monte
 Carlo sample of that pixel: the records splatd needs (a wider filter would blend neighbouring
-samples into one value). Passes are posted as sample batches with `splatd_client.py`; the pass
+samples into one value). Passes are posted as sample batches with the `splatd_client` package
+(`pip install ./proto/python`); the pass
 number is the batch sequence number, so a worker restarted with the same `--worker` and
 `--first-pass` resends nothing twice.
 
@@ -27,8 +28,10 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import splatd_client as sc  # noqa: E402
+try:
+    import splatd_client as sc
+except ImportError:  # pragma: no cover - depends on the environment
+    sys.exit("mitsuba_worker.py needs the splatd client: pip install ./proto/python")
 
 
 def image_to_records(image):

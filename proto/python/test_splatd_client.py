@@ -1,4 +1,8 @@
-"""Tests of splatd_client.py: `python3 -m pytest` or `python3 test_splatd_client.py`.
+"""Tests of the splatd_client package: `python3 -m pytest` or `python3 test_splatd_client.py`.
+
+Imports the package beside this file, unless SPLATD_CLIENT_INSTALLED=1 asks for the installed one
+(tests/python_package.rs runs these tests in a fresh virtual environment with the package
+installed by pip).
 
 Plain asserts only; the retry tests run a tiny HTTP server on 127.0.0.1 that
 answers a bounded, scripted list of responses.
@@ -14,8 +18,16 @@ import urllib.request
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+HERE = os.path.dirname(os.path.abspath(__file__))
+if os.environ.get("SPLATD_CLIENT_INSTALLED") == "1":
+    # Python put this file's directory first on the path, where the checkout's package is.
+    sys.path = [p for p in sys.path if os.path.abspath(p or os.curdir) != HERE]
+else:
+    sys.path.insert(0, HERE)
 import splatd_client as sc  # noqa: E402
+
+if os.environ.get("SPLATD_CLIENT_INSTALLED") == "1":
+    assert not os.path.abspath(sc.__file__).startswith(HERE), sc.__file__
 
 
 def _random_batch(rng, n):
@@ -106,6 +118,15 @@ def test_encode_argument_checks():
             raise AssertionError(f"accepted {args!r}")
 
 
+def test_version_is_tied_to_the_wire_format():
+    major, minor, patch = sc.__version__.split(".")
+    assert int(major) == sc.VERSION, (sc.__version__, sc.VERSION)
+    assert minor.isdigit() and patch.isdigit(), sc.__version__
+    # The version byte the encoder writes is that VERSION.
+    data = sc.encode_batch("f", 1, 2, [0], [0], [[1.0, 1.0, 1.0]])
+    assert struct.unpack_from("<4sH", data) == (sc.MAGIC, sc.VERSION)
+
+
 def test_selftest_batch_round_trips():
     data = sc.encode_batch(*sc.selftest_batch())
     b = sc.decode_batch(data)
@@ -128,7 +149,7 @@ class _Scripted(http.server.BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(raw)
 
-    do_GET = do_POST = _serve
+    do_GET = do_POST = do_PUT = _serve
 
     def log_message(self, *args):
         pass
@@ -198,6 +219,36 @@ def test_create_frame_and_gave_up():
             assert e.error == "gave_up" and "2 attempts" in e.message, e
         else:
             raise AssertionError("expected gave_up")
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_create_or_get_puts_the_parameters_and_pass_layers_are_encoded():
+    info = {"id": "f", "width": 4, "height": 2}
+    ack = {"frame": "f", "worker": 3, "seq": 4, "accepted": 8, "duplicate": False}
+    conflict = {"error": "frame_exists", "message": "frame \"f\" exists with different parameters"}
+    server, base = _serve([(500, {}), (200, info), (409, conflict), (200, ack)])
+    try:
+        c = _client(base, token="w")
+        # Idempotent, so retried like any request: the 500 is followed by the same PUT.
+        assert c.create_or_get("f", 4, 2, cascades={"base": 4.0}) == info
+        for method, path, headers, body in _Scripted.seen:
+            assert (method, path) == ("PUT", "/v1/frames/f")
+            assert headers["Content-Type"] == "application/json"
+            assert json.loads(body) == {"width": 4, "height": 2, "cascades": {"base": 4.0}}
+        assert len(_Scripted.seen) == 2
+        try:
+            c.create_or_get("f", 8, 2)
+        except sc.SplatdError as e:
+            assert (e.status, e.error) == (409, "frame_exists"), e
+        else:
+            raise AssertionError("409 not raised")
+        assert c.post_pass("f", 3, 4, b"exr bytes", layer="View Layer.Combined&x") == ack
+        method, path, headers, body = _Scripted.seen[-1]
+        assert (method, body) == ("POST", b"exr bytes")
+        assert path == "/v1/frames/f/passes?worker=3&seq=4&layer=View%20Layer.Combined%26x", path
+        assert headers["Content-Type"] == "image/x-exr"
     finally:
         server.shutdown()
         server.server_close()

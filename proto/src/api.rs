@@ -34,6 +34,11 @@ pub const DEFAULT_KAPPA: f64 = estimator::DEFAULT_KAPPA;
 pub const DEFAULT_KAPPA_MIN: f64 = estimator::DEFAULT_KAPPA_MIN;
 /// Default exponent of the sample-count adaptation of `kappa` (0 = fixed).
 pub const DEFAULT_KAPPA_EXPONENT: f64 = estimator::DEFAULT_KAPPA_EXPONENT;
+/// Default convergence threshold: a frame is converged once every pixel has samples and the
+/// resolve removes at most this fraction of the mean's energy.
+pub const DEFAULT_CONVERGED_BELOW: f64 = estimator::DEFAULT_CONVERGED_BELOW;
+/// Default edge, in pixels, of the tiles of `GET /v1/frames/{id}/need`.
+pub const DEFAULT_NEED_TILE: u32 = estimator::DEFAULT_NEED_TILE;
 
 // serde's `default = "..."` wants functions; they only forward the constants.
 fn default_cascade_base() -> f64 {
@@ -59,6 +64,9 @@ fn default_kappa_min() -> f64 {
 }
 fn default_kappa_exponent() -> f64 {
     DEFAULT_KAPPA_EXPONENT
+}
+fn default_converged_below() -> f64 {
+    DEFAULT_CONVERGED_BELOW
 }
 
 /// How samples are split into brightness cascades (fixed when a frame is created).
@@ -223,6 +231,11 @@ pub struct CreateFrame {
     /// Default resolve settings; defaults when omitted.
     #[serde(default)]
     pub resolve: ResolveParams,
+    /// The frame counts as converged once every pixel has samples and the resolve removes at
+    /// most this fraction of the mean's energy (in `(0, 1]`, default
+    /// [`DEFAULT_CONVERGED_BELOW`]).
+    #[serde(default = "default_converged_below")]
+    pub converged_below: f64,
 }
 
 impl CreateFrame {
@@ -234,11 +247,64 @@ impl CreateFrame {
             height,
             cascades: CascadeParams::default(),
             resolve: ResolveParams::default(),
+            converged_below: DEFAULT_CONVERGED_BELOW,
         }
     }
 }
 
-/// State of a frame: response of `POST /v1/frames` and `GET /v1/frames/{id}`.
+/// Body of `PUT /v1/frames/{id}` (create-or-get, allowed to `write` tokens): the creation
+/// parameters of [`CreateFrame`], the id coming from the path. An `id` in the body is
+/// optional and must then equal the path's.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PutFrame {
+    /// Frame id; when given, it must be the path's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Cascade layout; defaults when omitted.
+    #[serde(default)]
+    pub cascades: CascadeParams,
+    /// Default resolve settings; defaults when omitted.
+    #[serde(default)]
+    pub resolve: ResolveParams,
+    /// Convergence threshold ([`CreateFrame::converged_below`]); default when omitted.
+    #[serde(default = "default_converged_below")]
+    pub converged_below: f64,
+}
+
+impl PutFrame {
+    /// The create request this body makes for frame `id`.
+    pub fn into_create(self, id: impl Into<String>) -> CreateFrame {
+        CreateFrame {
+            id: id.into(),
+            width: self.width,
+            height: self.height,
+            cascades: self.cascades,
+            resolve: self.resolve,
+            converged_below: self.converged_below,
+        }
+    }
+}
+
+impl From<&CreateFrame> for PutFrame {
+    fn from(c: &CreateFrame) -> PutFrame {
+        PutFrame {
+            id: Some(c.id.clone()),
+            width: c.width,
+            height: c.height,
+            cascades: c.cascades.clone(),
+            resolve: c.resolve.clone(),
+            converged_below: c.converged_below,
+        }
+    }
+}
+
+/// State of a frame: response of `POST /v1/frames`, `PUT /v1/frames/{id}` and
+/// `GET /v1/frames/{id}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FrameInfo {
     /// Frame id.
@@ -267,6 +333,158 @@ pub struct FrameInfo {
     pub rejected_batches: u64,
     /// Memory the frame's accumulation buffers use.
     pub memory_bytes: u64,
+    /// How far the frame is from converged (`GET /v1/frames/{id}` only; absent in lists, and
+    /// when the server's working memory was too busy to resolve the frame).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub convergence: Option<Convergence>,
+}
+
+/// A frame's convergence, from its latest resolve (see `GET /v1/frames/{id}`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Convergence {
+    /// Samples in the resolved state.
+    pub samples: u64,
+    /// Fewest samples of any pixel.
+    pub spp_min: u64,
+    /// Mean samples per pixel.
+    pub spp_mean: f64,
+    /// Most samples of any pixel.
+    pub spp_max: u64,
+    /// Luminance the resolve removed, as a fraction of the plain mean's; it falls toward 0 as
+    /// samples accumulate.
+    pub removed_fraction: f64,
+    /// Luminance in brightness bands that lack support, as a fraction of the mean's.
+    pub deficit_fraction: f64,
+    /// Samples accepted per second lately (over the last second or more).
+    pub samples_per_second: f64,
+    /// The frame's threshold ([`CreateFrame::converged_below`]).
+    pub converged_below: f64,
+    /// Every pixel has samples and `removed_fraction <= converged_below`.
+    pub converged: bool,
+    /// Earlier figures, oldest first: one point per resolved version of the frame, thinned to
+    /// at most a few hundred points (every other one is dropped when the list is full).
+    pub history: Vec<ConvergencePoint>,
+}
+
+/// One point of [`Convergence::history`].
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct ConvergencePoint {
+    /// Seconds since the server took the frame in (created or restored it).
+    pub seconds: f64,
+    /// Samples then.
+    pub samples: u64,
+    /// Mean samples per pixel then.
+    pub spp_mean: f64,
+    /// [`Convergence::removed_fraction`] then.
+    pub removed_fraction: f64,
+}
+
+/// Response of `GET /v1/frames/{id}/need`: the frame in tiles, row-major, each scored by how
+/// much it would gain from more samples (see `splatd_estimator::NeedMap`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct NeedMap {
+    /// The frame.
+    pub frame: String,
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Tile edge in pixels; the last column and row of tiles may be smaller.
+    pub tile: u32,
+    /// Tiles per row.
+    pub tiles_x: u32,
+    /// Rows of tiles.
+    pub tiles_y: u32,
+    /// Samples in the resolved state.
+    pub samples: u64,
+    /// Need of each tile: `(removed + deficit) / mean + empty / pixels`, divided by the tile's
+    /// spp plus one.
+    pub need: Vec<f64>,
+    /// Removed luminance of each tile as a fraction of its mean's.
+    pub removed_fraction: Vec<f64>,
+    /// Luminance in bands lacking support, as a fraction of the tile's mean's.
+    pub deficit_fraction: Vec<f64>,
+    /// Mean samples per pixel of each tile.
+    pub spp_mean: Vec<f64>,
+    /// Fewest samples of a pixel of each tile.
+    pub spp_min: Vec<u64>,
+}
+
+impl NeedMap {
+    /// The map as the estimator's type, to plan with ([`estimator::NeedMap::plan`]). The
+    /// tiles' energies are not on the wire: they carry the need and the sample counts only.
+    pub fn to_estimator(&self) -> Result<estimator::NeedMap, String> {
+        let n = (self.tiles_x as usize) * (self.tiles_y as usize);
+        if self.tile == 0
+            || self.width.div_ceil(self.tile) != self.tiles_x
+            || self.height.div_ceil(self.tile) != self.tiles_y
+            || [self.need.len(), self.spp_mean.len(), self.spp_min.len()] != [n; 3]
+        {
+            return Err(format!(
+                "need map of {}x{} in {} px tiles has {} tiles in {}x{} and {} scores",
+                self.width,
+                self.height,
+                self.tile,
+                n,
+                self.tiles_x,
+                self.tiles_y,
+                self.need.len()
+            ));
+        }
+        let tile = self.tile;
+        let tiles = (0..n)
+            .map(|i| {
+                let (tx, ty) = (i as u32 % self.tiles_x, i as u32 / self.tiles_x);
+                let (width, height) = (
+                    tile.min(self.width - tx * tile),
+                    tile.min(self.height - ty * tile),
+                );
+                estimator::TileNeed {
+                    x: tx * tile,
+                    y: ty * tile,
+                    width,
+                    height,
+                    samples: (self.spp_mean[i] * f64::from(width * height)).round() as u64,
+                    spp_min: self.spp_min[i],
+                    need: self.need[i],
+                    ..estimator::TileNeed::default()
+                }
+            })
+            .collect();
+        Ok(estimator::NeedMap {
+            width: self.width,
+            height: self.height,
+            tile,
+            tiles_x: self.tiles_x,
+            tiles_y: self.tiles_y,
+            tiles,
+        })
+    }
+}
+
+/// Query of `GET /v1/frames/{id}/need`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NeedQuery {
+    /// Tile edge in pixels (default [`DEFAULT_NEED_TILE`], at most
+    /// `splatd_estimator::MAX_NEED_TILE`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tile: Option<u32>,
+    /// `json` (default) or `exr`: one pixel per tile, channels `need.Y`, `removed.Y`,
+    /// `deficit.Y`, `spp.Y` (mean spp) and `spp_min.Y`.
+    #[serde(default)]
+    pub format: NeedFormat,
+}
+
+/// Encoding of a need map.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum NeedFormat {
+    /// JSON [`NeedMap`].
+    #[default]
+    Json,
+    /// OpenEXR, one pixel per tile.
+    Exr,
 }
 
 /// Response of `GET /v1/frames`.
@@ -469,6 +687,7 @@ mod tests {
         assert_eq!(c.resolve.kappa, 4.0);
         assert_eq!(c.resolve.kappa_min, 1.0);
         assert_eq!(c.resolve.kappa_exponent, 0.0);
+        assert_eq!(c.converged_below, 0.01);
     }
 
     #[test]
@@ -530,6 +749,7 @@ mod tests {
             rejected_samples: 3,
             rejected_batches: 1,
             memory_bytes: 4096,
+            convergence: None,
         };
         let mut v = serde_json::to_value(&info).expect("serialises");
         assert_eq!(
@@ -571,6 +791,45 @@ mod tests {
             serde_json::to_value(&body).expect("serialises"),
             json!({"error": "trailing_bytes", "message": e.to_string()})
         );
+    }
+
+    #[test]
+    fn need_queries_and_maps() {
+        let q: NeedQuery =
+            serde_json::from_value(json!({"tile": 8, "format": "exr"})).expect("valid");
+        assert_eq!((q.tile, q.format), (Some(8), NeedFormat::Exr));
+        let q: NeedQuery = serde_json::from_value(json!({})).expect("valid");
+        assert_eq!((q.tile, q.format), (None, NeedFormat::Json));
+        assert!(serde_json::from_value::<NeedQuery>(json!({"format": "png"})).is_err());
+        assert!(serde_json::from_value::<NeedQuery>(json!({"tiles": 8})).is_err());
+
+        // A 5x3 frame in 4 px tiles: a 4x3 tile and a 1x3 one.
+        let map = NeedMap {
+            frame: "f".into(),
+            width: 5,
+            height: 3,
+            tile: 4,
+            tiles_x: 2,
+            tiles_y: 1,
+            samples: 30,
+            need: vec![0.5, 0.25],
+            removed_fraction: vec![0.1, 0.2],
+            deficit_fraction: vec![0.0, 0.3],
+            spp_mean: vec![2.0, 2.0],
+            spp_min: vec![1, 2],
+        };
+        let m = map.to_estimator().expect("consistent");
+        let geometry: Vec<_> = m
+            .tiles
+            .iter()
+            .map(|t| (t.x, t.y, t.width, t.height, t.samples, t.need))
+            .collect();
+        assert_eq!(geometry, [(0, 0, 4, 3, 24, 0.5), (4, 0, 1, 3, 6, 0.25)]);
+        let short = NeedMap {
+            need: vec![0.5],
+            ..map
+        };
+        assert!(short.to_estimator().is_err());
     }
 
     #[test]

@@ -24,7 +24,10 @@ use reqwest::header::{CONTENT_TYPE, RETRY_AFTER};
 use reqwest::{Method, StatusCode};
 use serde::de::DeserializeOwned;
 
-use crate::api::{BatchAck, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck};
+use crate::api::{
+    BatchAck, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck, NeedMap,
+    PutFrame,
+};
 use crate::batch::{validate_frame_id, Batch, WireError};
 use crate::BATCH_CONTENT_TYPE;
 // Also reachable as `client::BatchWriter`, where it lived before it got its own module.
@@ -229,7 +232,8 @@ impl Client {
     ///
     /// If an attempt reached the server but its response was lost, the retry
     /// may be refused with 409 because the frame now exists; check with
-    /// [`Client::frame_info`].
+    /// [`Client::frame_info`], or use [`Client::create_or_get`], which is
+    /// idempotent (and needs only a `write` token).
     pub async fn create_frame(&self, req: &CreateFrame) -> Result<FrameInfo, ClientError> {
         validate_frame_id(&req.id)?;
         let body = serde_json::to_vec(req).map_err(|e| {
@@ -246,6 +250,27 @@ impl Client {
             )
             .await?;
         parse_json("POST /v1/frames", status, &bytes)
+    }
+
+    /// `PUT /v1/frames/{id}`: creates the frame, or returns it when it exists with exactly
+    /// these parameters; [`ClientError::Rejected`] with 409 `frame_exists` (naming the
+    /// parameters that differ) when it exists with others. Allowed to `write` tokens, so a
+    /// render worker needs no `admin` token, and idempotent, so a retry after a lost answer
+    /// gets the frame rather than a conflict.
+    pub async fn create_or_get(&self, req: &CreateFrame) -> Result<FrameInfo, ClientError> {
+        validate_frame_id(&req.id)?;
+        let body = serde_json::to_vec(&PutFrame::from(req)).map_err(|e| {
+            ClientError::InvalidArgument(format!("could not serialise the frame request: {e}"))
+        })?;
+        let path = format!("/v1/frames/{}", req.id);
+        let (status, bytes) = self
+            .send(
+                Method::PUT,
+                &path,
+                Some((Bytes::from(body), "application/json")),
+            )
+            .await?;
+        parse_json(&format!("PUT {path}"), status, &bytes)
     }
 
     /// `GET /v1/frames/{id}`: the state of a frame.
@@ -285,7 +310,8 @@ impl Client {
     }
 
     /// `POST /v1/frames/{id}/passes?worker=W&seq=S`: one rendered pass as OpenEXR bytes (each
-    /// pixel one sample). `(worker, seq)` make it exactly-once, as for batches.
+    /// pixel one sample), its beauty layer found by the server. `(worker, seq)` make it
+    /// exactly-once, as for batches.
     pub async fn post_pass(
         &self,
         id: &str,
@@ -293,8 +319,25 @@ impl Client {
         seq: u64,
         exr: Bytes,
     ) -> Result<BatchAck, ClientError> {
+        self.post_pass_layer(id, worker, seq, None, exr).await
+    }
+
+    /// [`Client::post_pass`] with the beauty read from the layer named `layer` (`&layer=`; see
+    /// PROTOCOL.md for the names a file's layers have), or found automatically when `None`.
+    pub async fn post_pass_layer(
+        &self,
+        id: &str,
+        worker: u64,
+        seq: u64,
+        layer: Option<&str>,
+        exr: Bytes,
+    ) -> Result<BatchAck, ClientError> {
         validate_frame_id(id)?;
-        let path = format!("/v1/frames/{id}/passes?worker={worker}&seq={seq}");
+        let mut path = format!("/v1/frames/{id}/passes?worker={worker}&seq={seq}");
+        if let Some(layer) = layer {
+            path.push_str("&layer=");
+            path.push_str(&percent_encode(layer));
+        }
         let (status, bytes) = self
             .send(Method::POST, &path, Some((exr, "image/x-exr")))
             .await?;
@@ -322,6 +365,16 @@ impl Client {
         let query = image_query_string(query);
         let path = format!("/v1/frames/{id}/image.exr{query}");
         self.send(Method::GET, &path, None).await.map(|(_, b)| b)
+    }
+
+    /// `GET /v1/frames/{id}/need?tile=T`: the frame's need map as JSON (tile edge `tile`, or
+    /// the server's default, [`crate::api::DEFAULT_NEED_TILE`]).
+    pub async fn need(&self, id: &str, tile: Option<u32>) -> Result<NeedMap, ClientError> {
+        validate_frame_id(id)?;
+        let query = tile.map(|t| format!("?tile={t}")).unwrap_or_default();
+        let path = format!("/v1/frames/{id}/need{query}");
+        let (status, bytes) = self.send(Method::GET, &path, None).await?;
+        parse_json(&format!("GET {path}"), status, &bytes)
     }
 
     /// `GET /v1/frames/{id}/state`: the frame's accumulated state (see [`crate::StateDump`]).
@@ -456,6 +509,20 @@ impl Client {
             last: last.map_or_else(|| "none".to_owned(), |t| t.message),
         })
     }
+}
+
+/// `text` as a query value: every byte but the unreserved ones (RFC 3986) as `%XX`, so layer
+/// names with spaces, dots, `&` or UTF-8 reach the server as written.
+fn percent_encode(text: &str) -> String {
+    let mut out = String::with_capacity(text.len());
+    for b in text.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
+            out.push(char::from(b));
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
 }
 
 /// `?a=1&b=2` for the parameters of an image request that are set, or nothing.
@@ -604,6 +671,13 @@ mod tests {
                 "{bad}"
             );
         }
+    }
+
+    #[test]
+    fn query_values_are_percent_encoded() {
+        assert_eq!(percent_encode("ViewLayer.Combined"), "ViewLayer.Combined");
+        assert_eq!(percent_encode("Noisy Image&x=1"), "Noisy%20Image%26x%3D1");
+        assert_eq!(percent_encode("é"), "%C3%A9");
     }
 
     #[test]

@@ -24,7 +24,8 @@
 //!
 //! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
 //! and the HTTP endpoints for implementers in other languages;
-//! `python/splatd_client.py` is a numpy implementation.
+//! `python/` holds a numpy implementation, the package `splatd-client`
+//! (`pip install ./proto/python`).
 //!
 //! # Example
 //!
@@ -60,7 +61,7 @@ pub mod writer;
 
 pub use api::{
     BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
-    ResolveParams, SyncAck, Variant,
+    PutFrame, ResolveParams, SyncAck, Variant,
 };
 pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]

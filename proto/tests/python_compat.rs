@@ -1,4 +1,4 @@
-//! The Python client (`proto/python/splatd_client.py`) and this crate must
+//! The Python client (package `splatd_client` in `proto/python/`) and this crate must
 //! produce and accept exactly the same bytes.
 //!
 //! This test needs `python3` with numpy and fails (it does not skip) when
@@ -13,12 +13,18 @@ use splatd_proto::{Batch, DecodeLimits, Record};
 const INSTALL_HINT: &str = "install Python 3 (e.g. `apt-get install python3`) and numpy \
      (`python3 -m pip install numpy`)";
 
-fn script() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).join("python/splatd_client.py")
+/// The directory holding the `splatd_client` package, put on `PYTHONPATH` so that
+/// `python3 -m splatd_client` runs this checkout's client (not an installed one).
+fn package_dir() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("python")
 }
 
 fn python(args: &[&std::ffi::OsStr]) -> Output {
-    match Command::new("python3").args(args).output() {
+    match Command::new("python3")
+        .env("PYTHONPATH", package_dir())
+        .args(args)
+        .output()
+    {
         Ok(out) => out,
         Err(e) => panic!("cannot run python3 ({e}); {INSTALL_HINT}"),
     }
@@ -33,7 +39,7 @@ fn require_python_with_numpy() {
     );
 }
 
-/// The batch `splatd_client.py --selftest-emit` writes (see `selftest_batch`
+/// The batch `python3 -m splatd_client --selftest-emit` writes (see `selftest_batch`
 /// there). Decimal values go through f64 first, as numpy's do.
 fn expected() -> Batch {
     Batch {
@@ -59,13 +65,14 @@ fn python_and_rust_encodings_are_identical() {
     let dir = Path::new(env!("CARGO_TARGET_TMPDIR"));
     let from_python = dir.join(format!("python_selftest_{}.bin", std::process::id()));
     let out = python(&[
-        script().as_os_str(),
+        "-m".as_ref(),
+        "splatd_client".as_ref(),
         "--selftest-emit".as_ref(),
         from_python.as_os_str(),
     ]);
     assert!(
         out.status.success(),
-        "splatd_client.py --selftest-emit failed:\n{}",
+        "python3 -m splatd_client --selftest-emit failed:\n{}",
         String::from_utf8_lossy(&out.stderr)
     );
     let bytes = std::fs::read(&from_python)
@@ -83,7 +90,8 @@ fn python_and_rust_encodings_are_identical() {
     std::fs::write(&from_rust, expected.encode())
         .unwrap_or_else(|e| panic!("writing {}: {e}", from_rust.display()));
     let out = python(&[
-        script().as_os_str(),
+        "-m".as_ref(),
+        "splatd_client".as_ref(),
         "--selftest-check".as_ref(),
         from_rust.as_os_str(),
     ]);

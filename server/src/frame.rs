@@ -54,6 +54,7 @@ impl FrameSpec {
         let c = &request.cascades;
         let layout = CascadeLayout::new(c.base, c.cascades, c.lowest_scale, c.luminance)?;
         let resolve = core_resolve_params(&request.resolve)?;
+        estimator::check_converged_below(request.converged_below)?;
         Ok(FrameSpec {
             request,
             layout,
@@ -281,6 +282,8 @@ pub struct ShardedFrame {
     durable_version: AtomicU64,
     /// Per worker, the sequence number below which every batch is in that snapshot.
     durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
+    /// Convergence figures of the frame's renders over time.
+    history: Mutex<crate::converge::History>,
 }
 
 /// Held by a request that changes a frame until its answer is ready (see
@@ -373,6 +376,7 @@ impl ShardedFrame {
             version: AtomicU64::new(0),
             durable_version: AtomicU64::new(0),
             durable_floors: Mutex::new(Default::default()),
+            history: Mutex::new(Default::default()),
         };
         frame.set_counters(counters);
         frame
@@ -413,6 +417,16 @@ impl ShardedFrame {
     /// The frame's parameters.
     pub fn spec(&self) -> &FrameSpec {
         &self.spec
+    }
+
+    /// Samples accepted so far (records of applied batches and samples of imported states).
+    pub fn samples(&self) -> u64 {
+        self.counters.samples.load(Ordering::Relaxed)
+    }
+
+    /// The frame's convergence over time (see [`crate::converge`]).
+    pub fn history(&self) -> MutexGuard<'_, crate::converge::History> {
+        lock(&self.history)
     }
 
     /// Changes whenever samples are added; equal versions mean equal states.
@@ -533,7 +547,7 @@ impl ShardedFrame {
         }
         for (guard, samples) in guards.iter_mut().zip(buckets) {
             if let Some(mut band) = guard.take() {
-                let report = band.splat_all(samples);
+                let report = band.splat_records(&samples);
                 debug_assert_eq!(report.rejected(), 0, "records were checked above");
             }
         }
@@ -711,6 +725,7 @@ impl ShardedFrame {
             rejected_samples: c.rejected_samples,
             rejected_batches: c.rejected_batches,
             memory_bytes: self.spec.memory_bytes(),
+            convergence: None,
         }
     }
 }

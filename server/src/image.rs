@@ -5,10 +5,170 @@
 //! understands one part with dotted channel names (OpenEXR's layer convention), which is not
 //! true of multi-part files. Samples are 32-bit float; `spp.Y` is exact up to 2^24 samples.
 //! Scan lines with ZIP over 16 lines: lossless, compact, read everywhere.
+//!
+//! The header says how the image was made ([`Provenance`]): the standard `software` attribute
+//! (`splatd 0.1.0`), then `splatd:` attributes for the estimator and its parameters and the
+//! sample counts, all deterministic (no time stamps), so the same state always gives the same
+//! bytes:
+//!
+//! | attribute | type | value |
+//! |-----------|------|-------|
+//! | `software` | string | `splatd <version>` (of the `splatd-server` crate) |
+//! | `splatd:estimator` | string | the variant: `paper`, `shader` or `off` |
+//! | `splatd:kappa`, `splatd:kappaMin`, `splatd:kappaExponent` | double | its parameters |
+//! | `splatd:cascadeBase`, `splatd:cascadeLowestScale` | double | the cascade layout |
+//! | `splatd:cascades` | int | number of cascades |
+//! | `splatd:luminance` | v3f | the luminance weights of R, G, B |
+//! | `splatd:samples` | double | samples in the image (exact below 2^53) |
+//! | `splatd:sppMin`, `splatd:sppMean`, `splatd:sppMax` | double | samples per pixel |
 
 use exr::prelude::*;
 
-use splatd_estimator::Resolved;
+use splatd_estimator::{CascadeLayout, ResolveParams, Resolved};
+use splatd_proto::api::Variant;
+
+/// What an image was made with, written into its header.
+#[derive(Debug, Clone, Copy)]
+pub struct Provenance<'a> {
+    /// The frame's cascade layout.
+    pub layout: &'a CascadeLayout,
+    /// The resolve parameters the image was resolved with.
+    pub params: &'a ResolveParams,
+}
+
+/// A header attribute's value, in the OpenEXR types the provenance uses.
+#[derive(Debug, Clone, PartialEq)]
+pub enum HeaderValue {
+    /// `string`
+    Text(String),
+    /// `double`
+    Double(f64),
+    /// `int`
+    Int(i32),
+    /// `v3f`
+    V3f([f32; 3]),
+}
+
+impl HeaderValue {
+    /// The OpenEXR type name and the value's bytes (little-endian).
+    fn encode(&self) -> (&'static str, Vec<u8>) {
+        match self {
+            HeaderValue::Text(s) => ("string", s.as_bytes().to_vec()),
+            HeaderValue::Double(v) => ("double", v.to_le_bytes().to_vec()),
+            HeaderValue::Int(v) => ("int", v.to_le_bytes().to_vec()),
+            HeaderValue::V3f(v) => ("v3f", v.iter().flat_map(|c| c.to_le_bytes()).collect()),
+        }
+    }
+}
+
+impl Provenance<'_> {
+    /// The header attributes (see the module docs): `software`, then the `splatd:` ones by name.
+    pub fn attributes(&self, resolved: &Resolved) -> Vec<(&'static str, HeaderValue)> {
+        let (mut min, mut max, mut samples) = (u64::MAX, 0u64, 0u128);
+        for &n in &resolved.spp {
+            min = min.min(n);
+            max = max.max(n);
+            samples += u128::from(n);
+        }
+        let pixels = resolved.spp.len();
+        let mean = if pixels == 0 {
+            min = 0;
+            0.0
+        } else {
+            samples as f64 / pixels as f64
+        };
+        let variant = Variant::from_estimator(self.params.variant());
+        let cascades = i32::try_from(self.layout.cascades()).unwrap_or(i32::MAX);
+        use HeaderValue as V;
+        vec![
+            (
+                "software",
+                V::Text(format!("splatd {}", env!("CARGO_PKG_VERSION"))),
+            ),
+            ("splatd:cascadeBase", V::Double(self.layout.base())),
+            (
+                "splatd:cascadeLowestScale",
+                V::Double(self.layout.lowest_scale()),
+            ),
+            ("splatd:cascades", V::Int(cascades)),
+            ("splatd:estimator", V::Text(variant.as_str().to_owned())),
+            ("splatd:kappa", V::Double(self.params.kappa())),
+            (
+                "splatd:kappaExponent",
+                V::Double(self.params.kappa_exponent()),
+            ),
+            ("splatd:kappaMin", V::Double(self.params.kappa_min())),
+            (
+                "splatd:luminance",
+                V::V3f(self.layout.luminance_weights().map(|w| w as f32)),
+            ),
+            ("splatd:samples", V::Double(samples as f64)),
+            ("splatd:sppMax", V::Double(max as f64)),
+            ("splatd:sppMean", V::Double(mean)),
+            ("splatd:sppMin", V::Double(min as f64)),
+        ]
+    }
+}
+
+/// Adds attributes to the header of a single-part EXR written by `exr`, keeping their order.
+///
+/// `exr` keeps extra attributes in a `HashMap` and writes them in its (per-process random)
+/// order, which would make the same image different bytes from one resolve to the next; so they
+/// are inserted here, in the given order, at the end of the header, and the offset table that
+/// follows the header (absolute positions of the pixel blocks) is moved by as many bytes.
+fn add_attributes(bytes: Vec<u8>, attributes: &[(&str, HeaderValue)]) -> Result<Vec<u8>> {
+    let invalid = |what: &str| Error::Invalid(format!("splatd's own EXR: {what}").into());
+    let chunks = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&bytes), false)?
+        .headers
+        .first()
+        .map(|h| h.chunk_count)
+        .ok_or_else(|| invalid("no header"))?;
+    // Magic number and version field, then `name\0 type\0 size value` until an empty name.
+    let mut at = 8;
+    let skip_string = |at: &mut usize| -> Result<usize> {
+        let len = bytes[*at..]
+            .iter()
+            .position(|&b| b == 0)
+            .ok_or_else(|| invalid("unterminated header"))?;
+        *at += len + 1;
+        Ok(len)
+    };
+    while skip_string(&mut at)? > 0 {
+        skip_string(&mut at)?;
+        let size = bytes
+            .get(at..at + 4)
+            .map(|b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .ok_or_else(|| invalid("header cut short"))?;
+        at += 4 + usize::try_from(size).map_err(|_| invalid("negative attribute size"))?;
+    }
+    let end = at - 1; // the empty name that ends the header
+    let mut added = Vec::new();
+    for (name, value) in attributes {
+        let (kind, data) = value.encode();
+        added.extend_from_slice(name.as_bytes());
+        added.push(0);
+        added.extend_from_slice(kind.as_bytes());
+        added.push(0);
+        let size = i32::try_from(data.len()).map_err(|_| invalid("attribute too large"))?;
+        added.extend_from_slice(&size.to_le_bytes());
+        added.extend_from_slice(&data);
+    }
+    let table = at..at + 8 * chunks;
+    if bytes.len() < table.end {
+        return Err(invalid("offset table cut short"));
+    }
+    let shift = added.len() as u64;
+    let mut out = Vec::with_capacity(bytes.len() + added.len());
+    out.extend_from_slice(&bytes[..end]);
+    out.extend_from_slice(&added);
+    out.push(0);
+    for offset in bytes[table.clone()].chunks_exact(8) {
+        let offset = u64::from_le_bytes(offset.try_into().expect("8 bytes"));
+        out.extend_from_slice(&(offset + shift).to_le_bytes());
+    }
+    out.extend_from_slice(&bytes[table.end..]);
+    Ok(out)
+}
 
 /// An extra RGB layer to write beside the resolved ones (for example a raw cascade).
 #[derive(Debug, Clone)]
@@ -32,11 +192,16 @@ pub fn cascade_layers(means: Vec<Vec<[f32; 3]>>) -> Vec<ExtraLayer> {
         .collect()
 }
 
-/// Encodes a resolved frame (and any extra layers) as EXR bytes.
+/// Encodes a resolved frame (and any extra layers) as EXR bytes, with its provenance in the
+/// header.
 ///
 /// `exr` compresses blocks on a thread pool it starts per call: from async code call this inside
 /// `spawn_blocking`.
-pub fn encode_exr(resolved: &Resolved, extra: &[ExtraLayer]) -> Result<Vec<u8>> {
+pub fn encode_exr(
+    resolved: &Resolved,
+    extra: &[ExtraLayer],
+    provenance: &Provenance<'_>,
+) -> Result<Vec<u8>> {
     let size = (resolved.width as usize, resolved.height as usize);
     let mut channels: Vec<AnyChannel<FlatSamples>> = Vec::with_capacity(10 + 3 * extra.len());
     push_rgb(&mut channels, "", &resolved.reweighted);
@@ -49,10 +214,7 @@ pub fn encode_exr(resolved: &Resolved, extra: &[ExtraLayer]) -> Result<Vec<u8>> 
     for layer in extra {
         push_rgb(&mut channels, &format!("{}.", layer.name), &layer.rgb);
     }
-    let attributes = LayerAttributes {
-        software_name: Some(Text::from("splatd")),
-        ..LayerAttributes::default()
-    };
+    let attributes = LayerAttributes::default();
     let layer = Layer::new(
         size,
         attributes,
@@ -63,7 +225,7 @@ pub fn encode_exr(resolved: &Resolved, extra: &[ExtraLayer]) -> Result<Vec<u8>> 
     Image::from_layer(layer)
         .write()
         .to_buffered(std::io::Cursor::new(&mut bytes))?;
-    Ok(bytes)
+    add_attributes(bytes, &provenance.attributes(resolved))
 }
 
 fn push_rgb(channels: &mut Vec<AnyChannel<FlatSamples>>, prefix: &str, rgb: &[[f32; 3]]) {
@@ -98,4 +260,78 @@ pub fn decode_exr_channels(bytes: &[u8]) -> Result<Vec<(String, Vec<f32>)>> {
             (c.name.to_string(), values)
         })
         .collect())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use splatd_estimator::FrameState;
+
+    /// The attributes inserted after `exr` wrote the file are read back by `exr` (a reader that
+    /// follows the moved offset table), with the pixels unchanged, and the bytes are the same
+    /// from one encode to the next.
+    #[test]
+    fn provenance_is_read_back_and_pixels_are_unchanged() {
+        let layout = CascadeLayout::with_defaults();
+        let mut state = FrameState::new(7, 37, layout.clone());
+        for y in 0..37 {
+            for x in 0..7 {
+                let v = (x * 37 + y) as f32 * 0.25;
+                state.splat(x, y, [v, v * 2.0, 1.0]).unwrap();
+                if (x + y) % 3 == 0 {
+                    state.splat(x, y, [v * 100.0, 0.0, 0.5]).unwrap();
+                }
+            }
+        }
+        let params = ResolveParams::with_defaults();
+        let resolved = state.resolve(&params);
+        let provenance = Provenance {
+            layout: &layout,
+            params: &params,
+        };
+        let bytes = encode_exr(&resolved, &[], &provenance).unwrap();
+        assert!(bytes == encode_exr(&resolved, &[], &provenance).unwrap());
+
+        let image = read()
+            .no_deep_data()
+            .largest_resolution_level()
+            .all_channels()
+            .first_valid_layer()
+            .all_attributes()
+            .from_buffered(std::io::Cursor::new(&bytes))
+            .unwrap();
+        let attributes = &image.layer_data.attributes;
+        let version = format!("splatd {}", env!("CARGO_PKG_VERSION"));
+        assert_eq!(attributes.software_name, Some(Text::from(version.as_str())));
+        let other = |name: &str| {
+            attributes
+                .other
+                .get(&Text::from(name))
+                .or_else(|| image.attributes.other.get(&Text::from(name)))
+                .unwrap_or_else(|| panic!("no attribute {name}"))
+                .clone()
+        };
+        use exr::meta::attribute::AttributeValue as A;
+        let pixels = 7.0 * 37.0;
+        let samples: u64 = resolved.spp.iter().sum();
+        assert_eq!(other("splatd:estimator"), A::Text(Text::from("paper")));
+        assert_eq!(other("splatd:kappa"), A::F64(params.kappa()));
+        assert_eq!(other("splatd:cascades"), A::I32(layout.cascades() as i32));
+        assert_eq!(other("splatd:samples"), A::F64(samples as f64));
+        assert_eq!(other("splatd:sppMin"), A::F64(1.0));
+        assert_eq!(other("splatd:sppMax"), A::F64(2.0));
+        assert_eq!(other("splatd:sppMean"), A::F64(samples as f64 / pixels));
+        let [r, g, b] = layout.luminance_weights().map(|w| w as f32);
+        assert_eq!(other("splatd:luminance"), A::FloatVec3((r, g, b)));
+
+        let channels = decode_exr_channels(&bytes).unwrap();
+        let mean_g = channels.iter().find(|(n, _)| n == "mean.G").unwrap();
+        let want: Vec<f32> = resolved.mean.iter().map(|p| p[1]).collect();
+        assert_eq!(mean_g.1, want);
+        let spp = channels.iter().find(|(n, _)| n == "spp.Y").unwrap();
+        assert_eq!(
+            spp.1,
+            resolved.spp.iter().map(|&n| n as f32).collect::<Vec<_>>()
+        );
+    }
 }

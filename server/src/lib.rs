@@ -7,11 +7,13 @@
 //! * [`store`]: the frames of a server and the limits on them;
 //! * [`http`]: the router, one handler file per concept, the JSON errors and bearer-token roles;
 //! * [`durable`]: snapshots, recovery and quarantine; [`failpoint`]: fault injection for tests;
-//! * [`renders`] and [`work`]: shared resolves and the working-memory budget;
+//! * [`renders`] and [`work`]: shared resolves and the working-memory budget; [`converge`]: need
+//!   maps and each frame's convergence over time, from those shared resolves;
 //! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
 //!   [`viewer`]: pushing frames to tev.
 
 pub mod config;
+pub mod converge;
 pub mod dedup;
 pub mod durable;
 pub mod export;

@@ -6,11 +6,33 @@
 //! [`Pass::records`] turns it into the same [`Record`]s a streaming worker would send, so a pass
 //! is accumulated exactly like a batch of `width * height` samples.
 //!
-//! What is read: the `R`, `G` and `B` channels of the first layer (part) that has all three, as
-//! 32-bit floats whatever their stored type (`f16`, `f32` or `u32`). Alpha and every other
-//! channel are ignored. The pass must cover exactly its display window: a cropped (border)
-//! render or an overscan would put its pixels at the wrong place in the frame, so it is refused
-//! rather than guessed at.
+//! # Which channels are the beauty
+//!
+//! A file's *layers* are its channels grouped by name: a channel `A.B.R` belongs to layer `A.B`
+//! (its name up to the last dot), `R` to the unnamed layer. In a multi-part file the part's
+//! name is put in front (`beauty` part, channel `R`: layer `beauty`), unless the channel
+//! names already start with it. The beauty is the layer named by the caller (`?layer=` on
+//! `POST /v1/frames/{id}/passes`, `--layer` on `splatd post`), or else the first of these that
+//! exists, among layers with channels `R`, `G` and `B`:
+//!
+//! 1. the unnamed layer (channels `R`, `G`, `B`: single-layer files of every renderer);
+//! 2. a layer `<view layer>.Combined` (Blender/Cycles' `OPEN_EXR_MULTILAYER`,
+//!    `ViewLayer.Combined.R`);
+//! 3. a layer named `beauty`, `rgba` or `Combined`, in any case (a part or a channel prefix);
+//! 4. the only layer with `R`, `G` and `B`.
+//!
+//! When a step finds two layers (two view layers, say), or step 4 finds several, nothing is
+//! guessed: the pass is refused naming the candidates, and the caller names the layer. A file
+//! with no `R`, `G`, `B` layer at all is refused naming every layer it has.
+//!
+//! Only the beauty's `R`, `G` and `B` are read, as 32-bit floats whatever their stored type
+//! (`f16`, `f32` or `u32`), from scanline or tiled parts with any compression the `exr` crate
+//! reads: none, RLE, ZIPS, ZIP, PIZ, PXR24, B44, B44A, DWAA, DWAB (not OpenEXR 3.3's HTJ2K and
+//! ZSTD, refused as [`PassError::Exr`] "unknown compression method"); of a mip- or rip-mapped
+//! part, the full-resolution level. Alpha, other channels and
+//! other parts are not decoded. The pass must cover exactly its display window: a cropped
+//! (border) render or an overscan would put its pixels at the wrong place in the frame, so it
+//! is refused rather than guessed at.
 //!
 //! What is **not** done: values are not checked. Negative, NaN and infinite samples pass through
 //! unchanged; the server rejects and counts them with the same checks it applies to streamed
@@ -21,10 +43,11 @@
 
 use std::io::Cursor;
 
-use exr::meta::attribute::IntegerBounds;
+use exr::block::reader::ChunksReader;
+use exr::block::UncompressedBlock;
+use exr::meta::attribute::{IntegerBounds, SampleType};
 use exr::meta::header::Header;
-use exr::meta::MetaData;
-use exr::prelude::{read, ReadChannels, ReadLayers};
+use exr::prelude::{f16, Vec2};
 use splatd_proto::Record;
 
 /// The four bytes every OpenEXR file starts with.
@@ -38,6 +61,9 @@ const EXR_MAGIC: [u8; 4] = [0x76, 0x2f, 0x31, 0x01];
 /// full before the (missing) pixel data is found to be short.
 pub const MAX_PASS_PIXELS: u64 = 1 << 25;
 
+/// The layer names step 3 of the automatic choice looks for (compared ignoring ASCII case).
+pub const BEAUTY_NAMES: [&str; 3] = ["beauty", "rgba", "Combined"];
+
 /// One pass: one sample per pixel, decoded from an EXR.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Pass {
@@ -45,9 +71,41 @@ pub struct Pass {
     pub width: u32,
     /// Height in pixels.
     pub height: u32,
+    /// The layer the samples were read from (empty: the unnamed layer, channels `R`, `G`, `B`).
+    pub layer: String,
     /// Row-major RGB samples, top row first, `width * height` of them. Not checked: negative,
     /// NaN and infinite values are kept (see the module docs).
     pub rgb: Vec<[f32; 3]>,
+}
+
+/// One layer of an EXR: the channels of one part that share a name prefix.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LayerInfo {
+    /// The layer's name (see the module docs); empty for unprefixed channels of an unnamed part.
+    pub name: String,
+    /// The part (header) it is in.
+    pub part: usize,
+    /// The channel-name prefix within the part, without its trailing dot (may be empty).
+    pub prefix: String,
+    /// The channels' names without the prefix (`R`, `G`, `B`, `A`, `Z` ...), in file order.
+    pub channels: Vec<String>,
+    /// Whether it can be a beauty: `R`, `G` and `B` present, flat (not deep) data.
+    pub rgb: bool,
+}
+
+impl std::fmt::Display for LayerInfo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let channels = if self.channels.is_empty() {
+            "no channels".to_string()
+        } else {
+            self.channels.join(", ")
+        };
+        if self.name.is_empty() {
+            write!(f, "unnamed ({channels})")
+        } else {
+            write!(f, "{:?} ({channels})", self.name)
+        }
+    }
 }
 
 /// Why a pass could not be read or used.
@@ -66,10 +124,46 @@ pub enum PassError {
     #[error("could not read the OpenEXR pass: {0}")]
     Exr(#[from] exr::error::Error),
     /// No layer has all of the channels `R`, `G` and `B`.
-    #[error("the EXR has no layer with channels R, G and B; {}", describe_layers(.layers))]
+    #[error("the EXR has no layer with channels R, G and B; layers found: {}", list(.layers))]
     NoRgbLayer {
-        /// The channel names of every layer, in file order.
-        layers: Vec<Vec<String>>,
+        /// Every layer of the file, in file order.
+        layers: Vec<LayerInfo>,
+    },
+    /// Several layers could be the beauty, and none was named.
+    #[error(
+        "the EXR has several layers that could be the beauty ({}); name the one to use \
+         (`layer` query parameter, `splatd post --layer`); layers found: {}",
+        names(.candidates), list(.layers)
+    )]
+    Ambiguous {
+        /// The layers found by the first step of the automatic choice that found any.
+        candidates: Vec<String>,
+        /// Every layer of the file, in file order.
+        layers: Vec<LayerInfo>,
+    },
+    /// The layer the caller named is not in the file.
+    #[error("the EXR has no layer {asked:?}; layers found: {}", list(.layers))]
+    UnknownLayer {
+        /// The name asked for.
+        asked: String,
+        /// Every layer of the file, in file order.
+        layers: Vec<LayerInfo>,
+    },
+    /// The layer the caller named has no `R`, `G` and `B` (or is deep data).
+    #[error("layer {} cannot be the beauty: it needs flat channels R, G and B", .layer)]
+    NotRgb {
+        /// The layer named.
+        layer: LayerInfo,
+    },
+    /// A channel of the beauty's part is subsampled (`exr` cannot lay out such blocks).
+    #[error("channel {channel:?} is subsampled ({x}x{y}); subsampled passes are not supported")]
+    Subsampled {
+        /// The channel's full name.
+        channel: String,
+        /// Horizontal sampling.
+        x: usize,
+        /// Vertical sampling.
+        y: usize,
     },
     /// The RGB layer has no pixels.
     #[error("the pass is empty ({width}x{height})")]
@@ -133,26 +227,17 @@ pub enum PassError {
     },
 }
 
-fn describe_layers(layers: &[Vec<String>]) -> String {
-    let list = |names: &Vec<String>| {
-        if names.is_empty() {
-            "no channels".to_string()
-        } else {
-            names.join(", ")
-        }
-    };
-    match layers {
-        [] => "it has no layers".to_string(),
-        [one] => format!("channels found: {}", list(one)),
-        many => {
-            let parts: Vec<String> = many
-                .iter()
-                .enumerate()
-                .map(|(i, names)| format!("layer {i}: {}", list(names)))
-                .collect();
-            format!("channels found: {}", parts.join("; "))
-        }
+fn list(layers: &[LayerInfo]) -> String {
+    if layers.is_empty() {
+        return "none".to_string();
     }
+    let all: Vec<String> = layers.iter().map(ToString::to_string).collect();
+    all.join("; ")
+}
+
+fn names(names: &[String]) -> String {
+    let quoted: Vec<String> = names.iter().map(|n| format!("{n:?}")).collect();
+    quoted.join(", ")
 }
 
 fn show_window(w: &IntegerBounds) -> String {
@@ -165,23 +250,147 @@ fn show_window(w: &IntegerBounds) -> String {
     )
 }
 
-/// Decodes one pass from the bytes of an EXR file, with the default size limit
-/// [`MAX_PASS_PIXELS`].
-///
-/// Reads `R`, `G`, `B` of the first layer that has all three (see the module docs for what is
-/// accepted and what is refused). Values are not checked.
+/// The layers of a file, part by part, each part's in the order of its (sorted) channels.
+pub fn layers(headers: &[Header]) -> Vec<LayerInfo> {
+    let mut layers: Vec<LayerInfo> = Vec::new();
+    for (part, header) in headers.iter().enumerate() {
+        let part_name = header
+            .own_attributes
+            .layer_name
+            .as_ref()
+            .map(ToString::to_string);
+        let first = layers.len();
+        for channel in &header.channels.list {
+            let full = channel.name.to_string();
+            let (prefix, base) = match full.rsplit_once('.') {
+                Some((prefix, base)) => (prefix.to_string(), base.to_string()),
+                None => (String::new(), full),
+            };
+            match layers[first..].iter_mut().find(|l| l.prefix == prefix) {
+                Some(layer) => layer.channels.push(base),
+                None => layers.push(LayerInfo {
+                    name: layer_name(part_name.as_deref(), &prefix),
+                    part,
+                    prefix,
+                    channels: vec![base],
+                    rgb: false,
+                }),
+            }
+        }
+        if layers.len() == first {
+            // A part without channels is still a layer the file has.
+            layers.push(LayerInfo {
+                name: part_name.unwrap_or_default(),
+                part,
+                prefix: String::new(),
+                channels: Vec::new(),
+                rgb: false,
+            });
+        }
+        for layer in &mut layers[first..] {
+            layer.rgb = !header.deep
+                && ["R", "G", "B"]
+                    .iter()
+                    .all(|c| layer.channels.iter().any(|have| have == c));
+        }
+    }
+    layers
+}
+
+/// A layer's name from its part's name and its channel prefix.
+fn layer_name(part: Option<&str>, prefix: &str) -> String {
+    match part {
+        None | Some("") => prefix.to_string(),
+        Some(part) if prefix.is_empty() => part.to_string(),
+        Some(part) if prefix == part || prefix.starts_with(&format!("{part}.")) => {
+            prefix.to_string()
+        }
+        Some(part) => format!("{part}.{prefix}"),
+    }
+}
+
+/// Picks the beauty among `layers`: the one named `asked`, or the automatic choice (see the
+/// module docs).
 ///
 /// # Errors
-/// [`PassError::NotExr`] for bytes that are not EXR, [`PassError::Exr`] for an EXR that cannot
-/// be read, [`PassError::NoRgbLayer`] (listing the channels present), [`PassError::Empty`],
-/// [`PassError::TooLarge`] and [`PassError::Window`].
+/// [`PassError::UnknownLayer`] and [`PassError::NotRgb`] for a named layer;
+/// [`PassError::NoRgbLayer`] and [`PassError::Ambiguous`] for the automatic choice.
+pub fn choose_beauty(layers: &[LayerInfo], asked: Option<&str>) -> Result<usize, PassError> {
+    if let Some(asked) = asked {
+        let index =
+            layers
+                .iter()
+                .position(|l| l.name == asked)
+                .ok_or_else(|| PassError::UnknownLayer {
+                    asked: asked.to_string(),
+                    layers: layers.to_vec(),
+                })?;
+        if !layers[index].rgb {
+            return Err(PassError::NotRgb {
+                layer: layers[index].clone(),
+            });
+        }
+        return Ok(index);
+    }
+    let rules: [&dyn Fn(&str) -> bool; 4] = [
+        &|name| name.is_empty(),
+        &|name| {
+            name.strip_suffix(".Combined")
+                .is_some_and(|view| !view.is_empty() && !view.contains('.'))
+        },
+        &|name| BEAUTY_NAMES.iter().any(|b| name.eq_ignore_ascii_case(b)),
+        &|_| true,
+    ];
+    for rule in rules {
+        let found: Vec<usize> = (0..layers.len())
+            .filter(|&i| layers[i].rgb && rule(&layers[i].name))
+            .collect();
+        match found.as_slice() {
+            [] => continue,
+            [one] => return Ok(*one),
+            many => {
+                return Err(PassError::Ambiguous {
+                    candidates: many.iter().map(|&i| layers[i].name.clone()).collect(),
+                    layers: layers.to_vec(),
+                })
+            }
+        }
+    }
+    Err(PassError::NoRgbLayer {
+        layers: layers.to_vec(),
+    })
+}
+
+/// Decodes one pass from the bytes of an EXR file: the automatically chosen beauty, with the
+/// default size limit [`MAX_PASS_PIXELS`].
+///
+/// # Errors
+/// See [`decode_pass_with`].
 pub fn decode_pass(bytes: &[u8]) -> Result<Pass, PassError> {
-    decode_pass_with_limit(bytes, MAX_PASS_PIXELS)
+    decode_pass_with(bytes, None, MAX_PASS_PIXELS)
 }
 
 /// [`decode_pass`] with a caller-chosen limit on the pass's pixel count, for example the size
 /// of the frame the pass is for.
 pub fn decode_pass_with_limit(bytes: &[u8], max_pixels: u64) -> Result<Pass, PassError> {
+    decode_pass_with(bytes, None, max_pixels)
+}
+
+/// Decodes one pass: `R`, `G`, `B` of the layer named `layer`, or of the automatically chosen
+/// beauty when `layer` is `None` (see the module docs). Values are not checked.
+///
+/// # Errors
+/// [`PassError::NotExr`] for bytes that are not EXR, [`PassError::Exr`] for an EXR that cannot
+/// be read; the beauty not found: [`PassError::NoRgbLayer`], [`PassError::Ambiguous`],
+/// [`PassError::UnknownLayer`], [`PassError::NotRgb`] (each listing the layers present); a
+/// beauty that cannot be a pass: [`PassError::Subsampled`], [`PassError::Empty`],
+/// [`PassError::TooLarge`], [`PassError::Window`]; blocks that do not cover it exactly once:
+/// [`PassError::Coverage`].
+pub fn decode_pass_with(
+    bytes: &[u8],
+    layer: Option<&str>,
+    max_pixels: u64,
+) -> Result<Pass, PassError> {
     if bytes.len() < EXR_MAGIC.len() || bytes[..EXR_MAGIC.len()] != EXR_MAGIC {
         let found: Vec<String> = bytes.iter().take(4).map(|b| format!("{b:02x}")).collect();
         return Err(PassError::NotExr {
@@ -193,19 +402,12 @@ pub fn decode_pass_with_limit(bytes: &[u8], max_pixels: u64) -> Result<Pass, Pas
         });
     }
 
-    // The header alone first: the layer's size is checked before anything is allocated.
-    let meta = MetaData::read_from_buffered(Cursor::new(bytes), false)?;
-    let header = meta
-        .headers
-        .iter()
-        .find(|h| !h.deep && has_rgb(h))
-        .ok_or_else(|| PassError::NoRgbLayer {
-            layers: meta
-                .headers
-                .iter()
-                .map(|h| h.channels.list.iter().map(|c| c.name.to_string()).collect())
-                .collect(),
-        })?;
+    // The headers alone first: the beauty's size is checked before anything is allocated.
+    let reader = exr::block::read(Cursor::new(bytes), false)?;
+    let all = layers(reader.headers());
+    let beauty = all[choose_beauty(&all, layer)?].clone();
+    let part = beauty.part;
+    let header = &reader.headers()[part];
     let (w, h) = (header.layer_size.width(), header.layer_size.height());
     let (width64, height64) = (w as u64, h as u64);
     if w == 0 || h == 0 {
@@ -235,54 +437,70 @@ pub fn decode_pass_with_limit(bytes: &[u8], max_pixels: u64) -> Result<Pass, Pas
     if data != display {
         return Err(PassError::Window { data, display });
     }
-
-    // `first_valid_layer` takes the first layer the RGB reader accepts: the one found above.
-    let image = read()
-        .no_deep_data()
-        .largest_resolution_level()
-        .rgb_channels(
-            |size, _| RgbBuffer {
-                width: size.width(),
-                rgb: vec![[0.0; 3]; size.area()],
-                writes: vec![0; size.area()],
-            },
-            |buffer: &mut RgbBuffer, at, (r, g, b): (f32, f32, f32)| {
-                let i = at.y() * buffer.width + at.x();
-                if let (Some(px), Some(n)) = (buffer.rgb.get_mut(i), buffer.writes.get_mut(i)) {
-                    *px = [r, g, b];
-                    *n = n.saturating_add(1);
-                }
-            },
-        )
-        .first_valid_layer()
-        .all_attributes()
-        .from_buffered(Cursor::new(bytes))?;
-    let layer = image.layer_data;
-    let buffer = layer.channel_data.pixels;
-    // The header read twice must describe the same layer; anything else is a corrupt file.
-    if layer.size.width() != w || layer.size.height() != h || buffer.rgb.len() != w * h {
-        return Err(PassError::Exr(exr::error::Error::Invalid(
-            "the RGB layer's size changed between the header and the pixel data".into(),
-        )));
+    if let Some(c) = header
+        .channels
+        .list
+        .iter()
+        .find(|c| c.sampling != Vec2(1, 1))
+    {
+        return Err(PassError::Subsampled {
+            channel: c.name.to_string(),
+            x: c.sampling.x(),
+            y: c.sampling.y(),
+        });
     }
+    let full_name = |base: &str| {
+        if beauty.prefix.is_empty() {
+            base.to_string()
+        } else {
+            format!("{}.{base}", beauty.prefix)
+        }
+    };
+    let mut rgb_channels = [0usize; 3];
+    for (slot, base) in rgb_channels.iter_mut().zip(["R", "G", "B"]) {
+        let name = full_name(base);
+        *slot = header
+            .channels
+            .list
+            .iter()
+            .position(|c| c.name.eq(name.as_str()))
+            .ok_or_else(|| PassError::NotRgb {
+                layer: beauty.clone(),
+            })?;
+    }
+
+    let mut buffer = RgbBuffer {
+        width: w,
+        height: h,
+        part,
+        channels: rgb_channels,
+        rgb: vec![[0.0; 3]; w * h],
+        writes: vec![0; w * h],
+    };
+    // Only the beauty's part, full resolution: other parts (AOVs) are never decompressed.
+    let chunks = reader.filter_chunks(false, |_, _, block| {
+        block.layer == part && block.level == Vec2(0, 0)
+    })?;
+    chunks.decompress_parallel(false, |meta, block| {
+        buffer.insert(&meta.headers[part], &block)
+    })?;
     buffer.check_coverage()?;
     Ok(Pass {
         width,
         height,
+        layer: beauty.name,
         rgb: buffer.rgb,
     })
-}
-
-/// Whether a layer has the three channels a pass needs.
-fn has_rgb(header: &Header) -> bool {
-    ["R", "G", "B"]
-        .iter()
-        .all(|name| header.channels.list.iter().any(|c| c.name.eq(name)))
 }
 
 /// Pixel storage while `exr` decodes.
 struct RgbBuffer {
     width: usize,
+    height: usize,
+    /// The part read.
+    part: usize,
+    /// Indices of `R`, `G` and `B` in the part's channel list.
+    channels: [usize; 3],
     rgb: Vec<[f32; 3]>,
     /// How often each pixel was written. `exr` decodes whatever blocks the offset table points
     /// at, so a table that names one block twice leaves another block's pixels at their initial
@@ -292,6 +510,69 @@ struct RgbBuffer {
 }
 
 impl RgbBuffer {
+    /// Copies the beauty's samples of one decompressed block.
+    fn insert(&mut self, header: &Header, block: &UncompressedBlock) -> exr::error::UnitResult {
+        let index = block.index;
+        // The chunk names its own part and level; a corrupt table can point at another's.
+        if index.layer != self.part || index.level != Vec2(0, 0) {
+            return Err(exr::error::Error::Invalid(
+                "a block of another part or resolution level where the beauty's was expected"
+                    .into(),
+            ));
+        }
+        let (x0, y0) = (index.pixel_position.x(), index.pixel_position.y());
+        let (bw, bh) = (index.pixel_size.width(), index.pixel_size.height());
+        if x0 + bw > self.width || y0 + bh > self.height {
+            return Err(exr::error::Error::Invalid(
+                "a block outside the data window".into(),
+            ));
+        }
+        let per_pixel: usize = header
+            .channels
+            .list
+            .iter()
+            .map(|c| c.sample_type.bytes_per_sample())
+            .sum();
+        if block.data.len() != bw * bh * per_pixel {
+            return Err(exr::error::Error::Invalid("a block's size".into()));
+        }
+        for line in block.lines(&header.channels) {
+            let Some(c) = self
+                .channels
+                .iter()
+                .position(|&i| i == line.location.channel)
+            else {
+                continue;
+            };
+            let (x, y) = (line.location.position.x(), line.location.position.y());
+            let start = y * self.width + x;
+            let row = &mut self.rgb[start..start + line.location.sample_count];
+            match header.channels.list[line.location.channel].sample_type {
+                SampleType::F16 => {
+                    for (px, v) in row.iter_mut().zip(line.read_samples::<f16>()) {
+                        px[c] = v?.to_f32();
+                    }
+                }
+                SampleType::F32 => {
+                    for (px, v) in row.iter_mut().zip(line.read_samples::<f32>()) {
+                        px[c] = v?;
+                    }
+                }
+                SampleType::U32 => {
+                    for (px, v) in row.iter_mut().zip(line.read_samples::<u32>()) {
+                        px[c] = v? as f32;
+                    }
+                }
+            }
+            if c == 0 {
+                for n in &mut self.writes[start..start + line.location.sample_count] {
+                    *n = n.saturating_add(1);
+                }
+            }
+        }
+        Ok(())
+    }
+
     fn check_coverage(&self) -> Result<(), PassError> {
         let (mut missing, mut repeated, mut first_missing) = (0u64, 0u64, None);
         for (i, &n) in self.writes.iter().enumerate() {
@@ -401,12 +682,18 @@ mod tests {
     fn a_luminance_only_exr_is_refused_naming_its_channels() {
         let err = decode_pass(&exr_with(4, 3, &["Y"])).unwrap_err();
         match &err {
-            PassError::NoRgbLayer { layers } => assert_eq!(layers, &[vec!["Y".to_string()]]),
+            PassError::NoRgbLayer { layers } => {
+                assert_eq!(layers.len(), 1);
+                assert_eq!(
+                    (layers[0].name.as_str(), &layers[0].channels),
+                    ("", &vec!["Y".to_string()])
+                );
+            }
             other => panic!("expected NoRgbLayer, got {other:?}"),
         }
         assert_eq!(
             err.to_string(),
-            "the EXR has no layer with channels R, G and B; channels found: Y"
+            "the EXR has no layer with channels R, G and B; layers found: unnamed (Y)"
         );
     }
 
@@ -414,7 +701,7 @@ mod tests {
     fn a_missing_blue_channel_is_refused_naming_the_ones_present() {
         let err = decode_pass(&exr_with(4, 3, &["A", "G", "R"])).unwrap_err();
         assert!(
-            err.to_string().ends_with("channels found: A, G, R"),
+            err.to_string().ends_with("layers found: unnamed (A, G, R)"),
             "{err}"
         );
     }
@@ -512,6 +799,7 @@ mod tests {
         let pass = Pass {
             width: 64,
             height: 32,
+            layer: String::new(),
             rgb: vec![[0.0; 3]; 64 * 32],
         };
         assert!(pass.check(64, 32).is_ok());
@@ -526,6 +814,7 @@ mod tests {
         let pass = Pass {
             width: 2,
             height: 1,
+            layer: String::new(),
             rgb: vec![[-1.0, f32::NAN, f32::INFINITY], [0.0; 3]],
         };
         let r: Vec<Record> = pass.records().collect();
@@ -539,14 +828,129 @@ mod tests {
         let pass = Pass {
             width: 0,
             height: 5,
+            layer: String::new(),
             rgb: vec![[1.0; 3]; 3],
         };
         assert_eq!(pass.records().count(), 0);
         let pass = Pass {
             width: 2,
             height: 1,
+            layer: String::new(),
             rgb: vec![[1.0; 3]; 3],
         };
         assert_eq!(pass.records().count(), 2);
+    }
+
+    fn layer(name: &str, part: usize, channels: &[&str]) -> LayerInfo {
+        let rgb = ["R", "G", "B"].iter().all(|c| channels.contains(c));
+        LayerInfo {
+            name: name.to_string(),
+            part,
+            prefix: name.to_string(),
+            channels: channels.iter().map(|c| c.to_string()).collect(),
+            rgb,
+        }
+    }
+
+    #[test]
+    fn the_beauty_is_found_in_the_documented_order() {
+        let rgb = ["R", "G", "B"];
+        let albedo = layer("ViewLayer.DiffCol", 0, &rgb);
+        let depth = layer("ViewLayer.Depth", 0, &["Z"]);
+        let cycles = layer("ViewLayer.Combined", 0, &["A", "B", "G", "R"]);
+        let unnamed = layer("", 0, &rgb);
+        let beauty = layer("BEAUTY", 1, &rgb);
+        let pick =
+            |layers: &[LayerInfo]| choose_beauty(layers, None).map(|i| layers[i].name.clone());
+        // 1. unprefixed RGB before everything else
+        let all = [
+            albedo.clone(),
+            beauty.clone(),
+            cycles.clone(),
+            unnamed.clone(),
+        ];
+        assert_eq!(pick(&all).unwrap(), "");
+        // 2. Cycles' <view layer>.Combined before a layer named beauty
+        let all = [
+            albedo.clone(),
+            beauty.clone(),
+            cycles.clone(),
+            depth.clone(),
+        ];
+        assert_eq!(pick(&all).unwrap(), "ViewLayer.Combined");
+        // 3. beauty, rgba, Combined, in any case
+        let all = [albedo.clone(), depth.clone(), beauty.clone()];
+        assert_eq!(pick(&all).unwrap(), "BEAUTY");
+        // 4. the only RGB layer
+        let all = [depth.clone(), albedo.clone()];
+        assert_eq!(pick(&all).unwrap(), "ViewLayer.DiffCol");
+        // Two view layers: nothing is guessed.
+        let other = layer("Background.Combined", 0, &rgb);
+        let err = pick(&[cycles.clone(), other]).unwrap_err();
+        assert!(
+            err.to_string().starts_with(
+                "the EXR has several layers that could be the beauty \
+                 (\"ViewLayer.Combined\", \"Background.Combined\"); name the one to use"
+            ),
+            "{err}"
+        );
+        // Two RGB AOVs and no beauty name: refused, naming them.
+        let normal = layer("N", 0, &rgb);
+        let err = pick(&[albedo.clone(), normal, depth.clone()]).unwrap_err();
+        assert!(matches!(&err, PassError::Ambiguous { candidates, .. } if candidates.len() == 2));
+        // A depth-only file: no RGB at all.
+        let err = pick(std::slice::from_ref(&depth)).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "the EXR has no layer with channels R, G and B; layers found: \"ViewLayer.Depth\" (Z)"
+        );
+    }
+
+    #[test]
+    fn a_named_layer_is_taken_as_asked_or_refused_by_name() {
+        let rgb = ["R", "G", "B"];
+        let all = [
+            layer("", 0, &rgb),
+            layer("diffuse", 0, &rgb),
+            layer("Z", 0, &["Z"]),
+        ];
+        assert_eq!(choose_beauty(&all, Some("diffuse")).unwrap(), 1);
+        assert_eq!(choose_beauty(&all, Some("")).unwrap(), 0);
+        let err = choose_beauty(&all, Some("Diffuse")).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "the EXR has no layer \"Diffuse\"; layers found: unnamed (R, G, B); \
+             \"diffuse\" (R, G, B); \"Z\" (Z)"
+        );
+        let err = choose_beauty(&all, Some("Z")).unwrap_err();
+        assert_eq!(
+            err.to_string(),
+            "layer \"Z\" (Z) cannot be the beauty: it needs flat channels R, G and B"
+        );
+    }
+
+    #[test]
+    fn layer_names_join_part_and_prefix_once() {
+        assert_eq!(layer_name(None, "ViewLayer.Combined"), "ViewLayer.Combined");
+        assert_eq!(layer_name(Some("beauty"), ""), "beauty");
+        assert_eq!(layer_name(Some("beauty"), "beauty"), "beauty");
+        assert_eq!(
+            layer_name(Some("ViewLayer"), "ViewLayer.Combined"),
+            "ViewLayer.Combined"
+        );
+        assert_eq!(layer_name(Some("aovs"), "albedo"), "aovs.albedo");
+        assert_eq!(layer_name(Some(""), "albedo"), "albedo");
+    }
+
+    #[test]
+    fn only_the_named_layer_is_read_from_a_single_part_file() {
+        // Channels sorted: albedo.B, albedo.G, albedo.R, B, G, R (value = pixel * 10 + index).
+        let bytes = exr_with(3, 2, &["albedo.B", "albedo.G", "albedo.R", "B", "G", "R"]);
+        let pass = decode_pass_with(&bytes, Some("albedo"), MAX_PASS_PIXELS).unwrap();
+        assert_eq!(pass.layer, "albedo");
+        assert_eq!(pass.rgb[1], [12.0, 11.0, 10.0]);
+        let pass = decode_pass(&bytes).unwrap();
+        assert_eq!(pass.layer, "");
+        assert_eq!(pass.rgb[1], [15.0, 14.0, 13.0]);
     }
 }

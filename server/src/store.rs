@@ -235,5 +235,11 @@ fn describe_difference(ours: &CreateFrame, theirs: &CreateFrame) -> String {
             ours.resolve, theirs.resolve
         ));
     }
+    if ours.converged_below != theirs.converged_below {
+        diffs.push(format!(
+            "converged_below {} here, {} requested",
+            ours.converged_below, theirs.converged_below
+        ));
+    }
     diffs.join("; ")
 }

@@ -1,17 +1,22 @@
-//! Ingest benchmark: a load generator in its own process posting batches to a real `splatd serve`
-//! over loopback, against the in-process splat rate of the same records, measured in one run.
+//! Ingest benchmark: a load generator in its own process posting batches of records, and rendered
+//! passes as OpenEXR files, to a real `splatd serve` over loopback, against the in-process splat
+//! of the same samples, measured in one run. Each ratio is printed with its goal (>= 0.8).
 //!
 //! ```text
-//! cargo build --release && target/release/loadgen [--batch 65536] [--connections 4]
-//! # prints the in-process rate, then HTTP ingest in memory and with --data-dir (durable)
+//! cargo build --release && target/release/loadgen [--batch 65536] [--connections 4] \
+//!     [--width 3840 --height 2160] [--kind records --kind passes]
+//! # per kind: the in-process rate, then HTTP ingest in memory and with --data-dir (durable)
 //! ```
 //!
 //! It starts the server itself (the `splatd` binary next to this one), once per configuration
 //! (`--config` may be given several times, e.g. `--config memory --config "--data-dir {tmp}"`;
 //! `memory` means no extra arguments and `{tmp}` a fresh temporary directory per run),
-//! creates a 1920x1080 frame, and posts pre-encoded batches from several connections. Records
-//! come in scan-line runs, as a worker rendering tiles or passes sends them, with a heavy-tailed
-//! brightness so every cascade is used.
+//! creates a frame (1920x1080 unless told), and posts pre-encoded bodies from several
+//! connections. Records come in scan-line runs, as a worker rendering tiles or passes sends them,
+//! with a heavy-tailed brightness so every cascade is used; passes are the same samples, one
+//! uncompressed RGB float EXR per pass (`POST .../passes`). The in-process reference is what the
+//! server does with the decoded samples: `splat_records` of each batch, `splat_row` of each row
+//! of a pass, on one thread.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -50,7 +55,13 @@ struct Args {
     /// for none; `{tmp}` is replaced by a fresh temporary directory.
     #[arg(long = "config", allow_hyphen_values = true)]
     configs: Vec<String>,
+    /// What to post (repeatable): `records` (batches) and/or `passes` (EXR); both by default.
+    #[arg(long = "kind", value_parser = ["records", "passes"])]
+    kinds: Vec<String>,
 }
+
+/// The goal for every HTTP ingest ratio.
+const GOAL: f64 = 0.8;
 
 fn main() -> Result<()> {
     let args = Args::parse();
@@ -59,68 +70,189 @@ fn main() -> Result<()> {
     } else {
         args.configs.clone()
     };
-    let batches = make_batches(&args);
-    let n_records: usize = batches.iter().map(|b| b.records.len()).sum();
-    let bodies: Vec<Bytes> = batches.iter().map(|b| Bytes::from(b.encode())).collect();
-    let body_bytes: usize = bodies.iter().map(|b| b.len()).sum();
-    println!(
-        "{} records in {} batches of {} ({:.0} MB on the wire), {}x{} frame, {} connections",
-        n_records,
-        batches.len(),
-        args.batch,
-        body_bytes as f64 / 1e6,
-        args.width,
-        args.height,
-        args.connections
-    );
-
-    // In-process: the same decoded records splatted into one state on one thread, the work the
-    // server does per batch minus HTTP and decoding. Best of three.
-    let mut in_process = f64::MAX;
-    for _ in 0..3 {
-        let mut state = FrameState::new(args.width, args.height, CascadeLayout::with_defaults());
-        let t = Instant::now();
-        for b in &batches {
-            state.splat_all(b.records.iter().map(|r| (r.x, r.y, r.rgb)));
-        }
-        in_process = in_process.min(t.elapsed().as_secs_f64());
-        std::hint::black_box(&state);
-    }
-    let in_rate = n_records as f64 / in_process;
-    println!(
-        "in-process splat: {:.1} M records/s ({in_process:.3} s)",
-        in_rate / 1e6
-    );
-
+    let kinds = if args.kinds.is_empty() {
+        vec!["records".to_owned(), "passes".to_owned()]
+    } else {
+        args.kinds.clone()
+    };
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()?;
-    for config in &configs {
-        let mut best = f64::MAX;
-        for round in 0..2 {
-            let tmp = std::env::temp_dir().join(format!("loadgen-{}-{round}", std::process::id()));
-            let extra: Vec<String> = config
-                .split_whitespace()
-                .filter(|a| *a != "memory")
-                .map(|a| a.replace("{tmp}", &tmp.display().to_string()))
-                .collect();
-            let server = start_server(&extra)?;
-            let seconds = runtime.block_on(post_all(&server.url, &args, &bodies, round))?;
-            best = best.min(seconds);
-            drop(server);
-            let _ = std::fs::remove_dir_all(&tmp);
+    let mut goals = Vec::new();
+    for kind in &kinds {
+        let (load, in_rate) = if kind == "records" {
+            records_load(&args)
+        } else {
+            passes_load(&args)?
+        };
+        for config in &configs {
+            let mut best = f64::MAX;
+            for round in 0..2 {
+                let tmp =
+                    std::env::temp_dir().join(format!("loadgen-{}-{round}", std::process::id()));
+                let extra: Vec<String> = config
+                    .split_whitespace()
+                    .filter(|a| *a != "memory")
+                    .map(|a| a.replace("{tmp}", &tmp.display().to_string()))
+                    .collect();
+                let server = start_server(&extra)?;
+                let seconds = runtime.block_on(post_all(&server.url, &args, &load, round))?;
+                best = best.min(seconds);
+                drop(server);
+                let _ = std::fs::remove_dir_all(&tmp);
+            }
+            let rate = load.samples as f64 / best;
+            let ratio = rate / in_rate;
+            println!(
+                "HTTP ingest of {kind} [{config}]: {:.1} M samples/s ({best:.3} s, {:.0} MB/s), \
+                 ratio to in-process {ratio:.2} (goal >= {GOAL})",
+                rate / 1e6,
+                load.bytes as f64 / best / 1e6,
+            );
+            goals.push(format!(
+                "{kind} [{config}] / in-process: ratio {ratio:.2} (goal >= {GOAL}) {}",
+                if ratio >= GOAL { "met" } else { "MISSED" }
+            ));
         }
-        let rate = n_records as f64 / best;
-        println!(
-            "HTTP ingest [{}]: {:.1} M records/s ({best:.3} s, {:.0} MB/s), ratio to in-process {:.2}",
-            config,
-            rate / 1e6,
-            body_bytes as f64 / best / 1e6,
-            rate / in_rate
-        );
+    }
+    println!("\ngoals at {}x{}:", args.width, args.height);
+    for line in goals {
+        println!("  {line}");
     }
     Ok(())
+}
+
+/// Pre-encoded request bodies of one kind.
+struct Load {
+    /// `samples` or `passes`.
+    route: &'static str,
+    content_type: &'static str,
+    bodies: Vec<Bytes>,
+    /// Samples in all bodies.
+    samples: usize,
+    /// Bytes of all bodies.
+    bytes: usize,
+}
+
+/// Best of three in-process runs of `splat` on a fresh state, in samples per second.
+fn in_process(args: &Args, samples: usize, mut splat: impl FnMut(&mut FrameState)) -> f64 {
+    let mut best = f64::MAX;
+    for _ in 0..3 {
+        let mut state = FrameState::new(args.width, args.height, CascadeLayout::with_defaults());
+        let t = Instant::now();
+        splat(&mut state);
+        best = best.min(t.elapsed().as_secs_f64());
+        std::hint::black_box(&state);
+    }
+    println!(
+        "in-process splat: {:.1} M samples/s ({best:.3} s)",
+        samples as f64 / best / 1e6
+    );
+    samples as f64 / best
+}
+
+/// Batches of records, and the in-process rate of the same records.
+fn records_load(args: &Args) -> (Load, f64) {
+    let batches = make_batches(args);
+    let samples: usize = batches.iter().map(|b| b.records.len()).sum();
+    let bodies: Vec<Bytes> = batches.iter().map(|b| Bytes::from(b.encode())).collect();
+    let bytes: usize = bodies.iter().map(|b| b.len()).sum();
+    println!(
+        "records: {samples} in {} batches of {} ({:.0} MB on the wire), {}x{} frame, {} connections",
+        batches.len(),
+        args.batch,
+        bytes as f64 / 1e6,
+        args.width,
+        args.height,
+        args.connections
+    );
+    // The decoded records splatted as the server does per batch, minus HTTP and decoding.
+    let decoded: Vec<Vec<(u32, u32, [f32; 3])>> = batches
+        .iter()
+        .map(|b| b.records.iter().map(|r| (r.x, r.y, r.rgb)).collect())
+        .collect();
+    let rate = in_process(args, samples, |state| {
+        for b in &decoded {
+            state.splat_records(b);
+        }
+    });
+    let load = Load {
+        route: "samples",
+        content_type: BATCH_CONTENT_TYPE,
+        bodies,
+        samples,
+        bytes,
+    };
+    (load, rate)
+}
+
+/// Whole passes (one sample per pixel) as EXR files, and the in-process rate of their samples.
+fn passes_load(args: &Args) -> Result<(Load, f64)> {
+    let (w, h) = (args.width as usize, args.height as usize);
+    let n = args.records.div_ceil(w * h).max(1);
+    let mut rng = SplitMix64::new(11);
+    let passes: Vec<Vec<[f32; 3]>> = (0..n)
+        .map(|_| (0..w * h).map(|_| heavy_tailed(&mut rng)).collect())
+        .collect();
+    let bodies = passes
+        .iter()
+        .map(|pass| encode_pass(w, h, pass).map(Bytes::from))
+        .collect::<Result<Vec<_>>>()?;
+    let bytes: usize = bodies.iter().map(|b| b.len()).sum();
+    let samples = n * w * h;
+    println!(
+        "passes: {n} uncompressed RGB float EXRs of {w}x{h} ({:.0} MB on the wire), {} connections",
+        bytes as f64 / 1e6,
+        args.connections
+    );
+    let rate = in_process(args, samples, |state| {
+        for pass in &passes {
+            for (y, row) in pass.chunks_exact(w).enumerate() {
+                state.splat_row(0, y as u32, row);
+            }
+        }
+    });
+    let load = Load {
+        route: "passes",
+        content_type: "image/x-exr",
+        bodies,
+        samples,
+        bytes,
+    };
+    Ok((load, rate))
+}
+
+/// One pass as an OpenEXR file: channels R, G, B as 32-bit floats, no compression.
+fn encode_pass(w: usize, h: usize, pass: &[[f32; 3]]) -> Result<Vec<u8>> {
+    use exr::prelude::*;
+    let channel = |name: &str, c: usize| {
+        AnyChannel::new(
+            name,
+            FlatSamples::F32(pass.iter().map(|rgb| rgb[c]).collect()),
+        )
+    };
+    let layer = Layer::new(
+        (w, h),
+        LayerAttributes::default(),
+        Encoding::UNCOMPRESSED,
+        AnyChannels::sort(SmallVec::from_vec(vec![
+            channel("R", 0),
+            channel("G", 1),
+            channel("B", 2),
+        ])),
+    );
+    let mut bytes = Vec::new();
+    Image::from_layer(layer)
+        .write()
+        .to_buffered(std::io::Cursor::new(&mut bytes))?;
+    Ok(bytes)
+}
+
+/// A heavy-tailed colour, so that every cascade is used.
+fn heavy_tailed(rng: &mut SplitMix64) -> [f32; 3] {
+    let z = (rng.next_f64().powf(-1.0 / 1.5) - 1.0) as f32;
+    [z * 0.8, z, z * 0.6]
 }
 
 /// Batches of scan-line runs with heavy-tailed RGB.
@@ -135,11 +267,10 @@ fn make_batches(args: &Args) -> Vec<Batch> {
                 .map(|_| {
                     let p = at % pixels;
                     at += 1;
-                    let z = (rng.next_f64().powf(-1.0 / 1.5) - 1.0) as f32;
                     Record::new(
                         (p % args.width as usize) as u32,
                         (p / args.width as usize) as u32,
-                        [z * 0.8, z, z * 0.6],
+                        heavy_tailed(&mut rng),
                     )
                 })
                 .collect();
@@ -150,34 +281,39 @@ fn make_batches(args: &Args) -> Vec<Batch> {
 }
 
 /// Creates the frame and posts every body from `connections` tasks; returns the seconds taken.
-async fn post_all(url: &str, args: &Args, bodies: &[Bytes], round: usize) -> Result<f64> {
+async fn post_all(url: &str, args: &Args, load: &Load, round: usize) -> Result<f64> {
     let client = splatd_proto::Client::new(url)?;
     client
         .create_frame(&CreateFrame::new("bench", args.width, args.height))
         .await?;
     let http = reqwest::Client::new();
     let next = Arc::new(AtomicUsize::new(0));
-    let bodies = Arc::new(bodies.to_vec());
-    let target = format!("{url}/v1/frames/bench/samples");
+    let bodies = Arc::new(load.bodies.clone());
     let start = Instant::now();
     let mut tasks = Vec::new();
     for _ in 0..args.connections {
-        let (http, next, bodies, target) =
-            (http.clone(), next.clone(), bodies.clone(), target.clone());
+        let (http, next, bodies) = (http.clone(), next.clone(), bodies.clone());
+        let (route, content_type) = (load.route, load.content_type);
+        let url = url.to_owned();
         tasks.push(tokio::spawn(async move {
             loop {
                 let i = next.fetch_add(1, Ordering::Relaxed);
                 let Some(body) = bodies.get(i) else {
                     return Ok::<(), anyhow::Error>(());
                 };
+                // Batches carry their own (worker, seq); a pass names them in the query.
+                let target = match route {
+                    "passes" => format!("{url}/v1/frames/bench/passes?worker=1&seq={i}"),
+                    _ => format!("{url}/v1/frames/bench/samples"),
+                };
                 let r = http
                     .post(&target)
-                    .header("content-type", BATCH_CONTENT_TYPE)
+                    .header("content-type", content_type)
                     .body(body.clone())
                     .send()
                     .await?;
                 if !r.status().is_success() {
-                    bail!("batch {i}: HTTP {}: {}", r.status(), r.text().await?);
+                    bail!("body {i}: HTTP {}: {}", r.status(), r.text().await?);
                 }
             }
         }));
@@ -187,11 +323,11 @@ async fn post_all(url: &str, args: &Args, bodies: &[Bytes], round: usize) -> Res
     }
     let seconds = start.elapsed().as_secs_f64();
     let info = client.frame_info("bench").await?;
-    let expected: usize = bodies.iter().map(|b| (b.len() - 43) / 20).sum();
-    if info.samples as usize != expected {
+    if info.samples as usize != load.samples {
         bail!(
-            "round {round}: server counted {} samples, {expected} were posted",
-            info.samples
+            "round {round}: server counted {} samples, {} were posted",
+            info.samples,
+            load.samples
         );
     }
     Ok(seconds)

@@ -41,18 +41,7 @@ impl Server {
 
 /// Channels of an EXR as read by the OpenEXR project's Python bindings (an independent reader).
 pub fn read_exr_with_python(path: &Path) -> (u32, u32, Vec<(String, Vec<f64>)>) {
-    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/read_exr.py");
-    let out = Command::new("python3")
-        .arg(script)
-        .arg(path)
-        .output()
-        .expect("running python3 (tests/run.sh installs its packages)");
-    assert!(
-        out.status.success(),
-        "python EXR reader failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let v: serde_json::Value = serde_json::from_slice(&out.stdout).expect("reader prints JSON");
+    let v = read_exr_json(path);
     let width = v["width"].as_u64().expect("width") as u32;
     let height = v["height"].as_u64().expect("height") as u32;
     let mut channels: Vec<(String, Vec<f64>)> = v["channels"]
@@ -71,6 +60,28 @@ pub fn read_exr_with_python(path: &Path) -> (u32, u32, Vec<(String, Vec<f64>)>) 
         .collect();
     channels.sort_by(|a, b| a.0.cmp(&b.0));
     (width, height, channels)
+}
+
+/// The `software` and `splatd:` header attributes of an EXR as OpenEXR's Python bindings read
+/// them: strings, numbers, and lists for vectors.
+pub fn read_exr_attributes_with_python(path: &Path) -> serde_json::Value {
+    read_exr_json(path)["attributes"].clone()
+}
+
+/// What `tests/py/read_exr.py` prints for `path`.
+fn read_exr_json(path: &Path) -> serde_json::Value {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/read_exr.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(path)
+        .output()
+        .expect("running python3 (tests/run.sh installs its packages)");
+    assert!(
+        out.status.success(),
+        "python EXR reader failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("reader prints JSON")
 }
 
 /// A multi-threaded runtime for tests that drive servers with async clients.
@@ -150,4 +161,62 @@ pub fn free_port() -> u16 {
         .and_then(|l| l.local_addr())
         .expect("binding 127.0.0.1:0")
         .port()
+}
+
+/// A fresh Python virtual environment in `dir` with the client package installed by pip from a
+/// copy of `proto/python` (so no build files land in the checkout); returns its `python`.
+///
+/// Needs `python3 -m venv` (`tests/setup/python_venv.sh` installs it) and pip's index or cache
+/// for numpy, the package's one dependency.
+pub fn python_package_venv(dir: &Path) -> std::path::PathBuf {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let setup = Command::new("bash")
+        .arg(root.join("tests/setup/python_venv.sh"))
+        .output()
+        .expect("running tests/setup/python_venv.sh");
+    assert!(
+        setup.status.success(),
+        "tests/setup/python_venv.sh failed: {}",
+        String::from_utf8_lossy(&setup.stderr)
+    );
+    let source = dir.join("splatd-client-src");
+    let package = source.join("splatd_client");
+    std::fs::create_dir_all(&package).unwrap();
+    for file in ["pyproject.toml", "README.md"] {
+        std::fs::copy(root.join("proto/python").join(file), source.join(file)).unwrap();
+    }
+    for entry in std::fs::read_dir(root.join("proto/python/splatd_client")).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_file() {
+            std::fs::copy(&path, package.join(path.file_name().unwrap())).unwrap();
+        }
+    }
+    let venv = dir.join("venv");
+    let run = |cmd: &mut Command, what: &str| {
+        let out = cmd.output().unwrap_or_else(|e| panic!("{what}: {e}"));
+        assert!(
+            out.status.success(),
+            "{what} failed:\n{}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+    };
+    run(
+        Command::new("python3").args(["-m", "venv"]).arg(&venv),
+        "python3 -m venv",
+    );
+    let python = venv.join("bin/python");
+    run(
+        Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+            ])
+            .arg(&source),
+        "pip install ./proto/python into a fresh venv",
+    );
+    python
 }

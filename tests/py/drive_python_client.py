@@ -1,11 +1,12 @@
-"""Drives proto/python/splatd_client.py (and the Mitsuba worker's posting helper) against a real
+"""Drives the splatd_client package (and the Mitsuba worker's posting helper) against a real
 splatd server, for tests/python_client_server.rs.
 
     python3 tests/py/drive_python_client.py URL OUT_DIR
 
 Creates frame `py` (23x17), posts 6 passes of seeded random samples with fireflies (the
 Mitsuba worker's `post_image`, as a renderer would), retries one (a duplicate), checks a bad
-batch is refused with its error code, syncs, and writes the samples it sent to OUT_DIR/samples.f32
+batch is refused with its error code, syncs, reads the need map and its neediest crop windows,
+and writes the samples it sent to OUT_DIR/samples.f32
 (float32, (passes, H, W, 3)) and the served EXR to OUT_DIR/served.exr, for the Rust side to
 compare with the core's resolve of the same samples.
 """
@@ -17,9 +18,20 @@ import sys
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, os.path.join(HERE, "..", "..", "proto", "python"))
+WORKERS = os.path.join(HERE, "..", "..", "proto", "python")
+if os.environ.get("SPLATD_CLIENT_INSTALLED") == "1":
+    # The installed package first; the workers' directory only after it, so that the Mitsuba
+    # worker's `import splatd_client` gets the installed package too, not the checkout's.
+    import splatd_client as sc
+
+    sys.path.append(WORKERS)
+    assert not os.path.abspath(sc.__file__).startswith(os.path.abspath(WORKERS)), sc.__file__
+else:
+    sys.path.insert(0, WORKERS)
+    import splatd_client as sc  # noqa: E402
 import mitsuba_worker  # noqa: E402  (only its helpers; Mitsuba itself is not imported)
-import splatd_client as sc  # noqa: E402
+
+assert mitsuba_worker.sc is sc
 
 W, H, PASSES = 23, 17, 6
 
@@ -28,6 +40,14 @@ def main(url, out):
     client = sc.Client(url, max_attempts=3)
     info = client.create_frame("py", W, H)
     assert info["samples"] == 0, info
+    again = client.create_or_get("py", W, H)
+    assert again == info, (again, info)
+    try:
+        client.create_or_get("py", W + 1, H)
+        raise AssertionError("a create-or-get with another size was accepted")
+    except sc.SplatdError as e:
+        assert e.status == 409 and e.error == "frame_exists", (e.status, e.error)
+        assert f"size {W}x{H} here, {W + 1}x{H} requested" in e.message, e.message
     rng = np.random.default_rng(5)
     passes = []
     for seq in range(PASSES):
@@ -62,6 +82,16 @@ def main(url, out):
     assert sync["frame"] == "py" and sync["durable"] is False, sync
     info = client.frame_info("py")
     assert info["samples"] == PASSES * W * H and info["spp_min"] == PASSES, info
+    # The need map, and the crop windows a worker would render next: 23x17 in 8 px tiles.
+    need = client.need("py", tile=8)
+    assert (need["tiles_x"], need["tiles_y"], need["samples"]) == (3, 3, PASSES * W * H), need
+    windows = sc.neediest_tiles(need, 3)
+    scores = sorted(need["need"], reverse=True)
+    assert [need["need"][(y // 8) * 3 + x // 8] for x, y, _, _ in windows] == scores[:3], windows
+    assert all(x + w <= W and y + h <= H for x, y, w, h in windows), windows
+    every = sc.neediest_tiles(need, 20)
+    assert len(every) == 9 and sum(w * h for _, _, w, h in every) == W * H, every
+    assert info["convergence"]["spp_min"] == PASSES, info
     np.stack(passes).astype("<f4").tofile(os.path.join(out, "samples.f32"))
     with open(os.path.join(out, "served.exr"), "wb") as f:
         f.write(client.image("py"))

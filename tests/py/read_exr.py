@@ -3,7 +3,9 @@
 Used by the Rust integration tests as an independent reader: splatd writes EXRs with the `exr`
 crate, and this checks them with the reference implementation.
 
-Output: {"width": W, "height": H, "channels": {"R": [floats, row-major], ...}}
+Output: {"width": W, "height": H, "channels": {"R": [floats, row-major], ...},
+"attributes": {"software": "...", "splatd:kappa": 4.0, ...}} (the `software` attribute and every
+`splatd:` one, numbers as numbers, vectors as lists).
 """
 
 import json
@@ -21,7 +23,17 @@ def main(path: str) -> None:
         for name, channel in f.channels().items():
             pixels = np.asarray(channel.pixels, dtype=np.float64)
             channels[name] = pixels.reshape(-1).tolist()
-    json.dump({"width": int(x1 - x0 + 1), "height": int(y1 - y0 + 1), "channels": channels},
+        attributes = {}
+        for name, value in header.items():
+            if name == "software" or name.startswith("splatd:"):
+                if isinstance(value, np.ndarray):
+                    # The binding gives a `double` attribute as a one-element float64 array.
+                    value = value.item() if value.shape == (1,) else value.tolist()
+                elif isinstance(value, (np.floating, np.integer)):
+                    value = value.item()
+                attributes[name] = value
+    json.dump({"width": int(x1 - x0 + 1), "height": int(y1 - y0 + 1), "channels": channels,
+               "attributes": attributes},
               sys.stdout)
 
 

@@ -6,8 +6,8 @@
 //!
 //! | role    | may                                                                          |
 //! |---------|------------------------------------------------------------------------------|
-//! | `read`  | list and inspect frames, fetch images, previews and states, read `/metrics`   |
-//! | `write` | post samples and passes, sync                                                 |
+//! | `read`  | list and inspect frames, fetch images, previews, need maps and states, read `/metrics` |
+//! | `write` | create-or-get a frame (`PUT`), post samples and passes, sync                  |
 //! | `admin` | create and delete frames, import states (merges and pushes); implies both above |
 //!
 //! Each route is declared with its role in `http::router`, and guarded there by

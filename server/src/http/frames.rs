@@ -1,8 +1,8 @@
 //! Frames as resources: create, list, inspect, delete.
 
-use axum::extract::State;
+use axum::extract::{Path, State};
 use axum::http::StatusCode;
-use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, QuarantinedFrame};
+use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, PutFrame, QuarantinedFrame};
 
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
@@ -14,6 +14,33 @@ use crate::AppState;
 pub async fn create(
     State(app): State<AppState>,
     Json(request): Json<CreateFrame>,
+) -> Result<(StatusCode, Json<FrameInfo>), ApiError> {
+    create_or_get(&app, request).await
+}
+
+/// `PUT /v1/frames/{id}`: creates the frame (201), or answers the one there (200) when it has
+/// exactly these parameters; 409 `frame_exists` naming the parameters that differ otherwise.
+/// The same as `POST /v1/frames` with the id in the path, and allowed to `write` tokens, so a
+/// render worker needs no token that can delete frames.
+pub async fn put(
+    State(app): State<AppState>,
+    Path(id): Path<String>,
+    Json(body): Json<PutFrame>,
+) -> Result<(StatusCode, Json<FrameInfo>), ApiError> {
+    if let Some(named) = body.id.as_deref().filter(|named| *named != id) {
+        return Err(ApiError::bad_request(
+            "frame_mismatch",
+            format!("the body names frame {named:?} but the path frame {id:?}"),
+        ));
+    }
+    create_or_get(&app, body.into_create(id)).await
+}
+
+/// Creates the frame `request` describes (201), or answers the existing one with the same
+/// parameters (200).
+async fn create_or_get(
+    app: &AppState,
+    request: CreateFrame,
 ) -> Result<(StatusCode, Json<FrameInfo>), ApiError> {
     let spec = app.store.check(request)?;
     let (status, frame) = match app.store.create(spec)? {
@@ -28,7 +55,7 @@ pub async fn create(
         }
         Created::Existing(frame) => (StatusCode::OK, frame),
     };
-    set_frames_gauge(&app);
+    set_frames_gauge(app);
     Ok((status, Json(frame.info())))
 }
 
@@ -57,11 +84,27 @@ pub async fn list(State(app): State<AppState>) -> Result<Json<FrameList>, ApiErr
     }))
 }
 
-/// `GET /v1/frames/{id}`.
-pub async fn info(Frame(frame): Frame) -> Result<Json<FrameInfo>, ApiError> {
-    blocking("frame info", move || Ok(frame.info()))
-        .await
-        .map(Json)
+/// `GET /v1/frames/{id}`, with the frame's convergence from its latest render (rendered now
+/// if the frame changed since; without it when the working memory stayed busy).
+pub async fn info(
+    State(app): State<AppState>,
+    Frame(frame): Frame,
+) -> Result<Json<FrameInfo>, ApiError> {
+    let convergence = match crate::converge::convergence(&app, &frame).await {
+        Ok(c) => Some(c),
+        Err(e) if e.code == "busy" => {
+            tracing::warn!(
+                frame = frame.id(),
+                "frame info without convergence: {}",
+                e.message
+            );
+            None
+        }
+        Err(e) => return Err(e),
+    };
+    let mut info = blocking("frame info", move || Ok(frame.info())).await?;
+    info.convergence = convergence;
+    Ok(Json(info))
 }
 
 /// `DELETE /v1/frames/{id}`: answered once the frame is gone, from disk too (see

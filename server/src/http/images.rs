@@ -13,7 +13,7 @@ use bytes::Bytes;
 use crate::frame::{core_resolve_params, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
-use crate::image::{cascade_layers, encode_exr};
+use crate::image::{cascade_layers, encode_exr, Provenance};
 use crate::AppState;
 
 /// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now.
@@ -45,7 +45,11 @@ pub async fn get_image(
                 Vec::new()
             };
             drop(cut);
-            encode_exr(&resolved, &extra)
+            let provenance = Provenance {
+                layout: &frame.spec().layout,
+                params: &params,
+            };
+            encode_exr(&resolved, &extra, &provenance)
                 .map(Bytes::from)
                 .map_err(|e| ApiError::internal("EXR encoding", e))
         })
@@ -84,6 +88,10 @@ pub struct PreviewQuery {
     /// of a frame is shown with the same exposure and compares fairly. Must be positive.
     #[serde(default, deserialize_with = "positive_exposure")]
     pub exposure: Option<f32>,
+    /// Stops added to the exposure (the given one or the automatic one): the live page's
+    /// exposure slider. In `[-20, 20]`, default 0.
+    #[serde(default, deserialize_with = "bounded_stops")]
+    pub stops: f32,
     /// Ignored: lets pages defeat caches by naming the sample count they expect.
     pub samples: Option<u64>,
 }
@@ -100,6 +108,18 @@ fn positive_exposure<'de, D: Deserializer<'de>>(d: D) -> Result<Option<f32>, D::
     }
 }
 
+/// Refuses exposure stops outside `[-20, 20]` (or not a number) while parsing the query.
+fn bounded_stops<'de, D: Deserializer<'de>>(d: D) -> Result<f32, D::Error> {
+    let stops = f32::deserialize(d)?;
+    if (-20.0..=20.0).contains(&stops) {
+        Ok(stops)
+    } else {
+        Err(serde::de::Error::custom(format!(
+            "stops must be a number in [-20, 20], got {stops}"
+        )))
+    }
+}
+
 /// `GET /v1/frames/{id}/preview.png`: a tone-mapped 8-bit view of a layer, for the live page.
 pub async fn get_preview(
     State(app): State<AppState>,
@@ -110,14 +130,15 @@ pub async fn get_preview(
     let threads = app.resolve_threads;
     // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG.
     let cost = frame.spec().memory_bytes() + pixels(&frame) * (36 + 6);
-    let key = format!("png {:?} {:?}", query.layer, query.exposure);
+    let key = format!("png {:?} {:?} {}", query.layer, query.exposure, query.stops);
     let png = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
             let resolved = frame.cut().resolve(&params, threads);
             let exposure = query
                 .exposure
-                .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted));
+                .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted))
+                * query.stops.exp2();
             let layer = match query.layer {
                 PreviewLayer::Reweighted => &resolved.reweighted,
                 PreviewLayer::Mean => &resolved.mean,

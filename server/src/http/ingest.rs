@@ -82,10 +82,15 @@ pub struct PassQuery {
     pub worker: u64,
     /// The worker's number for this pass (a retry resends the same number).
     pub seq: u64,
+    /// The layer holding the beauty; when absent it is found automatically (see
+    /// [`crate::passes`]).
+    #[serde(default)]
+    pub layer: Option<String>,
 }
 
-/// `POST /v1/frames/{id}/passes?worker=W&seq=S`: one rendered pass as an EXR; each pixel is one
-/// sample. Applied whole or not at all, and once per `(worker, seq)`, like a batch.
+/// `POST /v1/frames/{id}/passes?worker=W&seq=S[&layer=L]`: one rendered pass as an EXR; each
+/// pixel of its beauty layer is one sample. Applied whole or not at all, and once per
+/// `(worker, seq)`, like a batch.
 pub async fn post_pass(
     State(app): State<AppState>,
     Query(query): Query<PassQuery>,
@@ -98,8 +103,9 @@ pub async fn post_pass(
             ApiError::invalid_pass(frame.id(), &e)
         };
         let spec = &frame.spec().request;
+        let layer = query.layer.as_deref();
         let pass =
-            crate::passes::decode_pass_with_limit(&bytes, pass_pixels(frame)).map_err(refuse)?;
+            crate::passes::decode_pass_with(&bytes, layer, pass_pixels(frame)).map_err(refuse)?;
         pass.check(spec.width, spec.height).map_err(refuse)?;
         Ok(Batch {
             frame: frame.id().to_owned(),

@@ -4,9 +4,9 @@
 //! answers [`error::ApiError`]s. The domain below them (`store`, `frame`, `durable`) knows
 //! nothing of HTTP: its errors become statuses and codes in [`error`] alone.
 //!
-//! * [`frames`]: create, list, inspect, delete; [`ingest`]: samples and passes;
-//!   [`images`]: EXR and PNG; [`states`]: export and import; [`operations`]: the page, health,
-//!   metrics, sync;
+//! * [`frames`]: create (or get), list, inspect, delete; [`ingest`]: samples and passes;
+//!   [`images`]: EXR and PNG; [`need`]: where a frame needs samples; [`states`]: export and
+//!   import; [`operations`]: the page, health, metrics, sync;
 //! * [`extract`]: request extractors with JSON refusals; [`error`]: the one error type;
 //!   [`blocking`]: heavy work off the reactor;
 //! * [`auth`]: bearer tokens, roles, and the guard each route is declared with.
@@ -18,12 +18,15 @@ pub mod extract;
 pub mod frames;
 pub mod images;
 pub mod ingest;
+pub mod need;
 pub mod operations;
 pub mod states;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod tests_budget;
+#[cfg(test)]
+mod tests_need;
 #[cfg(test)]
 mod tests_overlap;
 
@@ -71,6 +74,7 @@ fn routes(app: &AppState) -> Routes {
         .route(M::POST, "/v1/frames", Admin, frames::create)
         .route(M::GET, "/v1/frames", Read, frames::list)
         .route(M::GET, "/v1/frames/{id}", Read, frames::info)
+        .route(M::PUT, "/v1/frames/{id}", Write, frames::put)
         .route(M::DELETE, "/v1/frames/{id}", Admin, frames::delete)
         .route(
             M::POST,
@@ -87,6 +91,7 @@ fn routes(app: &AppState) -> Routes {
             Read,
             images::get_preview,
         )
+        .route(M::GET, "/v1/frames/{id}/need", Read, need::get_need)
         .route(M::GET, "/v1/frames/{id}/state", Read, export)
         .route(M::POST, "/v1/frames/{id}/state", Admin, states::import)
 }

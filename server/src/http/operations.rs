@@ -3,7 +3,7 @@
 use axum::extract::State;
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
-use splatd_proto::api::SyncAck;
+use splatd_proto::api::{Convergence, SyncAck};
 
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
@@ -38,7 +38,8 @@ pub async fn healthz(State(app): State<AppState>) -> impl IntoResponse {
     }))
 }
 
-/// `GET /metrics`: Prometheus text format; 404 `metrics_disabled` without a recorder.
+/// `GET /metrics`: Prometheus text format; 404 `metrics_disabled` without a recorder. After
+/// the recorder's metrics come the convergence gauges of every frame there is now.
 pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> {
     let Some(handle) = &app.metrics else {
         return Err(ApiError::new(
@@ -47,14 +48,78 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
             "this server was started without a metrics recorder",
         ));
     };
+    let mut text = handle.render();
+    let mut frames = Vec::new();
+    for frame in app.store.list() {
+        match crate::converge::convergence(&app, &frame).await {
+            Ok(c) => frames.push((frame.id().to_owned(), c)),
+            // A frame deleted meanwhile has no figures; one that could not get working
+            // memory is left out of this scrape, and the log says so.
+            Err(e) if e.code == "busy" => {
+                tracing::warn!(frame = frame.id(), "no convergence metrics: {}", e.message)
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    text.push_str(&convergence_metrics(&frames));
     Ok((
         [(
             header::CONTENT_TYPE,
             HeaderValue::from_static("text/plain; version=0.0.4"),
         )],
-        handle.render(),
+        text,
     )
         .into_response())
+}
+
+/// The per-frame convergence gauges in the Prometheus text format.
+pub fn convergence_metrics(frames: &[(String, Convergence)]) -> String {
+    type Gauge = (&'static str, &'static str, fn(&Convergence) -> f64);
+    const GAUGES: [Gauge; 7] = [
+        (
+            "splatd_frame_removed_fraction",
+            "Luminance the resolve removes, as a fraction of the plain mean's.",
+            |c| c.removed_fraction,
+        ),
+        (
+            "splatd_frame_spp_min",
+            "Fewest samples of any pixel.",
+            |c| c.spp_min as f64,
+        ),
+        ("splatd_frame_spp_mean", "Mean samples per pixel.", |c| {
+            c.spp_mean
+        }),
+        ("splatd_frame_spp_max", "Most samples of any pixel.", |c| {
+            c.spp_max as f64
+        }),
+        (
+            "splatd_frame_samples_per_second",
+            "Samples accepted per second lately.",
+            |c| c.samples_per_second,
+        ),
+        (
+            "splatd_frame_converged",
+            "1 when the frame is converged at its threshold, else 0.",
+            |c| f64::from(u8::from(c.converged)),
+        ),
+        (
+            "splatd_frame_converged_below",
+            "The frame's convergence threshold.",
+            |c| c.converged_below,
+        ),
+    ];
+    let mut out = String::new();
+    if frames.is_empty() {
+        return out;
+    }
+    for (name, help, value) in GAUGES {
+        out.push_str(&format!("# HELP {name} {help}\n# TYPE {name} gauge\n"));
+        for (id, c) in frames {
+            let id = id.replace('\\', "\\\\").replace('"', "\\\"");
+            out.push_str(&format!("{name}{{frame=\"{id}\"}} {}\n", value(c)));
+        }
+    }
+    out
 }
 
 /// `POST /v1/frames/{id}/sync`: returns once everything applied to the frame is on disk.

@@ -96,12 +96,14 @@ fn every_route_declares_the_documented_role() {
         (M::POST, "/v1/frames", Some(Admin)),
         (M::GET, "/v1/frames", Some(Read)),
         (M::GET, "/v1/frames/{id}", Some(Read)),
+        (M::PUT, "/v1/frames/{id}", Some(Write)),
         (M::DELETE, "/v1/frames/{id}", Some(Admin)),
         (M::POST, "/v1/frames/{id}/samples", Some(Write)),
         (M::POST, "/v1/frames/{id}/passes", Some(Write)),
         (M::POST, "/v1/frames/{id}/sync", Some(Write)),
         (M::GET, "/v1/frames/{id}/image.exr", Some(Read)),
         (M::GET, "/v1/frames/{id}/preview.png", Some(Read)),
+        (M::GET, "/v1/frames/{id}/need", Some(Read)),
         (M::GET, "/v1/frames/{id}/state", Some(Read)),
         (M::POST, "/v1/frames/{id}/state", Some(Admin)),
     ];
@@ -515,5 +517,113 @@ async fn extractors_refuse_in_order_with_json_codes() {
     assert_eq!(
         (status, code.as_str()),
         (StatusCode::BAD_REQUEST, "bad_query")
+    );
+}
+
+/// `PUT /v1/frames/{id}` with `token` and a JSON body; returns the status and the JSON answer
+/// (a `FrameInfo`, or an error body).
+async fn put_frame(
+    server: &AppState,
+    id: &str,
+    token: &str,
+    body: serde_json::Value,
+) -> (StatusCode, serde_json::Value) {
+    let request = Request::builder()
+        .method(Method::PUT)
+        .uri(format!("/v1/frames/{id}"))
+        .header(header::CONTENT_TYPE, "application/json")
+        .header(header::AUTHORIZATION, format!("Bearer {token}"))
+        .body(Body::from(body.to_string()))
+        .unwrap();
+    let response = router(server.clone()).oneshot(request).await.unwrap();
+    let status = response.status();
+    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
+        .await
+        .unwrap();
+    let json = serde_json::from_slice(&bytes)
+        .unwrap_or_else(|e| panic!("{status} without a JSON body ({e}): {bytes:?}"));
+    (status, json)
+}
+
+/// Create-or-get with each role: `read` is refused and nothing is created; `write` and `admin`
+/// create (201), get the same frame again (200), and are refused with the differing parameters
+/// named (409) when the parameters differ, which leaves the frame as it was.
+#[tokio::test]
+async fn put_creates_or_gets_a_frame_for_write_and_admin_only() {
+    use serde_json::json;
+    let server = app(false);
+    let params = json!({"width": 6, "height": 4, "resolve": {"kappa": 2.0}});
+    let (status, body) = put_frame(&server, "w", READ, params.clone()).await;
+    assert_eq!(
+        (status, body["error"].as_str()),
+        (StatusCode::FORBIDDEN, Some("forbidden"))
+    );
+    assert!(
+        server.store.get("w").is_err(),
+        "a read token created a frame"
+    );
+
+    for (token, id) in [(WRITE, "w"), (ADMIN, "a")] {
+        let (status, created) = put_frame(&server, id, token, params.clone()).await;
+        assert_eq!(status, StatusCode::CREATED, "{id}: {created}");
+        assert_eq!(
+            (created["id"].as_str(), created["width"].as_u64()),
+            (Some(id), Some(6))
+        );
+        assert_eq!(created["resolve"]["kappa"], 2.0);
+        let frame = server.store.get(id).expect("the frame PUT created");
+        assert_eq!(frame.info().height, 4);
+
+        // Again, with the id also in the body: the same frame, 200.
+        let mut same = params.clone();
+        same["id"] = json!(id);
+        let (status, again) = put_frame(&server, id, token, same).await;
+        assert_eq!((status, &again), (StatusCode::OK, &created), "{id}");
+
+        // Other parameters: 409 naming each difference; the frame is untouched.
+        let other = json!({"width": 8, "height": 4, "resolve": {"kappa": 3.0}});
+        let (status, err) = put_frame(&server, id, token, other).await;
+        assert_eq!(
+            (status, err["error"].as_str()),
+            (StatusCode::CONFLICT, Some("frame_exists"))
+        );
+        let message = err["message"].as_str().unwrap();
+        assert!(
+            message.contains("size 6x4 here, 8x4 requested"),
+            "{message}"
+        );
+        assert!(message.contains("resolve"), "{message}");
+        assert!(!message.contains("cascades"), "{message}");
+        assert!(Arc::ptr_eq(&frame, &server.store.get(id).unwrap()));
+        assert_eq!(frame.info().width, 6);
+
+        // A body naming another frame, or parameters breaking their rules: 400, nothing made.
+        let (status, err) = put_frame(
+            &server,
+            "x",
+            token,
+            json!({"id": "y", "width": 2, "height": 2}),
+        )
+        .await;
+        assert_eq!(
+            (status, err["error"].as_str()),
+            (StatusCode::BAD_REQUEST, Some("frame_mismatch"))
+        );
+        let (status, err) = put_frame(&server, "x", token, json!({"width": 0, "height": 2})).await;
+        assert_eq!(status, StatusCode::BAD_REQUEST, "{err}");
+        assert!(server.store.get("x").is_err() && server.store.get("y").is_err());
+    }
+    // `write` still may not delete.
+    let (status, code, _) = send(
+        &server,
+        Method::DELETE,
+        "/v1/frames/w",
+        Some(WRITE),
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::FORBIDDEN, "forbidden")
     );
 }

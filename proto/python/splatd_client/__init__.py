@@ -1,7 +1,8 @@
 """Python client of splatd: encode sample batches and send them to a server.
 
-Dependencies: the standard library and numpy. Copy this single file into a
-renderer's plug-in directory; nothing else is needed.
+Dependencies: the standard library and numpy. Install with
+``pip install ./proto/python`` (package ``splatd-client``); the package's major
+version is the batch wire format version it speaks (``VERSION``).
 
 A batch is one worker's bundle of Monte Carlo samples for one frame: every
 record is ONE sample (pixel x, pixel y, linear RGB radiance), and the server
@@ -27,16 +28,16 @@ Example::
     import numpy as np
     from splatd_client import Client
 
-    c = Client("http://render-head:7878", token="...")
-    c.create_frame("shot010", 1920, 1080)
+    c = Client("http://render-head:7878", token="...")  # a `write` token will do
+    c.create_or_get("shot010", 1920, 1080)
     xs = np.array([10, 11], dtype=np.uint32)
     ys = np.array([20, 20], dtype=np.uint32)
     rgb = np.array([[0.5, 0.4, 0.3], [9.0, 8.0, 7.0]], dtype=np.float32)
     print(c.post_batch("shot010", worker=1234, seq=0, xs=xs, ys=ys, rgb=rgb))
 
-Command line: ``--selftest-emit PATH`` writes a fixed batch (used by the Rust
-compatibility test), ``--selftest-check PATH`` decodes PATH and checks that it
-is that batch.
+Command line (``python3 -m splatd_client``): ``--selftest-emit PATH`` writes a
+fixed batch (used by the Rust compatibility test), ``--selftest-check PATH``
+decodes PATH and checks that it is that batch.
 """
 
 from __future__ import annotations
@@ -49,8 +50,9 @@ import struct
 import sys
 import time
 import urllib.error
+import urllib.parse
 import urllib.request
-from typing import Any, NamedTuple, Optional
+from typing import Any, Dict, List, NamedTuple, Optional, Tuple
 
 try:
     import numpy as np
@@ -61,7 +63,10 @@ except ImportError:  # pragma: no cover - depends on the environment
     raise
 
 MAGIC = b"SPLB"
+#: The batch wire format version this client writes and reads.
 VERSION = 1
+#: The package version: ``VERSION`` of the wire format, then the client's own ``minor.patch``.
+__version__ = "1.1.0"
 RECORD_SIZE = 20
 MAX_FRAME_ID_LEN = 128
 DEFAULT_MAX_RECORDS = 4 * 1024 * 1024
@@ -276,7 +281,7 @@ class Client:
         height: int,
         cascades: Optional[dict] = None,
         resolve: Optional[dict] = None,
-    ) -> dict:
+    ) -> Dict[str, Any]:
         """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults.
 
         ``cascades``: ``base``, ``cascades``, ``lowest_scale`` (the scale c0 of cascade 0; cascade j
@@ -287,7 +292,7 @@ class Client:
         kappa * N**kappa_exponent). See proto/PROTOCOL.md and docs/ALGORITHM.md.
         """
         validate_frame_id(id)
-        req: dict = {"id": id, "width": int(width), "height": int(height)}
+        req: Dict[str, Any] = {"id": id, "width": int(width), "height": int(height)}
         if cascades is not None:
             req["cascades"] = cascades
         if resolve is not None:
@@ -297,29 +302,58 @@ class Client:
             "POST", "/v1/frames", json.dumps(req).encode(), "application/json", headers={"X-Splatd-Frame": id}
         )
 
-    def frame_info(self, id: str) -> dict:
+    def create_or_get(
+        self,
+        id: str,
+        width: int,
+        height: int,
+        cascades: Optional[Dict[str, Any]] = None,
+        resolve: Optional[Dict[str, Any]] = None,
+    ) -> Dict[str, Any]:
+        """``PUT /v1/frames/{id}``: creates the frame, or returns it when it exists with exactly
+        these parameters (the FrameInfo as a dict). A frame with other parameters is refused with
+        ``SplatdError`` 409 ``frame_exists`` naming each difference. Needs only a ``write`` token,
+        and is safe to retry. Parameters as for ``create_frame``.
+        """
+        validate_frame_id(id)
+        req: Dict[str, Any] = {"width": int(width), "height": int(height)}
+        if cascades is not None:
+            req["cascades"] = cascades
+        if resolve is not None:
+            req["resolve"] = resolve
+        return self._request("PUT", f"/v1/frames/{id}", json.dumps(req).encode(), "application/json")
+
+    def frame_info(self, id: str) -> Dict[str, Any]:
         """``GET /v1/frames/{id}``."""
         validate_frame_id(id)
         return self._request("GET", f"/v1/frames/{id}")
 
-    def post_batch(self, frame: str, worker: int, seq: int, xs: Any, ys: Any, rgb: Any) -> dict:
+    def post_batch(self, frame: str, worker: int, seq: int, xs: Any, ys: Any, rgb: Any) -> Dict[str, Any]:
         """Encodes once and sends (retrying with the same bytes); returns the BatchAck."""
         return self.post_encoded(frame, encode_batch(frame, worker, seq, xs, ys, rgb))
 
-    def post_encoded(self, frame: str, body: bytes) -> dict:
+    def post_encoded(self, frame: str, body: bytes) -> Dict[str, Any]:
         """Sends an encoded batch for ``frame``; returns the BatchAck."""
         validate_frame_id(frame)
         return self._request("POST", f"/v1/frames/{frame}/samples", bytes(body), BATCH_CONTENT_TYPE)
 
-    def sync(self, frame: str) -> dict:
+    def sync(self, frame: str) -> Dict[str, Any]:
         """``POST /v1/frames/{id}/sync``: returns (a SyncAck) once the frame is on disk."""
         validate_frame_id(frame)
         return self._request("POST", f"/v1/frames/{frame}/sync")
 
-    def post_pass(self, frame: str, worker: int, seq: int, exr: bytes) -> dict:
-        """``POST /v1/frames/{id}/passes``: one rendered pass as OpenEXR bytes; returns the BatchAck."""
+    def post_pass(
+        self, frame: str, worker: int, seq: int, exr: bytes, layer: Optional[str] = None
+    ) -> Dict[str, Any]:
+        """``POST /v1/frames/{id}/passes``: one rendered pass as OpenEXR bytes; returns the BatchAck.
+
+        ``layer`` names the layer holding the beauty (``"ViewLayer.Combined"``); without it the
+        server finds it (see proto/PROTOCOL.md, "Passes").
+        """
         validate_frame_id(frame)
         path = f"/v1/frames/{frame}/passes?worker={_check_u64('worker', worker)}&seq={_check_u64('seq', seq)}"
+        if layer is not None:
+            path += "&layer=" + urllib.parse.quote(layer, safe="")
         return self._request("POST", path, bytes(exr), "image/x-exr")
 
     def image(self, frame: str, **query: Any) -> bytes:
@@ -327,6 +361,12 @@ class Client:
         validate_frame_id(frame)
         qs = "&".join(f"{k}={v}" for k, v in query.items())
         return self._request("GET", f"/v1/frames/{frame}/image.exr" + (f"?{qs}" if qs else ""), binary=True)
+
+    def need(self, frame: str, tile: Optional[int] = None) -> dict:
+        """``GET /v1/frames/{id}/need``: the need map (JSON ``NeedMap``), tiles row-major."""
+        validate_frame_id(frame)
+        qs = "" if tile is None else f"?tile={_check_u64('tile', tile)}"
+        return self._request("GET", f"/v1/frames/{frame}/need{qs}")
 
     def delete_frame(self, frame: str) -> None:
         """``DELETE /v1/frames/{id}``."""
@@ -392,7 +432,19 @@ class Client:
         raise SplatdError(None, "gave_up", f"{operation} failed after {self.max_attempts} attempts; last failure: {last}")
 
 
-def selftest_batch() -> tuple:
+def neediest_tiles(need_map: Dict[str, Any], count: int) -> List[Tuple[int, int, int, int]]:
+    """The ``count`` neediest tiles of a need map as crop windows ``(x, y, width, height)``,
+    neediest first (tiles at the right and bottom edge may be smaller than ``tile``)."""
+    tile, tx = need_map["tile"], need_map["tiles_x"]
+    order = sorted(range(len(need_map["need"])), key=lambda i: (-need_map["need"][i], i))
+    windows = []
+    for i in order[:count]:
+        x, y = (i % tx) * tile, (i // tx) * tile
+        windows.append((x, y, min(tile, need_map["width"] - x), min(tile, need_map["height"] - y)))
+    return windows
+
+
+def selftest_batch() -> Tuple[str, int, int, np.ndarray, np.ndarray, np.ndarray]:
     """The fixed batch of ``--selftest-emit`` (mirrored in proto/tests/python_compat.rs)."""
     xs = np.array([0, 1919, _U32_MAX, 7], dtype=np.uint32)
     ys = np.array([0, 1079, _U32_MAX, 3], dtype=np.uint32)
@@ -408,7 +460,7 @@ def selftest_batch() -> tuple:
     return ("selftest.frame-01", 0x0102030405060708, (1 << 63) + 5, xs, ys, rgb)
 
 
-def _main(argv: list) -> int:
+def _main(argv: List[str]) -> int:
     if len(argv) == 2 and argv[0] == "--selftest-emit":
         with open(argv[1], "wb") as f:
             f.write(encode_batch(*selftest_batch()))
@@ -430,8 +482,8 @@ def _main(argv: list) -> int:
             return 1
         return 0
     sys.stderr.write(
-        "usage: splatd_client.py --selftest-emit PATH | --selftest-check PATH\n"
-        "(import this file as a module to use the client)\n"
+        "usage: python3 -m splatd_client --selftest-emit PATH | --selftest-check PATH\n"
+        "(import splatd_client to use the client)\n"
     )
     return 2
 

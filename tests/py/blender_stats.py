@@ -1,0 +1,77 @@
+"""Compares the Blender worker's passes, splatd's served image and a high-spp reference, for
+tests/blender_worker.rs. Every file is read with OpenEXR's own Python package.
+
+    python3 tests/py/blender_stats.py DIR PASSES
+
+reads DIR/passes/pass_{0..PASSES-1}.exr (as Blender wrote them), DIR/served.exr (splatd's
+image.exr) and DIR/reference.exr (one render with a 1-pixel box filter at many spp), and prints
+JSON:
+
+* `served_vs_passes`: the largest |served mean - mean of the passes| over pixels and channels,
+  and the largest such difference relative to the value;
+* `spp_min`, `spp_max`: of the served `spp.Y`;
+* `global`, `lamp`, `edges`: for all pixels, the lamp's pixels (the reference's six brightest,
+  where a fixed sub-pixel position is most biased) and the edges (the tenth of the other pixels
+  where the reference changes most from a neighbour), the sum over the region of
+  luminance(mean of passes - reference) and its standard deviation from the passes' own spread
+  (plus the reference's, taken as the same per-sample spread over its spp). Sums over many
+  pixels are compared, not single pixels: one pixel's 1-spp values are too skewed for a
+  48-sample standard deviation to bound it.
+"""
+
+import json
+import os
+import sys
+
+import numpy as np
+import OpenEXR
+
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+def rgb(path, prefix=""):
+    with OpenEXR.File(path, separate_channels=True) as f:
+        ch = f.channels()
+        return np.stack([np.asarray(ch[f"{prefix}{c}"].pixels, dtype=np.float64) for c in "RGB"],
+                        axis=-1)
+
+
+def main(d, passes, reference_spp):
+    stack = np.stack([rgb(os.path.join(d, "passes", f"pass_{k}.exr")) for k in range(passes)])
+    mean = stack.mean(axis=0)
+    served = rgb(os.path.join(d, "served.exr"), "mean.")
+    with OpenEXR.File(os.path.join(d, "served.exr"), separate_channels=True) as f:
+        spp = np.asarray(f.channels()["spp.Y"].pixels)
+    diff = np.abs(served - mean)
+    rel = diff / np.maximum(np.abs(mean), 1e-30)
+
+    reference = rgb(os.path.join(d, "reference.exr"))
+    luma_passes = stack @ LUMA  # (passes, H, W)
+    per_pass_var = luma_passes.var(axis=0, ddof=1)
+    var = per_pass_var / passes + per_pass_var / reference_spp
+    delta = (mean - reference) @ LUMA
+
+    def region(mask):
+        return {"sum": float(delta[mask].sum()), "sigma": float(np.sqrt(var[mask].sum())),
+                "pixels": int(mask.sum()), "reference": float((reference @ LUMA)[mask].sum())}
+
+    ref_luma = reference @ LUMA
+    lamp = ref_luma >= np.sort(ref_luma, axis=None)[-6]
+    # Edges: the tenth of the pixels where the reference changes most to a neighbour.
+    padded = np.pad(ref_luma, 1, mode="edge")
+    h, w = ref_luma.shape
+    step = np.zeros_like(ref_luma)
+    for dy, dx in ((0, 1), (2, 1), (1, 0), (1, 2)):
+        step = np.maximum(step, np.abs(padded[dy:dy + h, dx:dx + w] - ref_luma))
+    edges = (step >= np.quantile(step, 0.9)) & ~lamp
+    json.dump({
+        "served_vs_passes": {"max_abs": float(diff.max()), "max_rel": float(rel.max())},
+        "spp_min": float(spp.min()), "spp_max": float(spp.max()),
+        "global": region(np.ones_like(lamp)),
+        "lamp": region(lamp),
+        "edges": region(edges),
+    }, sys.stdout)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]))
