@@ -5,7 +5,9 @@
 //!   a glass sphere, a small bright lamp), rendered pass by pass with any seed;
 //! * [`synth`]: synthetic streams with an exactly known per-pixel mean (heavy-tailed, caustic-like
 //!   and tame regions), a pure function of `(seed, pass, x, y)`;
-//! * [`quality`]: the error metrics every benchmark and test reports (relMSE, energy bias).
+//! * [`quality`]: the error metrics every benchmark and test reports (relMSE, energy bias);
+//! * [`hostile`]: bodies careless or hostile clients send (a zstd bomb).
+pub mod hostile;
 pub mod quality;
 pub mod synth;
 pub mod tracer;

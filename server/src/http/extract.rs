@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use crate::frame::ShardedFrame;
 use crate::http::error::ApiError;
+use crate::work::Reservation;
 use crate::AppState;
 
 /// Largest JSON request body (a `CreateFrame` is a few hundred bytes).
@@ -38,6 +39,7 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
     async fn from_request(request: Request, _: &S) -> Result<Self, ApiError> {
         let (parts, body) = request.into_parts();
         check_content_type(&parts.headers, "application/json")?;
+        check_length(&parts.headers, MAX_JSON_BODY)?;
         let bytes = read_body(body, MAX_JSON_BODY).await?;
         serde_json::from_slice(&bytes)
             .map(Json)
@@ -81,13 +83,18 @@ impl FromRequestParts<AppState> for Frame {
     }
 }
 
-/// A kind of body posted to a frame: what it must be labelled, how large it may be.
+/// A kind of body posted to a frame: what it must be labelled, how large it may be, and how much
+/// memory decoding it takes.
 pub trait Upload {
     /// The Content-Type the body must declare (parameters such as `charset` are ignored).
     const CONTENT_TYPE: &'static str;
 
     /// Most bytes (after decompression) accepted for `frame`; beyond it, 413.
     fn limit(app: &AppState, frame: &ShardedFrame) -> usize;
+
+    /// Bytes that decoding and applying a body of `len` bytes allocates besides the body itself
+    /// (decoded records, a decoded state), reserved from the working-memory budget with it.
+    fn decoding_bytes(frame: &ShardedFrame, len: u64) -> u64;
 
     /// Called when the body could not be read (too large, cut off, badly compressed), so the
     /// refusal can be counted where the kind's other refusals are.
@@ -96,15 +103,24 @@ pub trait Upload {
 
 /// The body of a `POST` to a frame, of kind `K`.
 ///
-/// Checks, in this order: the Content-Type (415), that the frame exists (404), then reads the
-/// body within `K`'s limit for that frame (413, or 400 `unreadable_body`). So a client learns of
-/// a wrong label or an unknown frame without the server reading, let alone decompressing, the
-/// body.
+/// Checks, in this order: the Content-Type (415), that the frame exists (404), that a declared
+/// `Content-Length` is within `K`'s limit for that frame (413, before reading anything), then
+/// reserves working memory for the body and its decoding (503 `busy` when the budget stays
+/// spent), and only then reads the body within the limit (413, or 400 `unreadable_body`). So a
+/// client learns of a wrong label, an unknown frame or an oversized body without the server
+/// reading, let alone decompressing, the body; and no number of concurrent uploads (zstd bombs
+/// included) can hold more than the budget.
+///
+/// A body sent as it is (no `Content-Encoding`) with a `Content-Length` reserves exactly that
+/// length; a compressed or chunked body reserves the whole limit, as its size is known only once
+/// it has been read.
 pub struct FrameBody<K> {
     /// The frame posted to.
     pub frame: Arc<ShardedFrame>,
     /// The whole body, decompressed.
     pub bytes: Bytes,
+    /// Working memory held for the body and its decoding; keep it until they are dropped.
+    pub reservation: Reservation,
     kind: PhantomData<fn() -> K>,
 }
 
@@ -115,15 +131,66 @@ impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
         let (mut parts, body) = request.into_parts();
         check_content_type(&parts.headers, K::CONTENT_TYPE)?;
         let Frame(frame) = Frame::from_request_parts(&mut parts, app).await?;
-        let bytes = read_body(body, K::limit(app, &frame))
+        let limit = K::limit(app, &frame);
+        let declared = check_length(&parts.headers, limit).inspect_err(|_| K::refused(&frame))?;
+        let plain = parts
+            .headers
+            .get(header::CONTENT_ENCODING)
+            .is_none_or(|v| v.as_bytes().eq_ignore_ascii_case(b"identity"));
+        let body_bytes = match declared {
+            Some(len) if plain => len,
+            _ => limit as u64,
+        };
+        let reservation = app
+            .renders
+            .budget()
+            .reserve(body_bytes + K::decoding_bytes(&frame, body_bytes))
+            .await
+            .map_err(|busy| ApiError::busy(&busy))?;
+        let bytes = read_body(body, limit)
             .await
             .inspect_err(|_| K::refused(&frame))?;
         Ok(FrameBody {
             frame,
             bytes,
+            reservation,
             kind: PhantomData,
         })
     }
+}
+
+/// Refuses a body whose `Content-Length` already says it is longer than `limit`: 413
+/// `body_too_large` before a byte of it is read (and so before `Expect: 100-continue` is
+/// answered). The declared length, if any, is returned. (For a compressed body the length is
+/// that of the compressed bytes: a body that large on the wire is refused too.)
+pub fn check_length(headers: &HeaderMap, limit: usize) -> Result<Option<u64>, ApiError> {
+    let Some(value) = headers.get(header::CONTENT_LENGTH) else {
+        return Ok(None);
+    };
+    let declared = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .ok_or_else(|| ApiError::bad_request("bad_request", "invalid Content-Length header"))?;
+    if declared > limit as u64 {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "body_too_large",
+            format!(
+                "request body of {declared} bytes (Content-Length) exceeds this endpoint's \
+                 limit of {limit} bytes"
+            ),
+        ));
+    }
+    Ok(Some(declared))
+}
+
+fn too_large(limit: usize) -> ApiError {
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "body_too_large",
+        format!("request body exceeds this endpoint's limit of {limit} bytes"),
+    )
 }
 
 /// Refuses a body of the wrong type before reading it: 415 `unsupported_content_type`.
@@ -158,11 +225,7 @@ async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
         let mut source: Option<&(dyn std::error::Error + 'static)> = Some(inner.as_ref());
         while let Some(err) = source {
             if err.is::<http_body_util::LengthLimitError>() {
-                return ApiError::new(
-                    StatusCode::PAYLOAD_TOO_LARGE,
-                    "body_too_large",
-                    format!("request body exceeds this endpoint's limit of {limit} bytes"),
-                );
+                return too_large(limit);
             }
             source = err.source();
         }

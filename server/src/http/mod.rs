@@ -8,6 +8,7 @@
 //!   [`images`]: EXR and PNG; [`states`]: export and import; [`operations`]: the page, health,
 //!   metrics, sync;
 //! * [`extract`]: request extractors with JSON refusals; [`error`]: the one error type;
+//!   [`manners`]: `Connection: close` when a body is left unread;
 //!   [`blocking`]: heavy work off the reactor;
 //! * [`auth`]: bearer tokens, roles, and the guard each route is declared with.
 
@@ -18,12 +19,15 @@ pub mod extract;
 pub mod frames;
 pub mod images;
 pub mod ingest;
+pub mod manners;
 pub mod operations;
 pub mod states;
 #[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod tests_budget;
+#[cfg(test)]
+mod tests_logs;
 
 use axum::extract::Request;
 use axum::handler::Handler;
@@ -52,8 +56,19 @@ pub fn router(app: AppState) -> Router {
             timeout,
         ))
         .layer(axum::middleware::from_fn(json_errors))
-        .layer(TraceLayer::new_for_http())
+        .layer(TraceLayer::new_for_http().make_span_with(request_span))
+        .layer(axum::middleware::from_fn(manners::close_unless_read))
         .with_state(app)
+}
+
+/// The span of one request: its method and path, never its query string, which may hold a
+/// secret a client put there by mistake (a `?token=`), nor its headers (`Authorization`).
+fn request_span(request: &Request) -> tracing::Span {
+    tracing::debug_span!(
+        "request",
+        method = %request.method(),
+        path = %request.uri().path(),
+    )
 }
 
 /// Every endpoint, each declared with the role it needs right where its path and handler are.

@@ -23,6 +23,11 @@ impl Upload for StateBody {
     fn limit(_: &AppState, frame: &ShardedFrame) -> usize {
         frame.spec().memory_bytes() as usize + 64 * 1024
     }
+
+    /// The decoded cells and the state loaded from them, each the size of the frame's state.
+    fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
+        2 * frame.spec().memory_bytes()
+    }
 }
 
 /// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
@@ -54,13 +59,19 @@ pub async fn export(
 /// exactly once per origin, and answers once the result is durable.
 pub async fn import(
     State(app): State<AppState>,
-    FrameBody { frame, bytes, .. }: FrameBody<StateBody>,
+    FrameBody {
+        frame,
+        bytes,
+        reservation,
+        ..
+    }: FrameBody<StateBody>,
 ) -> Result<Json<ImportAck>, ApiError> {
     let cells = frame.spec().memory_bytes() / 8;
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
     let (samples, applied) = blocking("import", move || {
+        let _reservation = reservation;
         let dump = StateDump::decode(&bytes, cells)?;
         let origin = dump.origin.clone();
         let name = dump.frame.clone();
