@@ -89,6 +89,9 @@ pub struct Conn {
     evict: Notify,
     /// A request head the gate refused, to be answered by the service in its place.
     refusal: Mutex<Option<ApiError>>,
+    /// The request whose response body has ended but may still sit in hyper's buffer: it
+    /// ends when the socket next reports everything flushed.
+    finishing: Mutex<Option<RequestGuard>>,
 }
 
 /// Why a connection was not served.
@@ -186,6 +189,7 @@ impl Connections {
             changed: Notify::new(),
             evict: Notify::new(),
             refusal: Mutex::new(None),
+            finishing: Mutex::new(None),
         });
         open.insert(id, conn.clone());
         Ok(Registered {
@@ -211,6 +215,9 @@ impl Registered {
 
 impl Drop for Registered {
     fn drop(&mut self) {
+        // A response still waiting for its flush ends with the connection (and the cycle
+        // between the connection and that request's guard with it).
+        drop(self.conn.finish());
         self.connections.lock().remove(&self.conn.id);
         self.connections.closed.notify_waiters();
     }
@@ -263,6 +270,14 @@ impl Conn {
         }
     }
 
+    /// Ends the request whose response was waiting to be flushed, if any.
+    fn finish(&self) -> Option<RequestGuard> {
+        self.finishing
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .take()
+    }
+
     fn take_refusal(&self) -> Option<ApiError> {
         self.refusal
             .lock()
@@ -312,8 +327,9 @@ impl Drop for RequestGuard {
     }
 }
 
-/// A response body that ends its request's guard when its last frame is taken (or when it is
-/// dropped unsent).
+/// A response body that hands its request's guard over to be ended at the next complete flush
+/// once its last frame is taken (so the request counts as in progress, and under the response
+/// deadline, until its last byte is in the socket), or ends it when dropped unsent.
 pub struct ResponseBody {
     inner: Body,
     guard: Option<RequestGuard>,
@@ -329,7 +345,15 @@ impl http_body::Body for ResponseBody {
     ) -> Poll<Option<Result<http_body::Frame<Bytes>, axum::Error>>> {
         let frame = ready!(Pin::new(&mut self.inner).poll_frame(cx));
         if frame.is_none() || self.inner.is_end_stream() {
-            self.guard = None;
+            if let Some(guard) = self.guard.take() {
+                let conn = guard.conn.clone();
+                let earlier = conn
+                    .finishing
+                    .lock()
+                    .unwrap_or_else(|e| e.into_inner())
+                    .replace(guard);
+                drop(earlier);
+            }
         }
         Poll::Ready(frame)
     }
@@ -611,8 +635,13 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for HeadGate<T> {
         self.io.is_write_vectored()
     }
 
+    /// Hyper flushes after writing, its own buffer first: once this is ready, every byte of a
+    /// response whose body has ended is in the socket, and its request is over.
     fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
-        Pin::new(&mut self.get_mut().io).poll_flush(cx)
+        let this = self.get_mut();
+        ready!(Pin::new(&mut this.io).poll_flush(cx))?;
+        drop(this.conn.finish());
+        Poll::Ready(Ok(()))
     }
 
     fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
@@ -858,5 +887,30 @@ mod tests {
         assert_eq!(connections.refused(), 1);
         drop((b, c));
         assert_eq!(connections.open(), 2);
+    }
+
+    #[test]
+    fn a_response_counts_until_flushed() {
+        let connections = Arc::new(Connections::new(1));
+        let a = connections.admit().unwrap();
+        a.conn().had_head.store(true, Ordering::Release);
+        // The body has ended, the bytes may still be in hyper's buffer: not idle yet.
+        let mut guard = a.conn().begin_request();
+        guard.responding();
+        *a.conn().finishing.lock().unwrap() = Some(guard);
+        assert_eq!(connections.admit().unwrap_err(), Refused::Full);
+        assert!(a.conn().responding_since.lock().unwrap().is_some());
+        // Flushed: the request is over and the connection may make room.
+        drop(a.conn().finish());
+        assert!(a.conn().responding_since.lock().unwrap().is_none());
+        let _b = connections.admit().unwrap();
+        assert_eq!(connections.evicted(), 1);
+        // A connection that ends with a response unflushed drops it (no cycle left behind).
+        let c = Arc::new(Connections::new(1)).admit().unwrap();
+        *c.conn().finishing.lock().unwrap() = Some(c.conn().begin_request());
+        let conn = c.conn().clone();
+        drop(c);
+        assert_eq!(conn.busy.load(Ordering::Acquire), 0);
+        assert_eq!(Arc::strong_count(&conn), 1);
     }
 }

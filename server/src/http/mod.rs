@@ -37,7 +37,6 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{on, MethodFilter};
 use axum::Router;
 use tower_http::compression::CompressionLayer;
-use tower_http::decompression::RequestDecompressionLayer;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
@@ -164,11 +163,11 @@ impl Routes {
     {
         let filter = MethodFilter::try_from(method.clone())
             .unwrap_or_else(|e| panic!("{method} {path}: {e}"));
-        // Decompression sits inside the guard: a request without the right token is refused
+        // The guard runs before the handler: a request without the right token is refused
         // before anything reads or inflates its body (a gzip bomb from a stranger costs
-        // nothing). Extractors only read the body once the guard has let the request through.
-        let mut endpoint =
-            on(filter, handler).layer(RequestDecompressionLayer::new().gzip(true).zstd(true));
+        // nothing). The body extractors inflate compressed bodies themselves, after reserving
+        // working memory, on the blocking pool and within the endpoint's limit.
+        let mut endpoint = on(filter, handler);
         if let Some(role) = role {
             endpoint = endpoint.route_layer(axum::middleware::from_fn_with_state(
                 Gate::new(self.app.clone(), role),
