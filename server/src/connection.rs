@@ -69,6 +69,8 @@ pub struct Connections {
     next: AtomicU64,
     refused: AtomicU64,
     evicted: AtomicU64,
+    /// Connections pushed out whose sockets are not closed yet (their tasks have yet to run).
+    closing: AtomicUsize,
     /// Wakes [`Connections::until_open_at_most`] when a connection closes.
     closed: Notify,
 }
@@ -79,6 +81,8 @@ pub struct Conn {
     id: u64,
     /// A complete request head has been read.
     had_head: AtomicBool,
+    /// Pushed out to make room; its socket is still open until its task ends.
+    evicted: AtomicBool,
     /// Requests being served (answered but not yet fully sent included).
     busy: AtomicUsize,
     /// When the response being sent began.
@@ -110,6 +114,7 @@ impl Connections {
             next: AtomicU64::new(0),
             refused: AtomicU64::new(0),
             evicted: AtomicU64::new(0),
+            closing: AtomicUsize::new(0),
             closed: Notify::new(),
         }
     }
@@ -136,9 +141,15 @@ impl Connections {
         self.max
     }
 
-    /// Connections open now.
+    /// Connections open now (not counting those pushed out and still closing).
     pub fn open(&self) -> usize {
         self.lock().len()
+    }
+
+    /// Most connections pushed out and not yet closed at once: an eighth of the cap, at least
+    /// 64 (the open-file limit leaves a quarter of itself, at least 64, beyond the cap).
+    pub fn closing_allowance(&self) -> usize {
+        (self.max / 8).max(64)
     }
 
     /// Connections closed at once because every place was serving a request.
@@ -153,9 +164,19 @@ impl Connections {
 
     /// Admits a new connection, pushing out an unoccupied one when at the cap. The returned
     /// [`Registered`] takes the connection's place back when dropped.
+    ///
+    /// Connections pushed out keep their sockets until their tasks run, so the sockets open
+    /// are at most the cap plus the connections still closing; at most [`Self::closing_allowance`]
+    /// may be closing at once, beyond that a new connection is refused instead.
     pub fn admit(self: &Arc<Self>) -> Result<Registered, Refused> {
         let mut open = self.lock();
         if open.len() >= self.max {
+            if self.closing.load(Ordering::Acquire) >= self.closing_allowance() {
+                self.refused.fetch_add(1, Ordering::Relaxed);
+                metrics::counter!("splatd_connections_closed_total", "reason" => "full")
+                    .increment(1);
+                return Err(Refused::Full);
+            }
             // Oldest first (ids grow), those that never sent a head before idle keep-alive ones.
             let idle = |c: &&Arc<Conn>| c.busy.load(Ordering::Acquire) == 0;
             let victim = open
@@ -167,6 +188,8 @@ impl Connections {
             match victim {
                 Some(id) => {
                     let conn = open.remove(&id).expect("found above");
+                    conn.evicted.store(true, Ordering::Release);
+                    self.closing.fetch_add(1, Ordering::AcqRel);
                     conn.evict.notify_one();
                     self.evicted.fetch_add(1, Ordering::Relaxed);
                     metrics::counter!("splatd_connections_closed_total", "reason" => "evicted")
@@ -184,6 +207,7 @@ impl Connections {
         let conn = Arc::new(Conn {
             id,
             had_head: AtomicBool::new(false),
+            evicted: AtomicBool::new(false),
             busy: AtomicUsize::new(0),
             responding_since: Mutex::new(None),
             changed: Notify::new(),
@@ -218,6 +242,9 @@ impl Drop for Registered {
         // A response still waiting for its flush ends with the connection (and the cycle
         // between the connection and that request's guard with it).
         drop(self.conn.finish());
+        if self.conn.evicted.load(Ordering::Acquire) {
+            self.connections.closing.fetch_sub(1, Ordering::AcqRel);
+        }
         self.connections.lock().remove(&self.conn.id);
         self.connections.closed.notify_waiters();
     }
@@ -887,6 +914,23 @@ mod tests {
         assert_eq!(connections.refused(), 1);
         drop((b, c));
         assert_eq!(connections.open(), 2);
+        assert_eq!(connections.closing.load(Ordering::Acquire), 0);
+    }
+
+    #[test]
+    fn connections_still_closing_count_against_the_cap() {
+        let connections = Arc::new(Connections::new(4));
+        let allowance = connections.closing_allowance();
+        let mut held: Vec<Registered> = (0..4).map(|_| connections.admit().unwrap()).collect();
+        // Each new one pushes out an old one whose task has not closed it yet.
+        for _ in 0..allowance {
+            held.push(connections.admit().unwrap());
+        }
+        assert_eq!(connections.closing.load(Ordering::Acquire), allowance);
+        assert_eq!(connections.admit().unwrap_err(), Refused::Full);
+        // One closes: room for one more.
+        held.remove(0);
+        assert!(connections.admit().is_ok());
     }
 
     #[test]
