@@ -249,7 +249,7 @@ fn mutate_state(rng: &mut SplitMix64, valid: &[u8]) -> Vec<u8> {
 /// timeouts instead of holding a connection forever.
 #[test]
 fn slow_senders_are_cut_off() {
-    let server = Server::start(&["--idle-timeout", "1", "--request-timeout", "2"]);
+    let server = Server::start(&["--head-timeout", "1", "--request-timeout", "2"]);
     let rt = runtime();
     rt.block_on(
         Client::new(&server.url)

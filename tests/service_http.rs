@@ -495,7 +495,7 @@ fn gzip_and_zstd_bodies_retries_and_frame_lifecycle() {
         let url = format!("{}/v1/frames/z/samples", server.url);
         for (encoding, bytes) in [
             ("gzip", std::mem::take(&mut gz)),
-            ("zstd", zstd_frame(&body)),
+            ("zstd", splatd_scenes::hostile::zstd_frame(&body)),
         ] {
             let r = http
                 .post(&url)
@@ -544,25 +544,6 @@ fn flate2_like_gzip(data: &[u8]) -> Vec<u8> {
     }
     out.extend_from_slice(&crc32fast::hash(data).to_le_bytes());
     out.extend_from_slice(&(data.len() as u32).to_le_bytes());
-    out
-}
-
-/// A zstd frame of raw (uncompressed) blocks, per RFC 8878.
-fn zstd_frame(data: &[u8]) -> Vec<u8> {
-    let mut out = vec![0x28, 0xb5, 0x2f, 0xfd];
-    // Frame header: single segment, 8-byte content size.
-    out.push(0b1110_0000);
-    out.extend_from_slice(&(data.len() as u64).to_le_bytes());
-    let mut chunks = data.chunks(128 * 1024).peekable();
-    if chunks.peek().is_none() {
-        out.extend_from_slice(&[1, 0, 0]);
-    }
-    while let Some(chunk) = chunks.next() {
-        let last = u32::from(chunks.peek().is_none());
-        let header = last | (chunk.len() as u32) << 3; // block type 0 = raw
-        out.extend_from_slice(&header.to_le_bytes()[..3]);
-        out.extend_from_slice(chunk);
-    }
     out
 }
 

@@ -6,8 +6,10 @@
 //! * [`synth`]: synthetic streams with an exactly known per-pixel mean (heavy-tailed, caustic-like
 //!   and tame regions), a pure function of `(seed, pass, x, y)`;
 //! * [`anchors`]: the robust estimators the resolve is benchmarked against (clamp, MoN, G-MoN);
-//! * [`quality`]: the error metrics every benchmark and test reports (relMSE, energy bias).
+//! * [`quality`]: the error metrics every benchmark and test reports (relMSE, energy bias);
+//! * [`hostile`]: bodies careless or hostile clients send (a zstd bomb).
 pub mod anchors;
+pub mod hostile;
 pub mod quality;
 pub mod synth;
 pub mod tracer;

@@ -35,9 +35,22 @@ pub struct Config {
     /// Longest a request may take, body included, in seconds.
     #[arg(long, default_value_t = 120)]
     pub request_timeout: u64,
-    /// Longest a connection may idle or take to send its headers, in seconds.
+    /// Longest a keep-alive connection may wait between two requests, in seconds.
     #[arg(long, default_value_t = 60)]
     pub idle_timeout: u64,
+    /// Longest from accept (or from the first byte of a later request on the connection) to a
+    /// complete request head, in seconds; a silent or trickling socket is closed.
+    #[arg(long, default_value_t = 10)]
+    pub head_timeout: u64,
+    /// Longest from the first byte of a response to its last, in seconds; a client that reads
+    /// slower is disconnected and the response's memory freed.
+    #[arg(long, default_value_t = 300)]
+    pub response_timeout: u64,
+    /// Most connections open at once (lowered at start to leave a quarter of the open-file limit
+    /// for other files). At the cap a new connection replaces the oldest one without a request
+    /// in progress, or is closed at once if every connection is serving one.
+    #[arg(long, default_value_t = 4096)]
+    pub max_connections: usize,
     /// MiB that requests may hold at once beyond the frames: state copies being resolved or
     /// exported, encoded images. A request that cannot get its share within
     /// --work-wait-secs is answered 503 with Retry-After.
@@ -111,6 +124,9 @@ impl Config {
             max_memory_bytes: self.max_memory_mib << 20,
             request_timeout: Duration::from_secs(self.request_timeout),
             idle_timeout: Duration::from_secs(self.idle_timeout),
+            head_timeout: Duration::from_secs(self.head_timeout),
+            response_timeout: Duration::from_secs(self.response_timeout),
+            max_connections: self.max_connections,
             work_memory_bytes: self.work_memory_mib << 20,
             work_wait: Duration::from_secs(self.work_wait_secs),
         }

@@ -1,7 +1,8 @@
 //! The splatd server: an axum shell around the estimator core.
 //!
 //! * [`config`]: every flag and default; [`server`]: the [`server::Server`] lifecycle (listener,
-//!   background tasks, graceful shutdown with a final snapshot);
+//!   background tasks, graceful shutdown with a final snapshot); [`connection`]: the cap on
+//!   connections, their deadlines, and the check of every request head;
 //! * [`frame`]: one frame as row bands under separate locks, with all-or-nothing batches and
 //!   duplicate detection ([`dedup`]);
 //! * [`store`]: the frames of a server and the limits on them;
@@ -13,6 +14,7 @@
 //!   [`viewer`]: pushing frames to tev.
 
 pub mod config;
+pub mod connection;
 pub mod converge;
 pub mod dedup;
 pub mod durable;
@@ -59,8 +61,14 @@ pub struct Limits {
     pub max_memory_bytes: u64,
     /// Longest time one request may take, body included (a slow sender gets 408).
     pub request_timeout: Duration,
-    /// Longest a connection may sit idle between requests, or take to send its headers.
+    /// Longest a keep-alive connection may wait between requests.
     pub idle_timeout: Duration,
+    /// Longest from accept (or a later request's first byte) to a complete request head.
+    pub head_timeout: Duration,
+    /// Longest from the first byte of a response to its last.
+    pub response_timeout: Duration,
+    /// Most connections open at once ([`connection::Connections`]).
+    pub max_connections: usize,
     /// Bytes that requests may hold at once beyond the frames themselves: copies being
     /// resolved or exported, encoded images, imported states ([`work::WorkBudget`]).
     pub work_memory_bytes: u64,
@@ -95,6 +103,9 @@ pub struct Shared {
     /// Resolved images shared between requests, and the working-memory budget they and
     /// every other large request reserve from.
     pub renders: renders::Renders,
+    /// The open connections and their cap (used by the accept loop; in-process router calls
+    /// bypass it).
+    pub connections: Arc<connection::Connections>,
 }
 
 /// Finished renders kept for requests that ask again before the frame changes: enough for a
@@ -137,6 +148,7 @@ impl AppState {
         let budget = work::WorkBudget::new(limits.work_memory_bytes, limits.work_wait);
         AppState(Arc::new(Shared {
             renders: renders::Renders::new(RENDERS_KEPT, budget),
+            connections: Arc::new(connection::Connections::new(limits.max_connections)),
             store: FrameStore::new(limits),
             decode_limits,
             resolve_threads,

@@ -2,23 +2,23 @@
 //! snapshot, push and tev tasks, and a graceful shutdown that ends with a final push and a final
 //! snapshot of every changed frame. `splatd serve` and the demo both run it.
 //!
-//! The accept loop is hyper-util's rather than `axum::serve`, for one reason: a header read
-//! timeout. Without it a client that opens a connection and trickles (or never sends) its headers
-//! holds a task and a socket forever; with it, such connections are closed after the idle
-//! timeout. Request bodies are bounded by the request timeout layer instead.
+//! The accept loop is ours (hyper's HTTP/1 connections) rather than `axum::serve`, so that every
+//! connection is admitted under the cap, its request heads are read and checked within the head
+//! deadline before hyper sees them, and a response that a client does not take in time is
+//! dropped (see [`crate::connection`]). Request bodies are bounded by the request timeout layer.
 
 use std::future::Future;
 use std::net::SocketAddr;
 use std::time::Duration;
 
-use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
-use hyper_util::server::conn::auto;
+use hyper::server::conn::http1;
+use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::server::graceful::GracefulShutdown;
-use hyper_util::service::TowerToHyperService;
 use tokio::net::TcpListener;
 
 use anyhow::Context;
 
+use super::connection::{service, Deadlines, Ended, HeadGate};
 use super::push::PushConfig;
 use super::{AppState, Config};
 
@@ -35,7 +35,17 @@ impl Server {
     /// Reads the tokens, opens and recovers the data directory, installs the metrics recorder
     /// (unless one is installed already in this process: the server then has no `/metrics`),
     /// and binds the listener. Nothing is served until [`Server::run`].
-    pub async fn bind(config: Config) -> anyhow::Result<Server> {
+    pub async fn bind(mut config: Config) -> anyhow::Result<Server> {
+        let nofile = super::connection::raise_descriptor_limit();
+        let cap = super::connection::cap_for(config.max_connections, nofile);
+        if cap < config.max_connections {
+            tracing::warn!(
+                max_connections = cap,
+                asked = config.max_connections,
+                "connection cap lowered to leave descriptors for other files"
+            );
+            config.max_connections = cap;
+        }
         let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
             .set_buckets(&[
                 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0,
@@ -139,18 +149,28 @@ impl Server {
 
 /// Serves `app` on `listener` until `shutdown` resolves, then stops accepting, lets requests in
 /// flight finish (batches being applied are applied and acknowledged), and returns.
+///
+/// Each connection is admitted under the cap ([`Connections::admit`]), its request heads pass
+/// the [`HeadGate`], and it is closed when a response outlives the response deadline.
 pub async fn serve(
     listener: TcpListener,
     app: AppState,
     shutdown: impl Future<Output = ()>,
 ) -> std::io::Result<()> {
-    let idle = app.store.limits().idle_timeout;
-    let service = TowerToHyperService::new(crate::http::router(app));
-    let mut builder = auto::Builder::new(TokioExecutor::new());
+    let limits = app.store.limits();
+    let deadlines = Deadlines {
+        head: limits.head_timeout,
+        idle: limits.idle_timeout,
+        response: limits.response_timeout,
+    };
+    let connections = app.connections.clone();
+    let router = crate::http::router(app);
+    let mut builder = http1::Builder::new();
+    // The gate keeps the head deadline and the idle timeout; hyper's own would also close
+    // keep-alive connections idling between requests.
     builder
-        .http1()
         .timer(TokioTimer::new())
-        .header_read_timeout(idle)
+        .header_read_timeout(None)
         .keep_alive(true);
     let graceful = GracefulShutdown::new();
     tokio::pin!(shutdown);
@@ -166,14 +186,29 @@ pub async fn serve(
                         continue;
                     }
                 };
+                let Ok(registered) = connections.admit() else {
+                    tracing::debug!(%peer, "connection refused: every connection is serving a request");
+                    drop(stream);
+                    continue;
+                };
                 let _ = stream.set_nodelay(true);
-                let connection = builder
-                    .serve_connection_with_upgrades(TokioIo::new(stream), service.clone())
-                    .into_owned();
+                let conn = registered.conn().clone();
+                let io = TokioIo::new(HeadGate::new(stream, conn.clone(), deadlines));
+                let connection = builder.serve_connection(io, service(router.clone(), conn.clone()));
                 let connection = graceful.watch(connection);
                 tokio::spawn(async move {
-                    if let Err(e) = connection.await {
-                        tracing::debug!(%peer, error = %e, "connection ended with an error");
+                    let _place = registered;
+                    match conn.drive(connection, deadlines.response).await {
+                        Ended::Done(Ok(())) => {}
+                        Ended::Done(Err(e)) => {
+                            tracing::debug!(%peer, error = %e, "connection ended with an error");
+                        }
+                        Ended::Evicted => {
+                            tracing::debug!(%peer, "connection closed to make room for a new one");
+                        }
+                        Ended::SlowReader => {
+                            tracing::info!(%peer, "response not taken within the response timeout: connection closed");
+                        }
                     }
                 });
             }

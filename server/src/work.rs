@@ -115,6 +115,16 @@ impl Reservation {
     pub fn bytes(&self) -> u64 {
         self.bytes
     }
+
+    /// Gives back all but `bytes` of the reservation (when a request's working memory shrinks,
+    /// e.g. a copy of the state dropped while its encoding is still being sent).
+    pub fn shrink_to(&mut self, bytes: u64) {
+        if bytes < self.bytes {
+            *self.budget.lock() -= self.bytes - bytes;
+            self.bytes = bytes;
+            self.budget.released.notify_waiters();
+        }
+    }
 }
 
 impl Drop for Reservation {
@@ -144,8 +154,16 @@ mod tests {
         drop(a);
         assert_eq!(waiter.await.unwrap(), Ok(50));
 
+        // Shrinking gives the difference back at once.
+        let mut b = b;
+        b.shrink_to(10);
+        assert_eq!((b.bytes(), budget.used()), (10, 10));
+        let more = budget.try_reserve(90).expect("room given back");
+        drop(more);
+
         // No room within the wait: refused with what was in use.
         let _c = budget.reserve(60).await.unwrap();
+        let _d = budget.reserve(30).await.unwrap();
         let err = budget.reserve(50).await.unwrap_err();
         assert_eq!((err.needed, err.used, err.capacity), (50, 100, 100));
         drop(b);

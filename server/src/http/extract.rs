@@ -19,6 +19,7 @@ use serde::Serialize;
 
 use crate::frame::ShardedFrame;
 use crate::http::error::ApiError;
+use crate::work::Reservation;
 use crate::AppState;
 
 /// Largest JSON request body (a `CreateFrame` is a few hundred bytes).
@@ -38,7 +39,9 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
     async fn from_request(request: Request, _: &S) -> Result<Self, ApiError> {
         let (parts, body) = request.into_parts();
         check_content_type(&parts.headers, "application/json")?;
-        let bytes = read_body(body, MAX_JSON_BODY).await?;
+        let encoding = Encoding::of(&parts.headers)?;
+        check_length(&parts.headers, MAX_JSON_BODY)?;
+        let bytes = read_body(body, MAX_JSON_BODY, encoding).await?;
         serde_json::from_slice(&bytes)
             .map(Json)
             .map_err(|e| ApiError::bad_request("bad_request", format!("invalid JSON body: {e}")))
@@ -81,13 +84,18 @@ impl FromRequestParts<AppState> for Frame {
     }
 }
 
-/// A kind of body posted to a frame: what it must be labelled, how large it may be.
+/// A kind of body posted to a frame: what it must be labelled, how large it may be, and how much
+/// memory decoding it takes.
 pub trait Upload {
     /// The Content-Type the body must declare (parameters such as `charset` are ignored).
     const CONTENT_TYPE: &'static str;
 
     /// Most bytes (after decompression) accepted for `frame`; beyond it, 413.
     fn limit(app: &AppState, frame: &ShardedFrame) -> usize;
+
+    /// Bytes that decoding and applying a body of `len` bytes allocates besides the body itself
+    /// (decoded records, a decoded state), reserved from the working-memory budget with it.
+    fn decoding_bytes(frame: &ShardedFrame, len: u64) -> u64;
 
     /// Called when the body could not be read (too large, cut off, badly compressed), so the
     /// refusal can be counted where the kind's other refusals are.
@@ -96,15 +104,25 @@ pub trait Upload {
 
 /// The body of a `POST` to a frame, of kind `K`.
 ///
-/// Checks, in this order: the Content-Type (415), that the frame exists (404), then reads the
-/// body within `K`'s limit for that frame (413, or 400 `unreadable_body`). So a client learns of
-/// a wrong label or an unknown frame without the server reading, let alone decompressing, the
-/// body.
+/// Checks, in this order: the Content-Type and Content-Encoding (415), that the frame exists
+/// (404), that a declared `Content-Length` is within `K`'s limit for that frame (413, before
+/// reading anything), then reserves working memory for the body and its decoding (503 `busy`
+/// when the budget stays spent), and only then reads the body within the limit, inflating a
+/// compressed one on the blocking pool up to the limit (413, or 400 `unreadable_body`). So a
+/// client learns of a wrong label, an unknown frame or an oversized body without the server
+/// reading, let alone decompressing, the body; and no number of concurrent uploads (zstd bombs
+/// included) can hold more than the budget.
+///
+/// A body sent as it is (no `Content-Encoding`) with a `Content-Length` reserves exactly that
+/// length; a compressed or chunked body reserves the whole limit (plus its compressed bytes), as
+/// its size is known only once it has been read.
 pub struct FrameBody<K> {
     /// The frame posted to.
     pub frame: Arc<ShardedFrame>,
     /// The whole body, decompressed.
     pub bytes: Bytes,
+    /// Working memory held for the body and its decoding; keep it until they are dropped.
+    pub reservation: Reservation,
     kind: PhantomData<fn() -> K>,
 }
 
@@ -114,16 +132,67 @@ impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
     async fn from_request(request: Request, app: &AppState) -> Result<Self, ApiError> {
         let (mut parts, body) = request.into_parts();
         check_content_type(&parts.headers, K::CONTENT_TYPE)?;
+        let encoding = Encoding::of(&parts.headers)?;
         let Frame(frame) = Frame::from_request_parts(&mut parts, app).await?;
-        let bytes = read_body(body, K::limit(app, &frame))
+        let limit = K::limit(app, &frame);
+        let declared = check_length(&parts.headers, limit).inspect_err(|_| K::refused(&frame))?;
+        // The bytes on the wire, and what they inflate to (for a compressed body, at most the
+        // limit; its real size is unknown until then).
+        let (wire, inflated) = match declared {
+            Some(len) if encoding == Encoding::Identity => (0, len),
+            Some(len) => (len, limit as u64),
+            None => (0, limit as u64),
+        };
+        let reservation = app
+            .renders
+            .budget()
+            .reserve(wire + inflated + K::decoding_bytes(&frame, inflated))
+            .await
+            .map_err(|busy| ApiError::busy(&busy))?;
+        let bytes = read_body(body, limit, encoding)
             .await
             .inspect_err(|_| K::refused(&frame))?;
         Ok(FrameBody {
             frame,
             bytes,
+            reservation,
             kind: PhantomData,
         })
     }
+}
+
+/// Refuses a body whose `Content-Length` already says it is longer than `limit`: 413
+/// `body_too_large` before a byte of it is read (and so before `Expect: 100-continue` is
+/// answered). The declared length, if any, is returned. (For a compressed body the length is
+/// that of the compressed bytes: a body that large on the wire is refused too.)
+pub fn check_length(headers: &HeaderMap, limit: usize) -> Result<Option<u64>, ApiError> {
+    let Some(value) = headers.get(header::CONTENT_LENGTH) else {
+        return Ok(None);
+    };
+    let declared = value
+        .to_str()
+        .ok()
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .ok_or_else(|| ApiError::bad_request("bad_request", "invalid Content-Length header"))?;
+    if declared > limit as u64 {
+        return Err(ApiError::new(
+            StatusCode::PAYLOAD_TOO_LARGE,
+            "body_too_large",
+            format!(
+                "request body of {declared} bytes (Content-Length) exceeds this endpoint's \
+                 limit of {limit} bytes"
+            ),
+        ));
+    }
+    Ok(Some(declared))
+}
+
+fn too_large(limit: usize) -> ApiError {
+    ApiError::new(
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "body_too_large",
+        format!("request body exceeds this endpoint's limit of {limit} bytes"),
+    )
 }
 
 /// Refuses a body of the wrong type before reading it: 415 `unsupported_content_type`.
@@ -151,18 +220,48 @@ fn check_content_type(headers: &HeaderMap, expected: &str) -> Result<(), ApiErro
     ))
 }
 
-/// Reads a whole (already decompressed) body, refusing more than `limit` bytes with 413.
-async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
-    axum::body::to_bytes(body, limit).await.map_err(|e| {
+/// How a request body is compressed (`Content-Encoding`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Encoding {
+    /// Not compressed.
+    Identity,
+    /// gzip (RFC 1952), one or more members.
+    Gzip,
+    /// zstd (RFC 8878), one or more frames.
+    Zstd,
+}
+
+impl Encoding {
+    /// The encoding a request declares; 415 `unsupported_content_encoding` for any other than
+    /// none, `identity`, `gzip` and `zstd`.
+    pub fn of(headers: &HeaderMap) -> Result<Encoding, ApiError> {
+        let Some(value) = headers.get(header::CONTENT_ENCODING) else {
+            return Ok(Encoding::Identity);
+        };
+        let value = value.to_str().unwrap_or("").trim().to_ascii_lowercase();
+        match value.as_str() {
+            "" | "identity" => Ok(Encoding::Identity),
+            "gzip" | "x-gzip" => Ok(Encoding::Gzip),
+            "zstd" => Ok(Encoding::Zstd),
+            _ => Err(ApiError::new(
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                "unsupported_content_encoding",
+                format!("unsupported Content-Encoding {value:?}; use gzip, zstd or none"),
+            )),
+        }
+    }
+}
+
+/// Reads a whole body, refusing more than `limit` bytes with 413, and inflates a compressed one
+/// on the blocking pool (never on the threads that answer other requests), stopping at `limit`
+/// inflated bytes: past it, 413 too.
+async fn read_body(body: Body, limit: usize, encoding: Encoding) -> Result<Bytes, ApiError> {
+    let wire = axum::body::to_bytes(body, limit).await.map_err(|e| {
         let inner = e.into_inner();
         let mut source: Option<&(dyn std::error::Error + 'static)> = Some(inner.as_ref());
         while let Some(err) = source {
             if err.is::<http_body_util::LengthLimitError>() {
-                return ApiError::new(
-                    StatusCode::PAYLOAD_TOO_LARGE,
-                    "body_too_large",
-                    format!("request body exceeds this endpoint's limit of {limit} bytes"),
-                );
+                return too_large(limit);
             }
             source = err.source();
         }
@@ -170,7 +269,39 @@ async fn read_body(body: Body, limit: usize) -> Result<Bytes, ApiError> {
             "unreadable_body",
             format!("could not read the request body: {inner}"),
         )
-    })
+    })?;
+    if encoding == Encoding::Identity {
+        return Ok(wire);
+    }
+    crate::http::blocking::blocking("inflating a body", move || inflate(&wire, encoding, limit))
+        .await
+}
+
+/// `wire` inflated, at most `limit` bytes of it.
+fn inflate(wire: &[u8], encoding: Encoding, limit: usize) -> Result<Bytes, ApiError> {
+    use std::io::Read;
+    let unreadable = |e: std::io::Error| {
+        ApiError::bad_request(
+            "unreadable_body",
+            format!("could not decompress the request body: {e}"),
+        )
+    };
+    let reader: Box<dyn Read + '_> = match encoding {
+        Encoding::Identity => Box::new(wire),
+        Encoding::Gzip => Box::new(flate2::read::MultiGzDecoder::new(wire)),
+        Encoding::Zstd => {
+            Box::new(zstd::stream::read::Decoder::with_buffer(wire).map_err(unreadable)?)
+        }
+    };
+    let mut out = Vec::new();
+    reader
+        .take(limit as u64 + 1)
+        .read_to_end(&mut out)
+        .map_err(unreadable)?;
+    if out.len() > limit {
+        return Err(too_large(limit));
+    }
+    Ok(Bytes::from(out))
 }
 
 /// A lease on `frame` for a request that changes it (see `ShardedFrame::lease`); 404

@@ -13,6 +13,7 @@ use crate::frame::ShardedFrame;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{FrameBody, Json, Query, Upload};
+use crate::work::Reservation;
 use crate::AppState;
 
 /// Content type of EXR bodies.
@@ -27,6 +28,11 @@ impl Upload for Samples {
     /// The largest batch the decode limits allow.
     fn limit(app: &AppState, _: &ShardedFrame) -> usize {
         app.decode_limits.max_body_len()
+    }
+
+    /// The decoded records take as many bytes as their wire form (20 per record).
+    fn decoding_bytes(_: &ShardedFrame, len: u64) -> u64 {
+        len
     }
 
     fn refused(frame: &ShardedFrame) {
@@ -48,6 +54,11 @@ impl Upload for Pass {
             .saturating_add(1 << 20)
     }
 
+    /// The decoded pixels (12 bytes each), their records (20) and the decoder's own buffers.
+    fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
+        pass_pixels(frame) * 48
+    }
+
     fn refused(frame: &ShardedFrame) {
         reject(frame, 0, "body");
     }
@@ -61,11 +72,16 @@ fn pass_pixels(frame: &ShardedFrame) -> u64 {
 /// `POST /v1/frames/{id}/samples`: one batch, applied whole or not at all.
 pub async fn post_samples(
     State(app): State<AppState>,
-    FrameBody { frame, bytes, .. }: FrameBody<Samples>,
+    FrameBody {
+        frame,
+        bytes,
+        reservation,
+        ..
+    }: FrameBody<Samples>,
 ) -> Result<Json<BatchAck>, ApiError> {
     metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
     let limits = app.decode_limits;
-    ingest(&app, frame, move |frame| {
+    ingest(&app, frame, reservation, move |frame| {
         Batch::decode(&bytes, &limits).map_err(|e| {
             reject(frame, 0, e.code());
             ApiError::from(&e)
@@ -94,10 +110,15 @@ pub struct PassQuery {
 pub async fn post_pass(
     State(app): State<AppState>,
     Query(query): Query<PassQuery>,
-    FrameBody { frame, bytes, .. }: FrameBody<Pass>,
+    FrameBody {
+        frame,
+        bytes,
+        reservation,
+        ..
+    }: FrameBody<Pass>,
 ) -> Result<Json<BatchAck>, ApiError> {
     metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
-    ingest(&app, frame, move |frame| {
+    ingest(&app, frame, reservation, move |frame| {
         let refuse = |e: crate::passes::PassError| {
             reject(frame, 0, "pass");
             ApiError::invalid_pass(frame.id(), &e)
@@ -117,16 +138,20 @@ pub async fn post_pass(
     .await
 }
 
-/// Builds a batch (decoding it on the blocking pool), applies it and acknowledges it.
+/// Builds a batch (decoding it on the blocking pool), applies it and acknowledges it; the
+/// working memory reserved for the body is given back once the batch is applied.
 async fn ingest(
     app: &AppState,
     frame: Arc<ShardedFrame>,
+    reservation: Reservation,
     make_batch: impl FnOnce(&ShardedFrame) -> Result<Batch, ApiError> + Send + 'static,
 ) -> Result<Json<BatchAck>, ApiError> {
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
     let worker_frame = frame.clone();
     let (batch_id, ingested) = blocking("ingest", move || {
+        // The body's and the batch's working memory is held until both are gone.
+        let _reservation = reservation;
         let batch = make_batch(&worker_frame)?;
         let ingested = worker_frame.ingest(&batch).map_err(|e| {
             reject_counted(batch.records.len() as u64, "samples");

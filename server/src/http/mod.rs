@@ -8,6 +8,7 @@
 //!   [`images`]: EXR and PNG; [`need`]: where a frame needs samples; [`states`]: export and
 //!   import; [`operations`]: the page, health, metrics, sync;
 //! * [`extract`]: request extractors with JSON refusals; [`error`]: the one error type;
+//!   [`manners`]: `Connection: close` when a body is left unread;
 //!   [`blocking`]: heavy work off the reactor;
 //! * [`auth`]: bearer tokens, roles, and the guard each route is declared with.
 
@@ -18,6 +19,7 @@ pub mod extract;
 pub mod frames;
 pub mod images;
 pub mod ingest;
+pub mod manners;
 pub mod need;
 pub mod operations;
 pub mod states;
@@ -25,6 +27,8 @@ pub mod states;
 mod tests;
 #[cfg(test)]
 mod tests_budget;
+#[cfg(test)]
+mod tests_logs;
 #[cfg(test)]
 mod tests_need;
 #[cfg(test)]
@@ -38,7 +42,6 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{on, MethodFilter};
 use axum::Router;
 use tower_http::compression::CompressionLayer;
-use tower_http::decompression::RequestDecompressionLayer;
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
@@ -57,8 +60,19 @@ pub fn router(app: AppState) -> Router {
             timeout,
         ))
         .layer(axum::middleware::from_fn(json_errors))
-        .layer(TraceLayer::new_for_http())
+        .layer(TraceLayer::new_for_http().make_span_with(request_span))
+        .layer(axum::middleware::from_fn(manners::close_unless_read))
         .with_state(app)
+}
+
+/// The span of one request: its method and path, never its query string, which may hold a
+/// secret a client put there by mistake (a `?token=`), nor its headers (`Authorization`).
+fn request_span(request: &Request) -> tracing::Span {
+    tracing::debug_span!(
+        "request",
+        method = %request.method(),
+        path = %request.uri().path(),
+    )
 }
 
 /// Every endpoint, each declared with the role it needs right where its path and handler are.
@@ -156,11 +170,11 @@ impl Routes {
     {
         let filter = MethodFilter::try_from(method.clone())
             .unwrap_or_else(|e| panic!("{method} {path}: {e}"));
-        // Decompression sits inside the guard: a request without the right token is refused
+        // The guard runs before the handler: a request without the right token is refused
         // before anything reads or inflates its body (a gzip bomb from a stranger costs
-        // nothing). Extractors only read the body once the guard has let the request through.
-        let mut endpoint =
-            on(filter, handler).layer(RequestDecompressionLayer::new().gzip(true).zstd(true));
+        // nothing). The body extractors inflate compressed bodies themselves, after reserving
+        // working memory, on the blocking pool and within the endpoint's limit.
+        let mut endpoint = on(filter, handler);
         if let Some(role) = role {
             endpoint = endpoint.route_layer(axum::middleware::from_fn_with_state(
                 Gate::new(self.app.clone(), role),

@@ -1,6 +1,10 @@
 //! Frame states: export (`GET .../state`) for merging elsewhere, and import (`POST .../state`)
 //! of another node's state or a pushed delta.
 
+use std::pin::Pin;
+use std::task::{Context, Poll};
+
+use axum::body::{Body, Bytes};
 use axum::extract::State;
 use axum::http::header;
 use axum::response::IntoResponse;
@@ -11,6 +15,7 @@ use crate::frame::ShardedFrame;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, FrameBody, Json, Upload};
+use crate::work::Reservation;
 use crate::AppState;
 
 /// Room for the applied batches in a state body, beyond its cells: 32 MiB, about four million
@@ -30,6 +35,11 @@ impl Upload for StateBody {
         let cells = frame.spec().memory_bytes() as usize;
         cells + (cells / 8).max(MAX_STATE_BATCH_BYTES) + 64 * 1024
     }
+
+    /// The decoded cells and the state loaded from them, each the size of the frame's state.
+    fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
+        2 * frame.spec().memory_bytes()
+    }
 }
 
 /// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
@@ -44,17 +54,52 @@ pub async fn export(
         .reserve(2 * frame.spec().memory_bytes())
         .await
         .map_err(|busy| ApiError::busy(&busy))?;
-    let bytes = blocking("export", move || {
-        let _reservation = reservation;
+    let (bytes, mut reservation) = blocking("export", move || {
         let cut = frame.cut();
         let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
         crate::export::write_bands(&cut.bands, frame.id(), None, cut.seen.applied(), &mut out)
             .expect("writing into a Vec<u8> is infallible");
-        Ok(out)
+        Ok((out, reservation))
     })
     .await?;
     metrics::counter!("splatd_exports_total").increment(1);
-    Ok(([(header::CONTENT_TYPE, STATE_CONTENT_TYPE)], bytes))
+    reservation.shrink_to(bytes.len() as u64);
+    // The encoded state stays reserved until the response is sent or dropped: a client that
+    // reads slowly holds its share of the budget, not memory beside it.
+    let body = Reserved {
+        inner: Body::from(bytes),
+        _reservation: reservation,
+    };
+    Ok((
+        [(header::CONTENT_TYPE, STATE_CONTENT_TYPE)],
+        Body::new(body),
+    ))
+}
+
+/// A response body that holds working memory until it is dropped.
+struct Reserved {
+    inner: Body,
+    _reservation: Reservation,
+}
+
+impl http_body::Body for Reserved {
+    type Data = Bytes;
+    type Error = axum::Error;
+
+    fn poll_frame(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+    ) -> Poll<Option<Result<http_body::Frame<Bytes>, axum::Error>>> {
+        Pin::new(&mut self.inner).poll_frame(cx)
+    }
+
+    fn is_end_stream(&self) -> bool {
+        self.inner.is_end_stream()
+    }
+
+    fn size_hint(&self) -> http_body::SizeHint {
+        self.inner.size_hint()
+    }
 }
 
 /// `POST /v1/frames/{id}/state`: adds another node's state (or pushed delta) to the frame,
@@ -62,13 +107,19 @@ pub async fn export(
 /// frame has applied already is refused (409 `batches_overlap`).
 pub async fn import(
     State(app): State<AppState>,
-    FrameBody { frame, bytes, .. }: FrameBody<StateBody>,
+    FrameBody {
+        frame,
+        bytes,
+        reservation,
+        ..
+    }: FrameBody<StateBody>,
 ) -> Result<Json<ImportAck>, ApiError> {
     let cells = frame.spec().memory_bytes() / 8;
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
     let (samples, applied) = blocking("import", move || {
+        let _reservation = reservation;
         let mut dump = StateDump::decode(&bytes, cells)?;
         let origin = dump.origin.clone();
         let name = dump.frame.clone();
