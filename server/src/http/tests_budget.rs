@@ -258,7 +258,8 @@ async fn imports_wait_for_working_memory_and_long_bodies_are_refused_from_their_
 
     // A declared length over the limit is refused before the body is polled at all: this body
     // would panic if read.
-    let limit = frame.spec().memory_bytes() + 64 * 1024;
+    let limit =
+        <crate::http::states::StateBody as crate::http::extract::Upload>::limit(&app, &frame);
     let request = Request::post("/v1/frames/f/state")
         .header(header::CONTENT_TYPE, splatd_proto::STATE_CONTENT_TYPE)
         .header(header::CONTENT_LENGTH, limit + 1)
