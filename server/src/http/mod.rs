@@ -28,8 +28,6 @@ mod tests;
 #[cfg(test)]
 mod tests_budget;
 #[cfg(test)]
-mod tests_logs;
-#[cfg(test)]
 mod tests_need;
 #[cfg(test)]
 mod tests_overlap;

@@ -1,6 +1,10 @@
 //! No secret in any log line: requests carrying tokens (in the header, or by mistake in the query
 //! string) are logged at every level into a buffer, which must name the request but hold neither
 //! token.
+//!
+//! A test binary of its own, with the capture as the process's global subscriber: tracing caches
+//! each log call site's interest process-wide, and beside the library's other tests (threads
+//! logging with no subscriber) a thread-local capture sometimes received nothing.
 
 use std::io::Write;
 use std::sync::{Arc, Mutex};
@@ -9,9 +13,9 @@ use axum::body::Body;
 use axum::http::{header, Request, StatusCode};
 use tower::ServiceExt;
 
-use super::auth::Auth;
-use super::router;
-use crate::{AppState, Limits};
+use splatd_server::http::auth::Auth;
+use splatd_server::http::router;
+use splatd_server::{AppState, Limits};
 
 const READ: &str = "read-secret-0123456789abcdef";
 const IN_QUERY: &str = "query-secret-0123456789abcdef";
@@ -41,7 +45,7 @@ async fn tokens_never_reach_the_log_at_any_level() {
             move || log.clone()
         })
         .finish();
-    let _default = tracing::subscriber::set_default(subscriber);
+    tracing::subscriber::set_global_default(subscriber).expect("the only subscriber of this test");
 
     let auth = Auth::parse(&format!("read {READ}"), false).unwrap();
     let app = AppState::with_auth(Limits::default(), None, None, auth);
