@@ -193,9 +193,11 @@ fn run_server(config: splatd_server::Config) -> Result<()> {
         .context("starting the async runtime")?;
     runtime.block_on(async move {
         let server = Server::bind(config).await?;
+        // Handlers first: a SIGTERM right after the address is announced must stop us gently.
+        let shutdown = shutdown_signal();
         // Scripts and tests wait for this line to learn the port.
         println!("splatd listening on http://{}", server.local_addr());
-        server.run(shutdown_signal()).await
+        server.run(shutdown).await
     })
 }
 
