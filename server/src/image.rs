@@ -214,7 +214,17 @@ pub fn encode_exr(
     for layer in extra {
         push_rgb(&mut channels, &format!("{}.", layer.name), &layer.rgb);
     }
-    let attributes = LayerAttributes::default();
+    let bytes = write_one_part(size, LayerAttributes::default(), channels)?;
+    add_attributes(bytes, &provenance.attributes(resolved))
+}
+
+/// One part of `size` pixels holding `channels`, in the layout of the module docs (scan lines,
+/// ZIP over 16 lines). Like [`encode_exr`], call it off the async threads.
+pub fn write_one_part(
+    size: (usize, usize),
+    attributes: LayerAttributes,
+    channels: Vec<AnyChannel<FlatSamples>>,
+) -> Result<Vec<u8>> {
     let layer = Layer::new(
         size,
         attributes,
@@ -225,7 +235,7 @@ pub fn encode_exr(
     Image::from_layer(layer)
         .write()
         .to_buffered(std::io::Cursor::new(&mut bytes))?;
-    add_attributes(bytes, &provenance.attributes(resolved))
+    Ok(bytes)
 }
 
 fn push_rgb(channels: &mut Vec<AnyChannel<FlatSamples>>, prefix: &str, rgb: &[[f32; 3]]) {

@@ -5,10 +5,7 @@ use axum::extract::State;
 use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use bytes::Bytes;
-use exr::prelude::{
-    AnyChannel, AnyChannels, Encoding, FlatSamples, Image, Layer, LayerAttributes, SmallVec, Text,
-    WritableImage,
-};
+use exr::prelude::{AnyChannel, FlatSamples, LayerAttributes, Text};
 use splatd_proto::api::{self, NeedFormat, NeedQuery, DEFAULT_NEED_TILE};
 
 use crate::converge::need_map;
@@ -66,15 +63,9 @@ pub fn encode_need_exr(map: &api::NeedMap) -> exr::error::Result<Vec<u8>> {
         software_name: Some(Text::from("splatd need map")),
         ..LayerAttributes::default()
     };
-    let layer = Layer::new(
+    crate::image::write_one_part(
         (map.tiles_x as usize, map.tiles_y as usize),
         attributes,
-        Encoding::SMALL_LOSSLESS,
-        AnyChannels::sort(SmallVec::from_vec(channels)),
-    );
-    let mut bytes = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .to_buffered(std::io::Cursor::new(&mut bytes))?;
-    Ok(bytes)
+        channels,
+    )
 }
