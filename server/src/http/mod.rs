@@ -41,7 +41,8 @@ use axum::routing::{on, MethodFilter};
 use axum::Router;
 use tower_http::compression::CompressionLayer;
 use tower_http::timeout::TimeoutLayer;
-use tower_http::trace::TraceLayer;
+use tower_http::trace::{DefaultOnFailure, TraceLayer};
+use tracing::Level;
 
 use crate::AppState;
 use auth::{Gate, Role};
@@ -58,7 +59,15 @@ pub fn router(app: AppState) -> Router {
             timeout,
         ))
         .layer(axum::middleware::from_fn(json_errors))
-        .layer(TraceLayer::new_for_http().make_span_with(request_span))
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(request_span)
+                // A 5xx here is either `busy` (503, back-pressure a flood of clients can cause
+                // thousands of times a second) or an internal error that `ApiError::internal`
+                // has already logged at ERROR with its cause: neither needs a second line above
+                // DEBUG.
+                .on_failure(DefaultOnFailure::new().level(Level::DEBUG)),
+        )
         .layer(axum::middleware::from_fn(manners::close_unless_read))
         .with_state(app)
 }
