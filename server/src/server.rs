@@ -172,7 +172,11 @@ pub async fn serve(
     builder
         .timer(TokioTimer::new())
         .header_read_timeout(None)
-        .keep_alive(true);
+        .keep_alive(true)
+        // A client may shut its side of the socket once its request is sent (`nc`, HTTP/1.0
+        // habits): the request is still answered. A half-closed connection that sends nothing
+        // is still bound by the head and response deadlines.
+        .half_close(true);
     let graceful = GracefulShutdown::new();
     tokio::pin!(shutdown);
     loop {

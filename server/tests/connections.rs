@@ -1,6 +1,6 @@
 //! Connections against the real accept loop, in process on 127.0.0.1 with small limits: the cap,
 //! the head and response deadlines, JSON answers to unreadable heads, `Connection: close` after
-//! early refusals, and `Expect: 100-continue`.
+//! early refusals, `Expect: 100-continue`, and clients that half-close after their request.
 //!
 //! Every wait is for an event (a response, the server closing a socket, the count of open
 //! connections) with [`PATIENCE`] only as a guard against a hang; nothing asserts on time.
@@ -375,5 +375,42 @@ async fn a_reader_that_stops_reading_is_dropped_at_the_response_deadline() {
         "{} of {state_len} bytes",
         got.len()
     );
+    server.stop().await;
+}
+
+#[tokio::test]
+async fn a_client_that_shuts_its_write_side_after_a_request_still_gets_the_answer() {
+    // `printf 'GET ...' | nc` and many HTTP/1.0-era tools send a request and then shut their
+    // side of the socket. The answer must still come, also when it is not ready at once: an
+    // image is resolved on the render thread, so hyper reads the socket's end of stream while
+    // the response is pending, and without half-close support it dropped the request there.
+    let auth = Auth::parse(&format!("admin {ADMIN}"), false).unwrap();
+    let server = Running::start(small_limits(), auth).await;
+    let mut s = BufReader::new(server.connect().await);
+    s.get_mut()
+        .write_all(&create_request("half", 64, 48))
+        .await
+        .unwrap();
+    assert_eq!(response(&mut s).await.0, 201);
+    for _ in 0..8 {
+        let mut s = server.connect().await;
+        s.write_all(
+            format!(
+                "GET /v1/frames/half/image.exr HTTP/1.1\r\nhost: x\r\n\
+                 authorization: Bearer {ADMIN}\r\n\r\n"
+            )
+            .as_bytes(),
+        )
+        .await
+        .unwrap();
+        s.shutdown().await.unwrap();
+        let got = until_closed(&mut s).await;
+        let head = String::from_utf8_lossy(&got[..got.len().min(200)]).into_owned();
+        assert!(head.starts_with("HTTP/1.1 200"), "answer: {head:?}");
+        assert!(
+            got.windows(4).any(|w| w == [0x76, 0x2f, 0x31, 0x01]),
+            "an EXR body"
+        );
+    }
     server.stop().await;
 }
