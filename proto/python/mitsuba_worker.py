@@ -27,7 +27,7 @@ then in `--rounds` rounds (6) asks for the need map (`GET /v1/frames/{id}/need?t
 `--tile` 8), spreads the round's samples over the tiles with `splatd_client.plan_samples` and
 renders each tile's extra samples as Mitsuba crop windows (the film's crop offset and size; a
 row of neighbouring tiles that all want another sample is one window), 1 sample per pixel and a
-seed of its own each, posted as batches of records. `--base-doubt` (0.2) adds that much doubt
+seed of its own each, posted as batches of records. `--base-doubt` (0.5) adds that much doubt
 per sample to every tile's need before planning: the map sees fireflies and thin brightness
 bands, not plain noise, and without it the light's tile takes nearly every sample.
 `--uniform-share` renders that share of every round as uniform passes first. The budget is
@@ -361,7 +361,7 @@ def main(argv):
     g.add_argument("--rounds", type=int, default=6, help="need map requests for the rest")
     g.add_argument("--uniform-share", type=float, default=0.0,
                    help="share of each round rendered as uniform passes before the guided part")
-    g.add_argument("--base-doubt", type=float, default=0.2,
+    g.add_argument("--base-doubt", type=float, default=0.5,
                    help="doubt every tile is given beyond the map's (plain noise), see run_guided")
     g.add_argument("--tile", type=int, default=8, help="need map tile edge, in pixels")
     args = p.parse_args(argv)
