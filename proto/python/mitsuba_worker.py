@@ -32,8 +32,8 @@ per sample to every tile's need before planning: the map sees fireflies and thin
 bands, not plain noise, and without it the light's tile takes nearly every sample.
 `--uniform-share` renders that share of every round as uniform passes first. The budget is
 spent exactly; the worker prints one line per round. It draws the random numbers of passes
-`--first-pass` onwards, at most about twice its budget's passes (it prints the range): give
-other workers of the frame disjoint ranges. See `run_guided`.
+`--first-pass` onwards, at most about twice its budget's passes plus one per batch (it prints
+the range): give other workers of the frame disjoint ranges. See `run_guided`.
 
     python3 proto/python/mitsuba_worker.py --url http://127.0.0.1:7878 --frame box --res 64 \
         --guided --passes 64
