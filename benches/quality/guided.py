@@ -93,7 +93,7 @@ def rel_mse(x, ref):
 
 
 def parse_policy(text):
-    """`warmup:rounds:uniform_share:base_doubt`, e.g. `0.25:6:0:0.5` (see run_guided)."""
+    """`warmup:rounds:uniform_share:base_doubt`, e.g. `0.25:6:0.25:0.5` (see run_guided)."""
     try:
         warmup, rounds, share, doubt = text.split(":")
         return {"warmup": float(warmup), "rounds": int(rounds), "uniform_share": float(share),
@@ -135,9 +135,9 @@ def main():
     ap.add_argument("--spp", default="16,64", help="budgets, in samples per pixel")
     ap.add_argument("--realizations", type=int, default=4)
     ap.add_argument("--policies", type=parse_policy, nargs="+",
-                    default=[parse_policy("0.25:6:0:0"), parse_policy("0.25:6:0:0.5")],
+                    default=[parse_policy("0.25:6:0:0"), parse_policy("0.25:6:0.25:0.5")],
                     help="guided policies WARMUP:ROUNDS:UNIFORM_SHARE:BASE_DOUBT (see "
-                    "mitsuba_worker.run_guided; the worker's defaults are 0.25:6:0:0.5)")
+                    "mitsuba_worker.run_guided; the worker's defaults are 0.25:6:0.25:0.5)")
     ap.add_argument("--tile", type=int, default=8, help="need map tile edge")
     ap.add_argument("--gt-spp", type=int, default=8192)
     ap.add_argument("--ref", default=os.path.join(REPO, "bench-data", "guided-ref"),

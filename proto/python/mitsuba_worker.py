@@ -30,7 +30,7 @@ row of neighbouring tiles that all want another sample is one window), 1 sample 
 seed of its own each, posted as batches of records. `--base-doubt` (0.5) adds that much doubt
 per sample to every tile's need before planning: the map sees fireflies and thin brightness
 bands, not plain noise, and without it the light's tile takes nearly every sample.
-`--uniform-share` renders that share of every round as uniform passes first. The budget is
+`--uniform-share` (0.25) renders that share of every round as uniform passes first. The budget is
 spent exactly; the worker prints one line per round. It draws the random numbers of passes
 `--first-pass` onwards, at most about twice its budget's passes plus one per batch (it prints
 the range): give other workers of the frame disjoint ranges. See `run_guided`.
@@ -359,7 +359,7 @@ def main(argv):
     g.add_argument("--samples", type=int, default=None, help="total samples (default: passes x pixels)")
     g.add_argument("--warmup", type=float, default=0.25, help="share of the budget rendered uniformly first")
     g.add_argument("--rounds", type=int, default=6, help="need map requests for the rest")
-    g.add_argument("--uniform-share", type=float, default=0.0,
+    g.add_argument("--uniform-share", type=float, default=0.25,
                    help="share of each round rendered as uniform passes before the guided part")
     g.add_argument("--base-doubt", type=float, default=0.5,
                    help="doubt every tile is given beyond the map's (plain noise), see run_guided")
