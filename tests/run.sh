@@ -6,6 +6,8 @@
 #   python3-venv                 the Python client package installed into a fresh venv
 #   nginx                        the load balancer in front of several nodes (Debian package)
 #   chromium + chromedriver      the live page, driven headless (Debian packages)
+#   Mitsuba 3 + Dr.Jit           the Mitsuba worker's guided-mode test (pip, pinned in
+#                                benches/quality/requirements.txt)
 #   blender, openimageio-tools   the Blender worker's test, oiiotool's view of EXR headers
 #                                (optional: skipped with a message when they cannot be installed)
 #
@@ -32,6 +34,7 @@ python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ig
 # (two tests running apt-get at the same time would fight over its lock).
 bash tests/setup/nginx.sh >/dev/null
 bash tests/setup/python_venv.sh >/dev/null
+bash tests/setup/mitsuba.sh >/dev/null
 # Optional: without them the Blender worker's test skips (saying why) and the provenance test
 # checks the EXR header with OpenEXR's Python package only.
 bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip"

@@ -254,6 +254,47 @@ def test_create_or_get_puts_the_parameters_and_pass_layers_are_encoded():
         server.server_close()
 
 
+
+def _need_map(need, width=10, height=4, tile=4):
+    tx, ty = -(-width // tile), -(-height // tile)
+    return {"frame": "f", "width": width, "height": height, "tile": tile, "tiles_x": tx,
+            "tiles_y": ty, "samples": 0, "need": need}
+
+
+def test_tile_windows_and_neediest_tiles():
+    m = _need_map([0.5, 2.0, 1.0, 0.0, 2.0, 0.1], width=10, height=6)
+    assert sc.tile_windows(m) == [(0, 0, 4, 4), (4, 0, 4, 4), (8, 0, 2, 4),
+                                  (0, 4, 4, 2), (4, 4, 4, 2), (8, 4, 2, 2)]
+    # Neediest first; the tie between tiles 1 and 4 goes to the lower index.
+    assert sc.neediest_tiles(m, 3) == [(4, 0, 4, 4), (4, 4, 4, 2), (8, 0, 2, 4)]
+    try:
+        sc.tile_windows(dict(m, need=[1.0]))
+    except ValueError as e:
+        assert "1 scores for 3x2 tiles" in str(e), e
+    else:
+        raise AssertionError("a map with too few scores was accepted")
+
+
+def test_plan_samples_by_hand():
+    # Tiles of 16, 16 and 8 pixels; square roots of the needs 2, 1, 0 (sum 3).
+    m = _need_map([4.0, 1.0, 0.0])
+    # Shares 100*2/3/16 = 4.17 and 100/3/16 = 2.08 passes: 4 and 2 (96 samples); the 4 left fit
+    # no tile.
+    assert sc.plan_samples(m, 100) == [4, 2, 0]
+    # Shares 1.67, 0.83, 0: 1 pass (16), then by largest fraction: tile 1 (16 more), tile 0 does
+    # not fit in the 8 left, tile 2 does.
+    assert sc.plan_samples(m, 40) == [1, 1, 1]
+    # No need anywhere: in proportion to the pixels, here one pass of every tile.
+    assert sc.plan_samples(_need_map([0.0, 0.0, 0.0]), 40) == [1, 1, 1]
+    assert sc.plan_samples(m, 0) == [0, 0, 0]
+    try:
+        sc.plan_samples(m, -1)
+    except ValueError as e:
+        assert "negative" in str(e)
+    else:
+        raise AssertionError("a negative budget was accepted")
+
+
 if __name__ == "__main__":
     tests = [(name, fn) for name, fn in sorted(globals().items()) if name.startswith("test_") and callable(fn)]
     failed = 0

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import math
 import random
 import re
 import struct
@@ -66,7 +67,7 @@ MAGIC = b"SPLB"
 #: The batch wire format version this client writes and reads.
 VERSION = 1
 #: The package version: ``VERSION`` of the wire format, then the client's own ``minor.patch``.
-__version__ = "1.1.0"
+__version__ = "1.2.0"
 RECORD_SIZE = 20
 MAX_FRAME_ID_LEN = 128
 DEFAULT_MAX_RECORDS = 4 * 1024 * 1024
@@ -432,16 +433,64 @@ class Client:
         raise SplatdError(None, "gave_up", f"{operation} failed after {self.max_attempts} attempts; last failure: {last}")
 
 
+def tile_windows(need_map: Dict[str, Any]) -> List[Tuple[int, int, int, int]]:
+    """Every tile of a need map as a crop window ``(x, y, width, height)``, in the map's order
+    (row-major; tiles at the right and bottom edge may be smaller than ``tile``)."""
+    tile, tx, ty = int(need_map["tile"]), int(need_map["tiles_x"]), int(need_map["tiles_y"])
+    width, height = int(need_map["width"]), int(need_map["height"])
+    if len(need_map["need"]) != tx * ty:
+        raise ValueError(f"need map has {len(need_map['need'])} scores for {tx}x{ty} tiles")
+    windows = []
+    for i in range(tx * ty):
+        x, y = (i % tx) * tile, (i // tx) * tile
+        windows.append((x, y, min(tile, width - x), min(tile, height - y)))
+    return windows
+
+
 def neediest_tiles(need_map: Dict[str, Any], count: int) -> List[Tuple[int, int, int, int]]:
     """The ``count`` neediest tiles of a need map as crop windows ``(x, y, width, height)``,
     neediest first (tiles at the right and bottom edge may be smaller than ``tile``)."""
-    tile, tx = need_map["tile"], need_map["tiles_x"]
-    order = sorted(range(len(need_map["need"])), key=lambda i: (-need_map["need"][i], i))
-    windows = []
-    for i in order[:count]:
-        x, y = (i % tx) * tile, (i // tx) * tile
-        windows.append((x, y, min(tile, need_map["width"] - x), min(tile, need_map["height"] - y)))
-    return windows
+    windows = tile_windows(need_map)
+    need = need_map["need"]
+    order = sorted(range(len(need)), key=lambda i: (-need[i], i))
+    return [windows[i] for i in order[:count]]
+
+
+def plan_samples(need_map: Dict[str, Any], samples: int) -> List[int]:
+    """Spreads a budget of ``samples`` over the tiles of a need map: how many more samples each
+    pixel of each tile should get (one number per tile, the map's order).
+
+    The same rule as ``splatd_estimator::NeedMap::plan``: tile ``i`` gets a share of the budget in
+    proportion to ``sqrt(need[i])`` (in proportion to its pixels when no tile has any need), as
+    whole passes over its pixels: the whole parts first, then one more pass for the tiles with
+    the largest fractions left (ties to the lower index) while it still fits. The plan never
+    spends more than ``samples``; what it leaves is less than any tile that did not get one more
+    pass.
+    """
+    samples = int(samples)
+    if samples < 0:
+        raise ValueError(f"a sample budget cannot be negative, got {samples}")
+    windows = tile_windows(need_map)
+    pixels = [w * h for (_, _, w, h) in windows]
+    roots = [math.sqrt(max(float(n), 0.0)) for n in need_map["need"]]
+    total = 0.0
+    for r in roots:  # left to right, as Rust sums (Python 3.12's sum() compensates)
+        total += r
+    frame_pixels = int(need_map["width"]) * int(need_map["height"])
+    passes, remainders, left = [], [], samples
+    for i, n in enumerate(pixels):
+        weight = roots[i] / total if total > 0 else n / frame_pixels
+        share = samples * weight / n
+        whole = min(math.floor(share), left // n)
+        left -= whole * n
+        passes.append(whole)
+        remainders.append((share - whole, i))
+    remainders.sort(key=lambda r: (-r[0], r[1]))
+    for _, i in remainders:
+        if pixels[i] <= left:
+            passes[i] += 1
+            left -= pixels[i]
+    return passes
 
 
 def selftest_batch() -> Tuple[str, int, int, np.ndarray, np.ndarray, np.ndarray]:
