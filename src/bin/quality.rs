@@ -464,7 +464,7 @@ fn main() -> Result<()> {
         DEFAULT_VARIANT,
         defaults.spread()
     );
-    let spread_settings = spread_grid(&value)?;
+    let spread_settings = spread_grid(value)?;
     println!(
         "relMSE and energy bias are means over the realizations; ratio = relMSE / best anchor"
     );
