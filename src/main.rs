@@ -135,8 +135,8 @@ struct ResolveArgs {
     /// Scale c0 of the lowest cascade; cascade j has c0 * base^j (batch files only).
     #[arg(long, default_value_t = splatd_proto::api::DEFAULT_LOWEST_SCALE)]
     lowest_scale: f64,
-    /// Resolve variant: paper, shader or off.
-    #[arg(long, default_value = "paper")]
+    /// Resolve variant: spread (the default), paper, shader or off.
+    #[arg(long, default_value = splatd_proto::api::DEFAULT_VARIANT.as_str())]
     variant: splatd_proto::Variant,
     /// Support (samples, beyond kappa-min) at which a brightness band gets full weight; bands
     /// with less are down-weighted.

@@ -8,7 +8,7 @@ use std::io::Write;
 use bytes::Bytes;
 use common::{read_exr_with_python, runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Resolved};
-use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery};
+use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery, Variant};
 use splatd_proto::{Batch, Client, ClientError, Record};
 use splatd_scenes::synth::FireflyScene;
 use splatd_server::image::{decode_exr_channels, encode_exr, ExtraLayer, Provenance};
@@ -136,6 +136,36 @@ fn concurrent_clients_get_the_cores_image_bit_for_bit() {
         let path = dir.path().join(format!("{}.exr", f.create.id));
         std::fs::write(&path, &got).unwrap();
         check_with_independent_reader(&path, &resolved, &layers);
+
+        // Each variant asked for by name (`?variant=paper`, `?variant=spread`) is the core's
+        // resolve with that variant and the frame's other parameters, byte for byte.
+        let mut images = Vec::new();
+        for variant in [Variant::Paper, Variant::Spread] {
+            let params = params.with_variant(variant.to_estimator());
+            let resolved = reference.resolve(&params);
+            let provenance = Provenance {
+                layout: &f.layout,
+                params: &params,
+            };
+            let expected = encode_exr(&resolved, &[], &provenance).unwrap();
+            let query = ImageQuery {
+                variant: Some(variant),
+                ..ImageQuery::default()
+            };
+            let got = rt.block_on(client.image(&f.create.id, &query)).unwrap();
+            assert!(
+                got[..] == expected[..],
+                "frame {}: served EXR of variant={} differs from the core's resolve",
+                f.create.id,
+                variant.as_str()
+            );
+            images.push(resolved.reweighted);
+        }
+        assert_ne!(
+            images[0], images[1],
+            "frame {}: spread gives nothing back, so the test cannot tell the variants apart",
+            f.create.id
+        );
     }
 }
 

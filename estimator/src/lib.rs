@@ -34,7 +34,10 @@ pub use resolve::{
     resolve_bands, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
-pub use resolve_spread::{DEFAULT_SPREAD_SUPPORT, SPREAD_RADII};
+pub use resolve_spread::{
+    SpreadParams, DEFAULT_SPREAD_EDGE_SHARE, DEFAULT_SPREAD_MAX_RADIUS, DEFAULT_SPREAD_SOLID_SHARE,
+    DEFAULT_SPREAD_SUPPORT, SPREAD_RADII,
+};
 pub use state::{
     cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, Kernel,
     MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,

@@ -90,7 +90,8 @@ pub struct TileNeed {
     pub empty: u64,
     /// `Σ_p L(mean_p)`.
     pub mean: f64,
-    /// `Σ_p L(removed_p)`.
+    /// `Σ_p L(removed_p)`; negative where the `spread` resolve gave the tile more energy from
+    /// its neighbours than it removed.
     pub removed: f64,
     /// `Σ_p Σ_j u_j L(B_j) / N_p` (see the module docs).
     pub deficit: f64,
@@ -109,9 +110,10 @@ impl TileNeed {
         self.samples as f64 / self.pixels().max(1) as f64
     }
 
-    /// `removed / mean` (0 for a black tile).
+    /// `removed / mean` (0 for a black tile, and for a tile that received more energy than it
+    /// removed: it is in no doubt, and a need must not go negative).
     pub fn removed_fraction(&self) -> f64 {
-        fraction(self.removed, self.mean)
+        fraction(self.removed.max(0.0), self.mean)
     }
 
     /// `deficit / mean` (0 for a black tile).
@@ -386,8 +388,9 @@ mod tests {
         state
     }
 
+    /// The paper's resolve with a fixed kappa of 4, as the hand computations below assume.
     fn map(state: &FrameState, tile: u32) -> NeedMap {
-        let params = ResolveParams::with_defaults();
+        let params = ResolveParams::new(crate::Variant::Paper, 4.0, 1.0, 0.0).unwrap();
         let resolved = resolve_bands(&[state], &params, 1).unwrap();
         NeedMap::build(&[state], &resolved, &params, tile).unwrap()
     }

@@ -18,7 +18,7 @@
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
 use super::layout::{CascadeLayout, ParamError, COUNT_ONE, FRAC_BITS};
-use super::resolve_spread::{spread, BAND_FLOATS, DEFAULT_SPREAD_SUPPORT};
+use super::resolve_spread::{spread, SpreadParams, BAND_FLOATS};
 use super::state::{cascade_units, cell_len, FrameState};
 
 /// Which weight formula to use.
@@ -44,17 +44,18 @@ pub struct ResolveParams {
     kappa: f64,
     kappa_min: f64,
     kappa_exponent: f64,
-    spread_support: f64,
+    spread: SpreadParams,
 }
 
-/// splatd's default resolve variant.
-pub const DEFAULT_VARIANT: Variant = Variant::Paper;
-/// splatd's default `kappa`, chosen by the quality benchmark.
-pub const DEFAULT_KAPPA: f64 = 4.0;
+/// splatd's default resolve variant, chosen by the quality benchmark (docs/ALGORITHM.md).
+pub const DEFAULT_VARIANT: Variant = Variant::Spread;
+/// splatd's default `kappa`, chosen by the quality benchmark (with the default variant).
+pub const DEFAULT_KAPPA: f64 = 3.0;
 /// `kappa_min` as in the paper: a band seen once is not trusted at all.
 pub const DEFAULT_KAPPA_MIN: f64 = 1.0;
-/// splatd's default growth of `kappa` with `N`, chosen by the quality benchmark.
-pub const DEFAULT_KAPPA_EXPONENT: f64 = 0.0;
+/// splatd's default growth of `kappa` with `N`, chosen by the quality benchmark (with the
+/// default variant): `kappa(N) = 3 N^0.3`, 7.6 at 16 spp, 10.4 at 64, 15.8 at 256.
+pub const DEFAULT_KAPPA_EXPONENT: f64 = 0.3;
 /// The shader's floor of `E_min`, in the sample's units.
 pub const SHADER_E_MIN_FLOOR: f64 = 0.05;
 
@@ -96,32 +97,22 @@ impl ResolveParams {
             kappa,
             kappa_min,
             kappa_exponent,
-            spread_support: DEFAULT_SPREAD_SUPPORT,
+            spread: SpreadParams::with_defaults(),
         })
     }
 
-    /// The same parameters with another support threshold for [`Variant::Spread`]: samples of a
-    /// band a window needs before the band's removed energy is given back over it (finite, in
-    /// `[1, 1e6]`).
-    pub fn with_spread_support(self, support: f64) -> Result<Self, ParamError> {
-        if !(support.is_finite() && (1.0..=1e6).contains(&support)) {
-            return Err(ParamError::new(
-                "spread_support",
-                format!("must be a number in [1, 1e6], got {support}"),
-            ));
-        }
-        Ok(Self {
-            spread_support: support,
-            ..self
-        })
+    /// The same parameters with other settings for [`Variant::Spread`]'s second stage.
+    pub fn with_spread(self, spread: SpreadParams) -> Self {
+        Self { spread, ..self }
     }
 
-    /// The support threshold of [`Variant::Spread`].
-    pub fn spread_support(&self) -> f64 {
-        self.spread_support
+    /// The settings of [`Variant::Spread`]'s second stage.
+    pub fn spread(&self) -> SpreadParams {
+        self.spread
     }
 
-    /// splatd's defaults: the paper's formula with the benchmark's `kappa`.
+    /// splatd's defaults: the `spread` variant with the benchmark's `kappa`, its growth and
+    /// spread settings.
     pub fn with_defaults() -> Self {
         Self::new(
             DEFAULT_VARIANT,
@@ -130,6 +121,11 @@ impl ResolveParams {
             DEFAULT_KAPPA_EXPONENT,
         )
         .expect("defaults are valid")
+    }
+
+    /// The same parameters with another variant.
+    pub fn with_variant(self, variant: Variant) -> Self {
+        Self { variant, ..self }
     }
 
     /// The plain mean (all weights 1).
@@ -300,13 +296,7 @@ pub fn resolve_bands(
         }
     });
     if spreading {
-        spread(
-            layout,
-            &bands_out,
-            params.spread_support,
-            params.kappa + params.kappa_min,
-            &mut out,
-        );
+        spread(layout, &bands_out, params, &mut out);
     }
     Ok(out)
 }
@@ -561,12 +551,15 @@ mod tests {
             }
         }
         state.splat(1, 1, [5000.0, 5000.0, 5000.0]).unwrap();
-        let r = state.resolve(&ResolveParams::with_defaults());
+        // The paper's formula with a fixed kappa (the default variant adds a second stage, and
+        // its kappa grows with N).
+        let kappa = 4.0;
+        let r = state
+            .resolve(&ResolveParams::new(Variant::Paper, kappa, DEFAULT_KAPPA_MIN, 0.0).unwrap());
         let centre = 4;
         // By hand: L = 5000 splits between c4 = 4096 and c5 = 32768. Its support (one sample
         // pooled over 3x3) is far below kappa_min, so only the value term keeps anything:
         // w_4 = L(F)/(kappa c_4) with F = 16 * 0.5 from cascade 0, then w_5 likewise.
-        let kappa = DEFAULT_KAPPA;
         let w_lo = (32768.0 / 5000.0 - 1.0) / 7.0;
         let mut f = 16.0 * 0.5;
         f += f / (kappa * 4096.0) * w_lo * 5000.0;

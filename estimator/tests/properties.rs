@@ -4,7 +4,8 @@
 
 use proptest::prelude::*;
 use splatd_estimator::{
-    CascadeLayout, FrameState, ResolveParams, Resolved, Variant, REC709_LUMINANCE,
+    CascadeLayout, FrameState, ResolveParams, Resolved, SpreadParams, Variant, REC709_LUMINANCE,
+    SPREAD_RADII,
 };
 use splatd_scenes::synth::FireflyScene;
 
@@ -89,7 +90,7 @@ proptest! {
             let n = r.len();
             (Just(r), Just((0..n).collect::<Vec<_>>()).prop_shuffle())
         }),
-        variant in prop_oneof![Just(Variant::Paper), Just(Variant::Shader)],
+        variant in prop_oneof![Just(Variant::Paper), Just(Variant::Shader), Just(Variant::Spread)],
     ) {
         let shuffled: Vec<_> = order.iter().map(|&i| all[i]).collect();
         let p = ResolveParams::new(variant, 3.0, 1.0, 0.0).unwrap();
@@ -115,6 +116,45 @@ proptest! {
                     "reweighted + removed != mean at {p}");
             }
         }
+    }
+
+    /// The `spread` stage moves removed energy, it never makes any: every pixel keeps
+    /// `reweighted + removed = mean`, the frame's removed energy is at least 0 and at most what
+    /// the paper's resolve with the same weights removes, and more given back in one pixel is
+    /// never taken from another (`reweighted >= paper's`).
+    #[test]
+    fn spread_moves_removed_energy_and_never_makes_any(
+        all in records(300),
+        kappa in 0.5f64..20.0,
+        exponent in 0.0f64..0.6,
+        support in 1.0f64..80.0,
+        solid in 0.0f64..1.0,
+        radius in prop::sample::select(SPREAD_RADII.to_vec()),
+        edge in prop::option::of(0.0f64..1.0),
+    ) {
+        let state = state_of(&all);
+        let paper = ResolveParams::new(Variant::Paper, kappa, 1.0, exponent).unwrap();
+        let spread = paper
+            .with_variant(Variant::Spread)
+            .with_spread(SpreadParams::new(support, solid, radius).unwrap().with_edge_share(edge).unwrap());
+        let (p, s) = (state.resolve(&paper), state.resolve(&spread));
+        prop_assert_eq!(&p.mean, &s.mean);
+        let (mut removed, mut paper_removed) = (0.0f64, 0.0f64);
+        for i in 0..s.mean.len() {
+            for c in 0..3 {
+                let (f, r) = (s.reweighted[i][c] as f64, s.removed[i][c] as f64);
+                let mean = s.mean[i][c] as f64;
+                // Each layer is an f32: the identity holds to their rounding.
+                prop_assert!((f + r - mean).abs() <= 1e-6 * (f.abs() + r.abs() + mean) + 1e-20,
+                    "reweighted + removed != mean at {i}");
+                prop_assert!(s.reweighted[i][c] >= p.reweighted[i][c], "energy taken at {i}");
+                removed += s.removed[i][c] as f64;
+                paper_removed += p.removed[i][c] as f64;
+            }
+        }
+        let scale = 1e-5 * s.mean.iter().flatten().map(|&v| v as f64).sum::<f64>() + 1e-20;
+        prop_assert!(removed >= -scale, "the frame gained energy: {removed}");
+        prop_assert!(removed <= paper_removed + scale, "{removed} > paper's {paper_removed}");
     }
 
     #[test]

@@ -683,10 +683,10 @@ mod tests {
         assert_eq!(c.cascades.cascades, 6);
         assert_eq!(c.cascades.lowest_scale, 0.125);
         assert_eq!(c.cascades.luminance, [0.2126, 0.7152, 0.0722]);
-        assert_eq!(c.resolve.variant, Variant::Paper);
-        assert_eq!(c.resolve.kappa, 4.0);
+        assert_eq!(c.resolve.variant, Variant::Spread);
+        assert_eq!(c.resolve.kappa, 3.0);
         assert_eq!(c.resolve.kappa_min, 1.0);
-        assert_eq!(c.resolve.kappa_exponent, 0.0);
+        assert_eq!(c.resolve.kappa_exponent, 0.3);
         assert_eq!(c.converged_below, 0.01);
     }
 

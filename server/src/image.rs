@@ -324,7 +324,8 @@ mod tests {
         use exr::meta::attribute::AttributeValue as A;
         let pixels = 7.0 * 37.0;
         let samples: u64 = resolved.spp.iter().sum();
-        assert_eq!(other("splatd:estimator"), A::Text(Text::from("paper")));
+        let variant = Variant::from_estimator(params.variant()).as_str();
+        assert_eq!(other("splatd:estimator"), A::Text(Text::from(variant)));
         assert_eq!(other("splatd:kappa"), A::F64(params.kappa()));
         assert_eq!(other("splatd:cascades"), A::I32(layout.cascades() as i32));
         assert_eq!(other("splatd:samples"), A::F64(samples as f64));

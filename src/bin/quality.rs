@@ -1,6 +1,7 @@
 //! splatd's estimator quality benchmark; not part of the test suite.
 //!
 //! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time]`
+//! `quality --picture docs/quality.png [--picture-scene smalllight]`
 //!
 //! For every scene (the synthetic stream with its exact mean, and every path-traced stream in
 //! `--data` written by `benches/quality/render_streams.py`) at 16, 64 and 256 spp, averaged over
@@ -19,8 +20,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
 use splatd_estimator::{
-    CascadeLayout, FrameState, ResolveParams, Variant, DEFAULT_KAPPA, DEFAULT_KAPPA_EXPONENT,
-    DEFAULT_KAPPA_MIN, DEFAULT_LOWEST_SCALE, DEFAULT_SPREAD_SUPPORT, DEFAULT_VARIANT,
+    CascadeLayout, FrameState, ResolveParams, SpreadParams, Variant, DEFAULT_KAPPA,
+    DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_LOWEST_SCALE, DEFAULT_VARIANT,
     REC709_LUMINANCE,
 };
 use splatd_scenes::anchors::{clamped_mean, gmon, median_of_means};
@@ -31,7 +32,63 @@ const SPPS: [usize; 3] = [16, 64, 256];
 const CLAMPS: [f64; 9] = [0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
 const C0S: [f64; 4] = [1.0, 0.25, 1.0 / 16.0, 1.0 / 64.0];
 const KAPPAS: [f64; 6] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0];
-const SUPPORTS: [f64; 5] = [2.0, 4.0, 8.0, 16.0, 32.0];
+/// The paper's `kappa` when it was splatd's default (fixed, `kappa_exponent = 0`): the rows
+/// `paper` and the ranking's `paper x` compare with it.
+const PAPER_KAPPA: f64 = 4.0;
+
+/// `spread`'s grid (each list can be replaced on the command line, e.g. `--kappas 3,4`):
+/// first-stage `kappa` and its growth with `N`, then the spread stage's support, solid share
+/// and widest radius.
+const SPREAD_KAPPAS: &str = "2.5,3,4";
+const SPREAD_EXPONENTS: &str = "0,0.3";
+const SUPPORTS: &str = "32,64";
+const SOLID_SHARES: &str = "0,0.1";
+const MAX_RADII: &str = "8,16";
+/// Energy cut next to a solid pixel: given back in place where the band holds this share of
+/// the pixel's samples; -1: left removed.
+const EDGES: &str = "-1,0.1";
+
+/// Every setting of `spread`'s grid, the lists from `value(flag)` or the defaults above.
+fn spread_grid(value: impl Fn(&str) -> Option<String>) -> Result<Vec<(String, ResolveParams)>> {
+    let list = |flag: &str, default: &str| -> Result<Vec<f64>> {
+        value(flag)
+            .unwrap_or_else(|| default.into())
+            .split(',')
+            .map(|v| v.trim().parse().with_context(|| format!("{flag} {v}")))
+            .collect()
+    };
+    let mut grid = Vec::new();
+    for kappa in list("--kappas", SPREAD_KAPPAS)? {
+        for exponent in list("--exponents", SPREAD_EXPONENTS)? {
+            for support in list("--supports", SUPPORTS)? {
+                for solid in list("--solids", SOLID_SHARES)? {
+                    for radius in list("--radii", MAX_RADII)? {
+                        for edge in list("--edges", EDGES)? {
+                            let edge_share = (edge >= 0.0).then_some(edge);
+                            let spread = SpreadParams::new(support, solid, radius as usize)?
+                                .with_edge_share(edge_share)?;
+                            let p = ResolveParams::new(
+                                Variant::Spread,
+                                kappa,
+                                DEFAULT_KAPPA_MIN,
+                                exponent,
+                            )?
+                            .with_spread(spread);
+                            grid.push((
+                                format!(
+                                    "kappa={kappa} e={exponent} support={support} solid={solid} \
+                                     r={radius} edge={edge}"
+                                ),
+                                p,
+                            ));
+                        }
+                    }
+                }
+            }
+        }
+    }
+    Ok(grid)
+}
 
 /// Independent realizations of one scene: runs of at least 256 one-sample passes, one truth.
 struct Scene {
@@ -133,7 +190,7 @@ fn resolve_time() -> Result<()> {
         state.splat_checked(x, y, [z as f32, (z * 0.8) as f32, (z * 0.5) as f32]);
     }
     let time = |variant| -> Result<f64> {
-        let p = ResolveParams::new(variant, DEFAULT_KAPPA, DEFAULT_KAPPA_MIN, 0.0)?;
+        let p = ResolveParams::with_defaults().with_variant(variant);
         Ok((0..3)
             .map(|_| {
                 let t = std::time::Instant::now();
@@ -147,6 +204,137 @@ fn resolve_time() -> Result<()> {
         "\nresolve 1080p, 1 thread: paper {paper:.3} s, spread {spread:.3} s, ratio {:.2}",
         spread / paper
     );
+    Ok(())
+}
+
+/// Summed luminance of an image.
+fn energy(image: &[[f32; 3]]) -> f64 {
+    let w = REC709_LUMINANCE;
+    image
+        .iter()
+        .map(|p| w[0] * p[0] as f64 + w[1] * p[1] as f64 + w[2] * p[2] as f64)
+        .sum()
+}
+
+/// `--picture PATH`: the first realization of one scene at 16, 64 and 256 spp, the plain mean
+/// (top row) over splatd's default resolve (bottom row), all with one exposure (the ground
+/// truth's), and beside them a plot of the share of the mean's energy removed at 1, 2, 4, ..
+/// 256 spp: the default (orange) and `paper [kappa=4]` (blue), with a faint grid line every 5 %.
+fn picture(scene: &Scene, path: &Path) -> Result<()> {
+    use splatd_server::preview::{auto_exposure, encode_png, tonemap};
+    const SCALE: usize = 3;
+    const GAP: usize = 6;
+    const BACKGROUND: [u8; 3] = [24, 24, 24];
+    let (w, h) = (scene.width as usize, scene.height as usize);
+    let defaults = ResolveParams::with_defaults();
+    let paper = ResolveParams::new(Variant::Paper, PAPER_KAPPA, DEFAULT_KAPPA_MIN, 0.0)?;
+    let mut state = FrameState::new(scene.width, scene.height, CascadeLayout::with_defaults());
+    let (mut curve, mut tiles) = (Vec::new(), Vec::new());
+    for (i, pass) in scene.runs[0].iter().enumerate().take(SPPS[2]) {
+        for (p, &rgb) in pass.iter().enumerate() {
+            state.splat_checked((p % w) as u32, (p / w) as u32, rgb);
+        }
+        let spp = i + 1;
+        if spp.is_power_of_two() {
+            let r = state.resolve(&defaults);
+            let removed = |r: &splatd_estimator::Resolved| energy(&r.removed) / energy(&r.mean);
+            curve.push([removed(&r), removed(&state.resolve(&paper))]);
+            if SPPS.contains(&spp) {
+                tiles.push([r.mean, r.reweighted]);
+            }
+        }
+    }
+    // Half the ground truth's automatic exposure: the lit ceiling and walls of the rendered rooms
+    // would clip at the full one.
+    let exposure = 0.5 * auto_exposure(&scene.gt);
+    let (tw, th) = (w * SCALE, h * SCALE);
+    let grid_w = 3 * tw + 2 * GAP;
+    let grid_h = 2 * th + GAP;
+    let plot_w = 2 * tw;
+    let width = grid_w + 3 * GAP + plot_w;
+    let mut canvas = vec![BACKGROUND; width * grid_h];
+    for (col, images) in tiles.iter().enumerate() {
+        for (row, image) in images.iter().enumerate() {
+            let (x0, y0) = (col * (tw + GAP), row * (th + GAP));
+            let toned = tonemap(image, exposure);
+            for y in 0..th {
+                for x in 0..tw {
+                    canvas[(y0 + y) * width + x0 + x] = toned[(y / SCALE) * w + x / SCALE];
+                }
+            }
+        }
+    }
+    // The plot: x = log2(spp) from 0 to 8, y = removed share from 0 to the next 5 % above the
+    // largest.
+    let top = curve
+        .iter()
+        .flatten()
+        .fold(0.05f64, |m, &v| m.max(v))
+        .div_euclid(0.05)
+        .mul_add(0.05, 0.05);
+    let (px0, py0, pw, ph) = (grid_w + 3 * GAP + 12, 12, plot_w - 24, grid_h - 24);
+    let mut put = |x: i64, y: i64, rgb: [u8; 3]| {
+        if x >= 0 && y >= 0 && (x as usize) < width && (y as usize) < grid_h {
+            canvas[y as usize * width + x as usize] = rgb;
+        }
+    };
+    let to_xy = |i: usize, v: f64| {
+        let x = px0 as f64 + pw as f64 * i as f64 / (curve.len() - 1) as f64;
+        let y = (py0 + ph) as f64 - ph as f64 * v.max(0.0) / top;
+        (x, y)
+    };
+    let mut level = 0.0;
+    while level <= top + 1e-9 {
+        let (_, y) = to_xy(0, level);
+        let shade = if level == 0.0 { 200 } else { 70 };
+        for x in px0..=px0 + pw {
+            put(x as i64, y.round() as i64, [shade; 3]);
+        }
+        level += 0.05;
+    }
+    for i in 0..curve.len() {
+        let (x, _) = to_xy(i, 0.0);
+        for y in 0..6 {
+            put(x.round() as i64, (py0 + ph + y) as i64, [200; 3]);
+        }
+    }
+    for (series, colour) in [(1, [90, 150, 255]), (0, [255, 150, 40])] {
+        for i in 0..curve.len() {
+            let (x, y) = to_xy(i, curve[i][series]);
+            for dy in -3..=3 {
+                for dx in -3..=3 {
+                    put(x.round() as i64 + dx, y.round() as i64 + dy, colour);
+                }
+            }
+            if i + 1 < curve.len() {
+                let (x1, y1) = to_xy(i + 1, curve[i + 1][series]);
+                let steps = (x1 - x).abs().max((y1 - y).abs()).ceil() as usize;
+                for s in 0..=steps {
+                    let t = s as f64 / steps.max(1) as f64;
+                    let (lx, ly) = (x + (x1 - x) * t, y + (y1 - y) * t);
+                    for d in 0..2 {
+                        put(lx.round() as i64 + d, ly.round() as i64, colour);
+                        put(lx.round() as i64, ly.round() as i64 + d, colour);
+                    }
+                }
+            }
+        }
+    }
+    let png = encode_png(width as u32, grid_h as u32, &canvas)?;
+    std::fs::write(path, png).with_context(|| format!("writing {}", path.display()))?;
+    println!(
+        "{}: {} ({width}x{grid_h}), spp 1..256 removed share:",
+        path.display(),
+        scene.name
+    );
+    for (i, [d, p]) in curve.iter().enumerate() {
+        println!(
+            "  {:>3} spp  default {:>6.2} %  paper {:>6.2} %",
+            1 << i,
+            100.0 * d,
+            100.0 * p
+        );
+    }
     Ok(())
 }
 
@@ -255,6 +443,14 @@ fn main() -> Result<()> {
             scenes.push(Scene::load(&dir, realizations)?);
         }
     }
+    if let Some(path) = value("--picture") {
+        let name = value("--picture-scene").unwrap_or_else(|| "smalllight".into());
+        let scene = scenes
+            .iter()
+            .find(|s| s.name == name)
+            .with_context(|| format!("--picture: no scene {name} in {}", data.display()))?;
+        return picture(scene, Path::new(&path));
+    }
     if scenes.iter().all(|s| s.name == "synthetic") {
         println!(
             "note: no path-traced streams in {} (python3 benches/quality/render_streams.py)",
@@ -264,10 +460,11 @@ fn main() -> Result<()> {
     let defaults = ResolveParams::with_defaults();
     println!(
         "defaults: variant={:?} c0={DEFAULT_LOWEST_SCALE} kappa={DEFAULT_KAPPA} \
-         kappa_min={DEFAULT_KAPPA_MIN} kappa_exponent={DEFAULT_KAPPA_EXPONENT} \
-         spread_support={DEFAULT_SPREAD_SUPPORT}",
-        DEFAULT_VARIANT
+         kappa_min={DEFAULT_KAPPA_MIN} kappa_exponent={DEFAULT_KAPPA_EXPONENT} spread={:?}",
+        DEFAULT_VARIANT,
+        defaults.spread()
     );
+    let spread_settings = spread_grid(value)?;
     println!(
         "relMSE and energy bias are means over the realizations; ratio = relMSE / best anchor"
     );
@@ -277,6 +474,8 @@ fn main() -> Result<()> {
     );
     // Every grid setting's relMSE over all scenes and spp, for the one-setting ranking.
     let mut grid: Vec<(String, Vec<f64>)> = Vec::new();
+    // Per row, the best anchor's relMSE and `paper`'s with the defaults.
+    let (mut best_anchor, mut paper_default) = (Vec::new(), Vec::new());
     let mut record = |setting: &str, err: f64| match grid.iter_mut().find(|g| g.0 == setting) {
         Some(g) => g.1.push(err),
         None => grid.push((setting.to_owned(), vec![err])),
@@ -355,46 +554,38 @@ fn main() -> Result<()> {
                 }
             }
             rows.push(best_of("paper (tuned)", true, paper_grid));
-            for variant in [Variant::Paper, Variant::Spread] {
-                let p = ResolveParams::new(
-                    variant,
-                    DEFAULT_KAPPA,
-                    DEFAULT_KAPPA_MIN,
-                    DEFAULT_KAPPA_EXPONENT,
-                )?;
-                let tag = if variant == defaults.variant() {
-                    " (default)"
-                } else {
-                    ""
-                };
-                rows.push(Row {
-                    label: format!("{} defaults{tag}", format!("{variant:?}").to_lowercase()),
-                    anchor: false,
-                    score: resolve(&default_states, &p),
-                });
+            // The paper with its former defaults (`kappa = 4`, fixed), and splatd's defaults.
+            let paper = resolve(
+                &default_states,
+                &ResolveParams::new(Variant::Paper, PAPER_KAPPA, DEFAULT_KAPPA_MIN, 0.0)?,
+            );
+            paper_default.push(paper.err());
+            rows.push(Row {
+                label: format!("paper [kappa={PAPER_KAPPA}]"),
+                anchor: false,
+                score: paper,
+            });
+            rows.push(Row {
+                label: format!(
+                    "splatd defaults ({})",
+                    format!("{:?}", defaults.variant()).to_lowercase()
+                ),
+                anchor: false,
+                score: resolve(&default_states, &defaults),
+            });
+            let mut tuned = Vec::new();
+            for (setting, p) in &spread_settings {
+                let score = resolve(&default_states, p);
+                record(&format!("spread {setting}"), score.err());
+                tuned.push((setting.clone(), score));
             }
-            let mut spread_grid = Vec::new();
-            for &support in &SUPPORTS {
-                let p = ResolveParams::new(
-                    Variant::Spread,
-                    DEFAULT_KAPPA,
-                    DEFAULT_KAPPA_MIN,
-                    DEFAULT_KAPPA_EXPONENT,
-                )?
-                .with_spread_support(support)?;
-                let score = resolve(&default_states, &p);
-                record(
-                    &format!("spread c0={DEFAULT_LOWEST_SCALE} support={support}"),
-                    score.err(),
-                );
-                spread_grid.push((format!("support={support}"), score));
-            }
-            rows.push(best_of("spread (tuned)", false, spread_grid));
+            rows.push(best_of("spread (tuned)", false, tuned));
             let best = rows
                 .iter()
                 .filter(|r| r.anchor)
                 .map(|r| r.score.err())
                 .fold(f64::INFINITY, f64::min);
+            best_anchor.push(best);
             for row in &rows {
                 println!(
                     "{:<10} {:>4} {:>3}  {:<36} {:>9.5} {:>7.3} {:>+7.2}%",
@@ -414,9 +605,41 @@ fn main() -> Result<()> {
     // scene and spp (how a default is chosen without an oracle per row).
     let geo = |v: &[f64]| (v.iter().map(|e| e.ln()).sum::<f64>() / v.len() as f64).exp();
     grid.sort_by(|a, b| geo(&a.1).total_cmp(&geo(&b.1)));
-    println!("\nsingle settings, best first (geometric mean of relMSE over scenes x spp):");
-    for (setting, errs) in grid.iter().take(12) {
-        println!("  {:.5}  {setting}", geo(errs));
+    println!(
+        "\nsingle settings, best first: geometric mean of relMSE over scenes x spp, worst and \
+         geometric mean ratio to paper [kappa=4], worst ratio to the best anchor, rows <= 0.8x it"
+    );
+    for (setting, errs) in grid.iter().take(16) {
+        let worst = |by: &[f64]| errs.iter().zip(by).map(|(e, b)| e / b).fold(0.0, f64::max);
+        let ratios: Vec<f64> = errs
+            .iter()
+            .zip(&paper_default)
+            .map(|(e, b)| e / b)
+            .collect();
+        let under = errs
+            .iter()
+            .zip(&best_anchor)
+            .filter(|(e, b)| *e <= &(0.8 * *b))
+            .count();
+        println!(
+            "  {:.5}  paper x{:.2} (geo x{:.2})  anchor x{:.2}  {under:>2}/{}  {setting}",
+            geo(errs),
+            worst(&paper_default),
+            geo(&ratios),
+            worst(&best_anchor),
+            errs.len()
+        );
+        if args.iter().any(|a| a == "--rows") {
+            let ratios: Vec<String> = errs
+                .iter()
+                .zip(&best_anchor)
+                .map(|(e, b)| format!("{:.2}", e / b))
+                .collect();
+            println!(
+                "           per row, ratio to the best anchor: {}",
+                ratios.join(" ")
+            );
+        }
     }
     if args.iter().any(|a| a == "--time") {
         resolve_time()?;
