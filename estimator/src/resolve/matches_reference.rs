@@ -268,3 +268,12 @@ fn a_frame_of_extreme_pixels_resolves_to_the_reference_bits() {
     let state = FrameState::from_cells(w, h, 0..h, layout, cells).expect("valid cells");
     check(&state, 1).expect("same bits");
 }
+
+/// A frame wider than a column of strips (`COLUMN_STRIPS * STRIP` = 1024 pixels), with a ragged
+/// last strip: the columns' edges and rings.
+#[test]
+fn a_frame_wider_than_a_column_resolves_to_the_reference_bits() {
+    let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
+    check(&splatted_state(7, 1061, 3, &layout), 2).expect("same bits");
+    check(&random_state(8, 1030, 2, &layout), 1).expect("same bits");
+}
