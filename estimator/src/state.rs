@@ -43,8 +43,8 @@ pub use row::Kernel;
 use row::{Shares, Tables, BLOCK};
 
 /// Bits of each top-cascade channel held in the cell's high word.
-const HI_BITS: u32 = 21;
-const HI_MASK: u64 = (1 << HI_BITS) - 1;
+pub(crate) const HI_BITS: u32 = 21;
+pub(crate) const HI_MASK: u64 = (1 << HI_BITS) - 1;
 
 /// Largest units a checked sample's share adds to one channel of cascades `0 .. K-2`, with slack
 /// for `f64` rounding: `2^31 + 2^30` (the exact bound is `2^31`).

@@ -5,7 +5,9 @@
 //!   printed with its goal: splat (random and scan order) and whole passes against the memory
 //!   traffic they cannot avoid (a loop reading and writing the same cascade slots of the same
 //!   cells in the same order, no arithmetic; plain RGB + count accumulation for reference),
-//!   resolve against one read of the state and its scaling with threads, merge against memcpy,
+//!   resolve against one read of the state (into new output buffers, as `resolve_bands` returns,
+//!   and into buffers reused from the previous resolve) and its scaling with threads, merge
+//!   against memcpy,
 //!   and the state size. Default size 1920x1080.
 //! * `bench need`: need-guided against uniform sampling at the same total number of samples, on
 //!   the synthetic scene (exact mean) and the demo's path-traced scene (against a reference of
@@ -16,8 +18,8 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use splatd_estimator::{
-    cell_len, resolve_bands, CascadeLayout, FrameState, Kernel, NeedMap, ResolveParams,
-    DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
+    cell_len, resolve_bands, resolve_bands_into, CascadeLayout, FrameState, Kernel, NeedMap,
+    ResolveParams, Resolved, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
 };
 use splatd_scenes::quality::rel_mse;
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
@@ -432,7 +434,9 @@ fn speed(size: (u32, u32)) -> Result<()> {
     }
     drop((baseline, plain));
 
-    // 3. Resolve, 8 cascades, vs one pass reading the same memory; and how it scales.
+    // 3. Resolve, 8 cascades, vs one pass reading the same memory; and how it scales. Fresh
+    //    output (what `resolve_bands` returns: new buffers, faulted in by the resolve) and
+    //    output buffers reused from the resolve before (`resolve_bands_into`).
     let layout8 = CascadeLayout::new(8.0, 8, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE)?;
     let mut state8 = FrameState::new(w, h, layout8);
     state8.splat_records(&random);
@@ -447,31 +451,40 @@ fn speed(size: (u32, u32)) -> Result<()> {
     if cores > 2 {
         counts.push(cores);
     }
+    let mut reused = Resolved::default();
     for threads in counts {
         // One thread on this thread's CPU clock, like the read; several by the wall clock (the
         // scaling figure is only meaningful on an otherwise idle machine).
         let resolve = || {
             black_box(resolve_bands(&[&state8], &params, threads).expect("whole frame"));
         };
-        let t_resolve = if threads == 1 {
-            best_of(3, resolve)
+        let (t_resolve, t_wall) = if threads == 1 {
+            (best_of(3, resolve), best_wall_of(3, resolve))
         } else {
-            best_wall_of(3, resolve)
+            let t = best_wall_of(3, resolve);
+            (t, t)
         };
-        let t_wall = if threads == 1 {
-            best_wall_of(1, resolve)
+        let into = || {
+            resolve_bands_into(&[&state8], &params, threads, &mut reused).expect("whole frame");
+            black_box(&reused);
+        };
+        let t_into = if threads == 1 {
+            best_of(3, into)
         } else {
-            t_resolve
+            best_wall_of(3, into)
         };
         if threads == 1 {
             t_one_wall = t_wall;
         }
         println!(
-            "resolve    {:>7.3} s with {threads} thread(s); one read of the state {:.3} s; \
-             {:.2}x the read, {:.2}x faster than 1 thread (wall clock: {:.3} s)",
+            "resolve    {:>7.3} s with {threads} thread(s) ({:.3} s into reused buffers); one \
+             read of the state {:.3} s; {:.2}x the read ({:.2}x reused), {:.2}x faster than 1 \
+             thread (wall clock: {:.3} s)",
             t_resolve,
+            t_into,
             t_read,
             t_resolve / t_read,
+            t_into / t_read,
             t_one_wall / t_wall,
             t_wall
         );
@@ -479,6 +492,13 @@ fn speed(size: (u32, u32)) -> Result<()> {
             let r = t_resolve / t_read;
             report.push(ratio_line(
                 "resolve, 1 thread / one read",
+                r,
+                "<= 3",
+                r <= 3.0,
+            ));
+            let r = t_into / t_read;
+            report.push(ratio_line(
+                "resolve into reused buffers, 1 thread / one read",
                 r,
                 "<= 3",
                 r <= 3.0,

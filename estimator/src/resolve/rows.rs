@@ -1,0 +1,694 @@
+//! The resolve's row pass, [`LANES`] pixels at a time.
+//!
+//! Two steps per row, both over groups of [`LANES`] neighbouring pixels held lane by lane
+//! (`x[lane]`), in straight-line loops the compiler turns into vector instructions:
+//!
+//! 1. *support* ([`Rows::load`]): each pixel's support counts `n_j` and sample count `N`, into
+//!    one plane per cascade (so a group's values are contiguous), and their horizontal 3-pixel
+//!    sums; three such rows are kept in a ring, so every row's counts are read and converted
+//!    once however many rows pool them;
+//! 2. *weights* ([`row`]): per group the 3x3 pooled counts (the vertical sum of three rows'
+//!    horizontal sums), then the cascades from dim to bright with the weight of each, all
+//!    [`LANES`] pixels at once.
+//!
+//! Every quantity is computed with the same `f64` operations, in the same order, as the
+//! one-pixel-at-a-time resolve it replaces (kept as the test reference, `reference.rs`), so
+//! the images are bit-identical to it: IEEE arithmetic gives the same bits in a vector lane as in
+//! a scalar register, and Rust never fuses a multiply and an add. Three things differ and give
+//! the same bits by construction:
+//! * a cascade whose sums are zero is not skipped but weighed like the others: its value is
+//!   `+0`, so it adds `+0` to every sum (the weights are finite), which changes no bit;
+//! * `u64` words known to be below `2^52` are converted to `f64` by placing them in the mantissa
+//!   of `2^52` and subtracting `2^52` (exact, like `as f64`, and two vector instructions instead
+//!   of a long sequence without AVX-512). A pixel of `N <= 2^20` samples has every count below
+//!   `2^46` and every sum of cascades `0 .. K-2` below `2^20 * LOW_SHARE_MAX < 2^52` (the
+//!   state's bounds, checked on every cell that enters a state); groups with a larger `N` and
+//!   the top cascade's 85-bit sums use `as f64`;
+//! * `max` and `clamp` are written as comparisons; they differ from `f64::max` only in the sign
+//!   of a zero result, and a weight of `-0` adds and removes exactly what `+0` does.
+//!
+//! On x86-64 CPUs with AVX2 the same code is compiled a second time with AVX2 enabled and chosen
+//! at run time ([`Kernel`]), as the row splat does.
+
+// The group loops index several arrays by lane, as the vector code they become does.
+#![allow(clippy::needless_range_loop)]
+
+use super::{ResolveParams, Variant, SHADER_E_MIN_FLOOR};
+use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_CASCADES};
+use crate::resolve_spread::BAND_FLOATS;
+use crate::state::{cell_len, Kernel, HI_BITS, HI_MASK};
+
+/// Pixels per group of the support step.
+pub(super) const LANES: usize = 8;
+
+/// Pixels per strip (a multiple of [`LANES`]).
+const STRIP: usize = 64;
+
+/// Strips per column: a frame wider than `COLUMN_STRIPS * STRIP` pixels is resolved a column at
+/// a time (each column top to bottom), so that a column's ring of support and the cells read
+/// twice stay in a core's L2 cache. Measured with `bench speed`'s 8-cascade state (the reuse
+/// distance of a 4K row overflows a 1 MiB L2): at 3840x2160 columns of 12-20 strips took
+/// 4.4x one read of the state against 5.0x for whole rows; narrower columns were slower (the
+/// state is then read in short runs: 2 strips, 5.8x at 1920x1080).
+const COLUMN_STRIPS: usize = 16;
+
+/// Length of a support plane: a strip and the pixel on each side.
+const OWN: usize = STRIP + 2;
+
+const K_MAX: usize = MAX_CASCADES as usize;
+
+/// `2^52`: a `u64` below it, placed in the mantissa of `2^52`, is `2^52` plus that integer.
+const TWO_52: f64 = 4_503_599_627_370_496.0;
+
+/// `2^64`, the weight of the top cascade's high word.
+const TWO_64: f64 = 18_446_744_073_709_551_616.0;
+
+/// Largest `N` for which every word of cascades `0 .. K-2` is below `2^52`:
+/// `2^20 * LOW_SHARE_MAX = 2^20 * (2^31 + 2^30) < 2^52`.
+const SMALL_N: f64 = (1u64 << 20) as f64;
+
+/// Largest sum of a pixel's counts with every count below `2^52`.
+const SMALL_COUNTS: u64 = (1 << 52) - 1;
+
+/// `x as f64` for `x < 2^52`, in two operations that have vector forms.
+#[inline(always)]
+fn small_to_f64(x: u64) -> f64 {
+    f64::from_bits(x | TWO_52.to_bits()) - TWO_52
+}
+
+/// The weight formulas, as const generic arguments of the row loop.
+const PAPER: u8 = 0;
+const SHADER: u8 = 1;
+const OFF: u8 = 2;
+
+/// What the row loop needs of the layout and the parameters, padded to [`MAX_CASCADES`].
+pub(super) struct Consts {
+    k: usize,
+    luminance: [f64; 3],
+    unit_value: [f64; K_MAX],
+    inv_scale: [f64; K_MAX],
+    variant: Variant,
+    kappa: f64,
+    kappa_min: f64,
+    kappa_exponent: f64,
+    base: f64,
+}
+
+impl Consts {
+    pub(super) fn new(layout: &CascadeLayout, params: &ResolveParams) -> Self {
+        let k = layout.cascades();
+        let mut c = Consts {
+            k,
+            luminance: layout.luminance_weights(),
+            unit_value: [0.0; K_MAX],
+            inv_scale: [0.0; K_MAX],
+            variant: params.variant,
+            kappa: params.kappa,
+            kappa_min: params.kappa_min,
+            kappa_exponent: params.kappa_exponent,
+            base: layout.base(),
+        };
+        for j in 0..k {
+            c.unit_value[j] = layout.unit_value(j);
+            c.inv_scale[j] = layout.inv_scale(j);
+        }
+        c
+    }
+}
+
+/// The rows `y0..` of the output that one [`Rows`] fills.
+pub(super) struct Part<'o> {
+    pub(super) y0: usize,
+    pub(super) reweighted: &'o mut [[f32; 3]],
+    pub(super) mean: &'o mut [[f32; 3]],
+    pub(super) removed: &'o mut [[f32; 3]],
+    pub(super) spp: &'o mut [u64],
+    /// Per band, per pixel `[removed r, g, b, support]` for the spread stage, or empty.
+    pub(super) bands: Vec<&'o mut [f32]>,
+}
+
+/// One row's support, strip by strip ([`STRIP`] pixels; the last one padded): for each strip,
+/// planes `0 .. K` of `n_j` and plane `K` of `N` over the strip and the pixel on each side of
+/// it ([`OWN`] long: pixel `x0 - 1 + i` at `i`, the frame's edge pixels standing in for their
+/// missing neighbours), and the same planes summed over 3 pixels horizontally ([`STRIP`] long:
+/// pixel `x0 + i` at `i`).
+struct Support {
+    y: usize,
+    own: Vec<f64>,
+    pooled: Vec<f64>,
+}
+
+/// Working memory of one thread of a resolve: a ring of three rows' support, indexed by row,
+/// and room for the cells of a strip at the frame's right edge.
+pub(super) struct Rows<'a> {
+    kernel: Kernel,
+    c: &'a Consts,
+    width: usize,
+    ring: [Support; 3],
+    tail: Vec<u64>,
+}
+
+impl<'a> Rows<'a> {
+    pub(super) fn new(kernel: Kernel, c: &'a Consts, width: usize) -> Self {
+        let strips = width.div_ceil(STRIP);
+        let row = || Support {
+            y: usize::MAX,
+            own: vec![0.0; strips * (c.k + 1) * OWN],
+            pooled: vec![0.0; strips * (c.k + 1) * STRIP],
+        };
+        Self {
+            kernel,
+            c,
+            width,
+            ring: [row(), row(), row()],
+            tail: vec![0; STRIP * cell_len(c.k)],
+        }
+    }
+
+    /// Makes ring slot `y % 3` hold row `y`'s support.
+    fn load(&mut self, y: usize, strips: std::ops::Range<usize>, rows: &[&[u64]]) {
+        if self.ring[y % 3].y == y {
+            return;
+        }
+        for s in strips {
+            self.load_strip(y, s, rows);
+        }
+        self.ring[y % 3].y = y;
+    }
+
+    /// Fills strip `s` of ring slot `y % 3` with row `y`'s support.
+    fn load_strip(&mut self, y: usize, s: usize, rows: &[&[u64]]) {
+        let (kernel, k, w) = (self.kernel, self.c.k, self.width);
+        let slot = &mut self.ring[y % 3];
+        let own = &mut slot.own[s * (k + 1) * OWN..][..(k + 1) * OWN];
+        let pooled = &mut slot.pooled[s * (k + 1) * STRIP..][..(k + 1) * STRIP];
+        let x0 = s * STRIP;
+        match kernel {
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx2 => {
+                assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
+                // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
+                unsafe { support_avx2(k, rows[y], w, x0, own, pooled) }
+            }
+            _ => support(k, rows[y], w, x0, own, pooled),
+        }
+    }
+
+    /// Resolves the part's rows of the frame `rows` (every row of the frame, top to bottom), a
+    /// column of [`COLUMN_STRIPS`] strips at a time.
+    pub(super) fn run(mut self, rows: &[&[u64]], mut part: Part<'_>) {
+        let (k, w, h) = (self.c.k, self.width, rows.len());
+        let len = cell_len(k);
+        let part_rows = part.spp.len() / w;
+        let strips = w.div_ceil(STRIP);
+        for c0 in (0..strips).step_by(COLUMN_STRIPS) {
+            let column = c0..(c0 + COLUMN_STRIPS).min(strips);
+            for slot in &mut self.ring {
+                slot.y = usize::MAX;
+            }
+            for y in part.y0..part.y0 + part_rows {
+                let (up, down) = (y.saturating_sub(1), (y + 1).min(h - 1));
+                self.load(up, column.clone(), rows);
+                self.load(y, column.clone(), rows);
+                self.load(down, column.clone(), rows);
+                for s in column.clone() {
+                    let x0 = s * STRIP;
+                    let ring = &self.ring;
+                    let pooled =
+                        |r: usize| &ring[r % 3].pooled[s * (k + 1) * STRIP..][..(k + 1) * STRIP];
+                    let row_at = RowAt {
+                        cells: group_cells(rows[y], x0, w, len, STRIP, &mut self.tail),
+                        own: &ring[y % 3].own[s * (k + 1) * OWN..][..(k + 1) * OWN],
+                        pooled: [pooled(up), pooled(y), pooled(down)],
+                        count: STRIP.min(w - x0),
+                        first: (y - part.y0) * w + x0,
+                    };
+                    match self.kernel {
+                        #[cfg(target_arch = "x86_64")]
+                        Kernel::Avx2 => {
+                            assert!(self.kernel.available(), "AVX2 kernel on a CPU without AVX2");
+                            // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
+                            unsafe { row_avx2(self.c, &row_at, &mut part) }
+                        }
+                        _ => row_any::<false>(self.c, &row_at, &mut part),
+                    }
+                }
+            }
+        }
+    }
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn support_avx2(
+    k: usize,
+    cells: &[u64],
+    w: usize,
+    x0: usize,
+    own: &mut [f64],
+    pooled: &mut [f64],
+) {
+    support(k, cells, w, x0, own, pooled)
+}
+
+/// One pixel's `n_j` and `N` (at `K`), `stride` apart in `out`: the same arithmetic as the
+/// group loop in [`support`], for the pixels on each side of a strip.
+fn pixel_support(k: usize, cell: &[u64], out: &mut [f64], stride: usize) {
+    let one = 1.0 / COUNT_ONE as f64;
+    let mut counts = [0.0f64; K_MAX + 2];
+    let mut total = 0u64;
+    for j in 0..k {
+        let c = cell[4 * j + 3];
+        total += c;
+        counts[j + 1] = c as f64 * one;
+    }
+    for j in 0..k {
+        out[j * stride] = counts[j] + counts[j + 1] + counts[j + 2];
+    }
+    out[k * stride] = (total >> FRAC_BITS) as f64;
+}
+
+/// One row's support counts in the strip at `x0` (see [`Support`]).
+#[inline(always)]
+fn support(k: usize, cells: &[u64], w: usize, x0: usize, own: &mut [f64], pooled: &mut [f64]) {
+    let len = cell_len(k);
+    let one = 1.0 / COUNT_ONE as f64;
+    let mut tail = [0u64; LANES * (4 * K_MAX + 1)];
+    for g in (0..STRIP).step_by(LANES) {
+        let at = 1 + g;
+        if x0 + g >= w {
+            // Past the frame's right edge: never shown, but kept finite.
+            for plane in 0..=k {
+                own[plane * OWN + at..][..LANES].fill(0.0);
+            }
+            continue;
+        }
+        let group = group_cells(cells, x0 + g, w, len, LANES, &mut tail);
+        // Word by word: faster here than 256-bit loads of whole cascades (measured), since the
+        // counts are a quarter of the words these first reads of the cells bring in.
+        let mut count = [[0u64; LANES]; K_MAX];
+        for l in 0..LANES {
+            let cell = &group[l * len..(l + 1) * len];
+            for j in 0..k {
+                count[j][l] = cell[4 * j + 3];
+            }
+        }
+        let mut total = [0u64; LANES];
+        for j in 0..k {
+            for l in 0..LANES {
+                // At most 2^58 per pixel (see the state module): exact.
+                total[l] += count[j][l];
+            }
+        }
+        let small = total.iter().all(|&t| t <= SMALL_COUNTS);
+        // counts[0] and counts[k + 1] stay 0: the missing neighbours at the ends.
+        let mut counts = [[0.0f64; LANES]; K_MAX + 2];
+        for j in 0..k {
+            for l in 0..LANES {
+                let c = if small {
+                    small_to_f64(count[j][l])
+                } else {
+                    count[j][l] as f64
+                };
+                counts[j + 1][l] = c * one;
+            }
+        }
+        for j in 0..k {
+            let plane = &mut own[j * OWN + at..][..LANES];
+            for l in 0..LANES {
+                plane[l] = counts[j][l] + counts[j + 1][l] + counts[j + 2][l];
+            }
+        }
+        let plane = &mut own[k * OWN + at..][..LANES];
+        for l in 0..LANES {
+            plane[l] = small_to_f64(total[l] >> FRAC_BITS);
+        }
+    }
+    // The pixels on each side: the neighbours' own, or at the frame's edges the edge pixel
+    // itself (the 3x3 neighbourhood is clamped to the frame).
+    if x0 == 0 {
+        for plane in 0..=k {
+            own[plane * OWN] = own[plane * OWN + 1];
+        }
+    } else {
+        pixel_support(k, &cells[(x0 - 1) * len..x0 * len], own, OWN);
+    }
+    let right = x0 + STRIP;
+    if right < w {
+        pixel_support(
+            k,
+            &cells[right * len..(right + 1) * len],
+            &mut own[STRIP + 1..],
+            OWN,
+        );
+    } else {
+        let edge = w - x0;
+        for plane in 0..=k {
+            own[plane * OWN + edge + 1] = own[plane * OWN + edge];
+        }
+    }
+    for (own, pooled) in own.chunks_exact(OWN).zip(pooled.chunks_exact_mut(STRIP)) {
+        for (i, p) in pooled.iter_mut().enumerate() {
+            *p = own[i] + own[i + 1] + own[i + 2];
+        }
+    }
+}
+
+/// The cells of pixels `x0 .. x0 + count` of a row of `w` cells of `len` words: the row's own
+/// words, or at the end of a row, a copy padded with empty cells.
+#[inline(always)]
+fn group_cells<'c>(
+    cells: &'c [u64],
+    x0: usize,
+    w: usize,
+    len: usize,
+    count: usize,
+    tail: &'c mut [u64],
+) -> &'c [u64] {
+    if x0 + count <= w {
+        &cells[x0 * len..(x0 + count) * len]
+    } else {
+        let n = (w - x0) * len;
+        tail[..n].copy_from_slice(&cells[x0 * len..w * len]);
+        tail[n..count * len].fill(0);
+        &tail[..count * len]
+    }
+}
+
+/// One strip of one row to resolve: its cells, its support, the horizontally pooled planes of
+/// the rows above, at and below it, its width and where its first pixel goes in the part.
+struct RowAt<'r> {
+    cells: &'r [u64],
+    own: &'r [f64],
+    pooled: [&'r [f64]; 3],
+    count: usize,
+    first: usize,
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn row_avx2(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>) {
+    row_any::<true>(c, at, part)
+}
+
+#[inline(always)]
+fn row_any<const AVX2: bool>(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>) {
+    let bands = !part.bands.is_empty();
+    match (c.variant, bands) {
+        (Variant::Off, false) => row::<OFF, false, AVX2>(c, at, part),
+        (Variant::Off, true) => row::<OFF, true, AVX2>(c, at, part),
+        (Variant::Shader, false) => row::<SHADER, false, AVX2>(c, at, part),
+        (Variant::Shader, true) => row::<SHADER, true, AVX2>(c, at, part),
+        (Variant::Paper | Variant::Spread, false) => row::<PAPER, false, AVX2>(c, at, part),
+        (Variant::Paper | Variant::Spread, true) => row::<PAPER, true, AVX2>(c, at, part),
+    }
+}
+
+/// Resolves one strip of a row, cascade by cascade (so that the pixels of the strip are
+/// independent steps the CPU overlaps, while each pixel's own steps from dim to bright depend on
+/// each other): weights `V` (with [`Variant::Spread`] being the paper's
+/// weights), and with `BANDS` each band's removed energy and support for the spread stage.
+#[inline(always)]
+fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
+    c: &Consts,
+    at: &RowAt<'_>,
+    part: &mut Part<'_>,
+) {
+    let k = c.k;
+    let len = cell_len(k);
+    let [l0, l1, l2] = c.luminance;
+    let kmin = c.kappa_min;
+    let shader_energy = 0.4 + 0.6 * c.base;
+    let cells = at.cells;
+    {
+        let own = |j: usize| -> &[f64; STRIP] {
+            at.own[j * OWN + 1..][..STRIP].try_into().expect("a strip")
+        };
+        let pool = |j: usize| -> [&[f64; STRIP]; 3] {
+            at.pooled
+                .map(|p| p[j * STRIP..(j + 1) * STRIP].try_into().expect("a strip"))
+        };
+        let n = own(k);
+        // Support relative to each pixel's own sample count (see the module docs of resolve).
+        let [na, nb, nc] = pool(k);
+        let mut pool_scale = [0.0; STRIP];
+        for x in 0..STRIP {
+            let pooled_n = na[x] + nb[x] + nc[x];
+            let s = n[x] / pooled_n;
+            pool_scale[x] = if pooled_n > 0.0 { s } else { 0.0 };
+        }
+        let mut inv_kappa = [1.0 / c.kappa; STRIP];
+        if c.kappa_exponent != 0.0 {
+            for x in 0..STRIP {
+                inv_kappa[x] = 1.0 / (c.kappa * n[x].powf(c.kappa_exponent));
+            }
+        }
+        let small = n.iter().all(|&n| n <= SMALL_N);
+        let mut f = [[0.0f64; STRIP]; 3];
+        let mut total = [[0.0f64; STRIP]; 3];
+        let mut removed = [[0.0f64; STRIP]; 3];
+        let mut b = [[0.0f64; STRIP]; 3];
+        let mut weight = [1.0f64; STRIP];
+        for j in 0..k {
+            // The cascade's sums in units, then in value.
+            let u = c.unit_value[j];
+            if AVX2 {
+                #[cfg(target_arch = "x86_64")]
+                for x in (0..STRIP).step_by(4) {
+                    // SAFETY: only compiled into the AVX2 kernel (see `row_avx2`).
+                    unsafe { avx2::sums4(cells, x, len, j, k, small, u, &mut b) }
+                }
+            } else if j + 1 == k {
+                // The top cascade: 85-bit sums, the high word's field times 2^64.
+                for x in 0..STRIP {
+                    let cell = &cells[x * len..(x + 1) * len];
+                    let hi = cell[4 * k];
+                    for ch in 0..3 {
+                        let field = (hi >> (HI_BITS * ch as u32)) & HI_MASK;
+                        b[ch][x] = (cell[4 * j + ch] as f64 + small_to_f64(field) * TWO_64) * u;
+                    }
+                }
+            } else if small {
+                for x in 0..STRIP {
+                    let sums = &cells[x * len + 4 * j..x * len + 4 * j + 3];
+                    for ch in 0..3 {
+                        b[ch][x] = small_to_f64(sums[ch]) * u;
+                    }
+                }
+            } else {
+                for x in 0..STRIP {
+                    let sums = &cells[x * len + 4 * j..x * len + 4 * j + 3];
+                    for ch in 0..3 {
+                        b[ch][x] = sums[ch] as f64 * u;
+                    }
+                }
+            }
+            if V != OFF {
+                let [pa, pb, pc] = pool(j);
+                let own = own(j);
+                let inv_c = c.inv_scale[j];
+                for x in 0..STRIP {
+                    let pooled = pa[x] + pb[x] + pc[x];
+                    let lf = l0 * f[0][x] + l1 * f[1][x] + l2 * f[2][x];
+                    let w_c = (pooled * pool_scale[x] - kmin) * inv_kappa[x];
+                    let v = if V == SHADER {
+                        let w_c = if w_c >= 0.0 {
+                            (own[x] - kmin) * inv_kappa[x]
+                        } else {
+                            w_c
+                        };
+                        let t = if inv_kappa[x] < 1.0 {
+                            inv_kappa[x]
+                        } else {
+                            1.0
+                        };
+                        let energy = (1.0 - t) * shader_energy + t;
+                        let floor = SHADER_E_MIN_FLOOR * n[x];
+                        let e = if lf > floor { lf } else { floor };
+                        let w_v = e * inv_kappa[x] * inv_c * energy;
+                        (w_c + w_v) * 0.5
+                    } else {
+                        let w_v = lf * inv_kappa[x] * inv_c;
+                        if w_c > w_v {
+                            w_c
+                        } else {
+                            w_v
+                        }
+                    };
+                    let v = if v < 0.0 { 0.0 } else { v };
+                    let wx = if v > 1.0 { 1.0 } else { v };
+                    weight[x] = wx;
+                    for ch in 0..3 {
+                        f[ch][x] += wx * b[ch][x];
+                        total[ch][x] += b[ch][x];
+                        removed[ch][x] += (1.0 - wx) * b[ch][x];
+                    }
+                }
+            } else {
+                for ch in 0..3 {
+                    for x in 0..STRIP {
+                        f[ch][x] += b[ch][x];
+                        total[ch][x] += b[ch][x];
+                        removed[ch][x] += 0.0 * b[ch][x];
+                    }
+                }
+            }
+            if BANDS {
+                let out = &mut part.bands[j][at.first * BAND_FLOATS..];
+                let own = own(j);
+                for x in 0..at.count {
+                    if n[x] != 0.0 {
+                        for ch in 0..3 {
+                            out[x * BAND_FLOATS + ch] =
+                                ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
+                        }
+                        out[x * BAND_FLOATS + 3] = own[x] as f32;
+                    }
+                }
+            }
+        }
+        let i = at.first;
+        for x in 0..at.count {
+            if n[x] == 0.0 {
+                // No samples: nothing to show (the outputs may hold an earlier resolve).
+                part.reweighted[i + x] = [0.0; 3];
+                part.mean[i + x] = [0.0; 3];
+                part.removed[i + x] = [0.0; 3];
+                part.spp[i + x] = 0;
+                continue;
+            }
+            let inv = 1.0 / n[x];
+            let px = |v: &[[f64; STRIP]; 3]| {
+                [
+                    (v[0][x] * inv) as f32,
+                    (v[1][x] * inv) as f32,
+                    (v[2][x] * inv) as f32,
+                ]
+            };
+            part.reweighted[i + x] = px(&f);
+            part.mean[i + x] = px(&total);
+            part.removed[i + x] = px(&removed);
+            part.spp[i + x] = n[x] as u64;
+        }
+    }
+}
+
+/// The AVX2 form of the loop that reads a cascade's sums for the weights step: a cascade's
+/// `[r, g, b, count]` is 4 words, one 256-bit load, and 4 pixels' loads transposed give each
+/// channel of 4 pixels in one vector, converted to `f64` in a few vector instructions (the
+/// portable loop reads and converts word by word). These functions are only inlined into the
+/// AVX2 kernel.
+#[cfg(target_arch = "x86_64")]
+mod avx2 {
+    use std::arch::x86_64::*;
+
+    use super::{HI_BITS, HI_MASK, STRIP, TWO_52, TWO_64};
+
+    /// A cascade's `[r, g, b, count]` of the 4 cells at `at`, `at + len`, .. of `cells`,
+    /// transposed: `[r of the 4 pixels, g, b, count]`.
+    ///
+    /// # Safety
+    /// The CPU must have AVX2 (as for the other functions here).
+    #[inline(always)]
+    unsafe fn group4(cells: &[u64], at: usize, len: usize) -> [__m256i; 4] {
+        assert!(at + 3 * len + 4 <= cells.len(), "4 cells");
+        let p = cells[at..].as_ptr() as *const __m256i;
+        // SAFETY: the 4 loads of 4 words each are inside `cells` (asserted above); unaligned
+        // loads are allowed.
+        let (a, b, c, d) = unsafe {
+            (
+                _mm256_loadu_si256(p),
+                _mm256_loadu_si256(p.byte_add(8 * len)),
+                _mm256_loadu_si256(p.byte_add(16 * len)),
+                _mm256_loadu_si256(p.byte_add(24 * len)),
+            )
+        };
+        let (ab_lo, ab_hi) = (_mm256_unpacklo_epi64(a, b), _mm256_unpackhi_epi64(a, b));
+        let (cd_lo, cd_hi) = (_mm256_unpacklo_epi64(c, d), _mm256_unpackhi_epi64(c, d));
+        [
+            _mm256_permute2x128_si256::<0x20>(ab_lo, cd_lo),
+            _mm256_permute2x128_si256::<0x20>(ab_hi, cd_hi),
+            _mm256_permute2x128_si256::<0x31>(ab_lo, cd_lo),
+            _mm256_permute2x128_si256::<0x31>(ab_hi, cd_hi),
+        ]
+    }
+
+    /// `x as f64` for 4 words below `2^52`: the word in the mantissa of `2^52`, minus `2^52`.
+    #[inline(always)]
+    unsafe fn small(x: __m256i) -> __m256d {
+        let magic = _mm256_set1_epi64x(TWO_52.to_bits() as i64);
+        _mm256_sub_pd(
+            _mm256_castsi256_pd(_mm256_or_si256(x, magic)),
+            _mm256_set1_pd(TWO_52),
+        )
+    }
+
+    /// `x as f64` for any 4 words, rounded once as `as` rounds: the high and low 32 bits as
+    /// exact `f64`s (`2^84 + hi * 2^32` and `2^52 + lo`), the offsets taken off the high part
+    /// exactly, then one rounded addition.
+    #[inline(always)]
+    unsafe fn exact(x: __m256i) -> __m256d {
+        let lo = _mm256_blend_epi32::<0b1010_1010>(x, _mm256_set1_epi64x(TWO_52.to_bits() as i64));
+        let two_84 = 19_342_813_113_834_066_795_298_816.0f64;
+        let hi = _mm256_or_si256(
+            _mm256_srli_epi64::<32>(x),
+            _mm256_set1_epi64x(two_84.to_bits() as i64),
+        );
+        let hi = _mm256_sub_pd(_mm256_castsi256_pd(hi), _mm256_set1_pd(two_84 + TWO_52));
+        _mm256_add_pd(hi, _mm256_castsi256_pd(lo))
+    }
+
+    /// `b[ch][x .. x + 4]`: cascade `j`'s sums of pixels `x ..` of a strip's cells, converted to
+    /// `f64` (by `small` where every pixel of the strip has at most `2^20` samples; the top
+    /// cascade `K - 1` with its high word) and times the cascade's unit value `u`.
+    #[inline(always)]
+    #[allow(clippy::too_many_arguments)]
+    pub(super) unsafe fn sums4(
+        cells: &[u64],
+        x: usize,
+        len: usize,
+        j: usize,
+        k: usize,
+        is_small: bool,
+        u: f64,
+        b: &mut [[f64; STRIP]; 3],
+    ) {
+        let [r, g, bl, _] = group4(cells, x * len + 4 * j, len);
+        let u = _mm256_set1_pd(u);
+        let values: [__m256d; 3] = if j + 1 == k {
+            let hi = _mm256_set_epi64x(
+                cells[(x + 3) * len + 4 * k] as i64,
+                cells[(x + 2) * len + 4 * k] as i64,
+                cells[(x + 1) * len + 4 * k] as i64,
+                cells[x * len + 4 * k] as i64,
+            );
+            let mask = _mm256_set1_epi64x(HI_MASK as i64);
+            let two_64 = _mm256_set1_pd(TWO_64);
+            let g_hi = _mm256_srli_epi64::<{ HI_BITS as i32 }>(hi);
+            let b_hi = _mm256_srli_epi64::<{ 2 * HI_BITS as i32 }>(hi);
+            [
+                _mm256_add_pd(
+                    exact(r),
+                    _mm256_mul_pd(small(_mm256_and_si256(hi, mask)), two_64),
+                ),
+                _mm256_add_pd(
+                    exact(g),
+                    _mm256_mul_pd(small(_mm256_and_si256(g_hi, mask)), two_64),
+                ),
+                _mm256_add_pd(
+                    exact(bl),
+                    _mm256_mul_pd(small(_mm256_and_si256(b_hi, mask)), two_64),
+                ),
+            ]
+        } else if is_small {
+            [small(r), small(g), small(bl)]
+        } else {
+            [exact(r), exact(g), exact(bl)]
+        };
+        for ch in 0..3 {
+            let out = &mut b[ch][x..x + 4];
+            // SAFETY: 4 values fit in `out` (a slice of 4).
+            unsafe { _mm256_storeu_pd(out.as_mut_ptr(), _mm256_mul_pd(values[ch], u)) }
+        }
+    }
+}
