@@ -62,8 +62,8 @@
 //! Snapshot bands list none: a snapshot keeps the frame's applied batches itself.
 //!
 //! **AOVs** (version 3). Last, the frame's AOVs: a `u64` count, then per AOV its name (`u64`
-//! length + UTF-8), a `u64` channel count (at least 1) and the channel names (each `u64` length
-//! + UTF-8). When there is an AOV, the AOV words of the rows held follow as runs laid out like
+//! length and UTF-8), a `u64` channel count (at least 1) and the channel names (each a `u64`
+//! length and UTF-8). When there is an AOV, the AOV words of the rows held follow as runs laid out like
 //! the cells' (`first`, `pixels`, the pixels' words; ended by `first` = pixels held,
 //! `pixels` = 0), `1 + 2C` `u64` words per pixel for the `C` channels of all AOVs: the pixel's
 //! AOV sample count, then per channel the sum's low and high words (an `i128` in units of
