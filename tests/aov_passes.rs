@@ -13,7 +13,7 @@ use std::path::Path;
 use std::process::Command;
 
 use bytes::Bytes;
-use common::{read_exr_with_python, runtime, Server};
+use common::{read_exr_with_python, runtime, Server, PATIENCE};
 use splatd_proto::api::{AovSpec, CreateFrame, ImageQuery};
 use splatd_proto::{Client, ClientError};
 
@@ -267,4 +267,41 @@ fn aovs_are_exact_means_through_merge_restart_and_old_states() {
             }
         }
     });
+}
+
+/// Push: a node started with `--upstream` pushes its frame's AOVs with the cascades, the first
+/// push whole and later ones as deltas; once it has exited the upstream holds its very state.
+#[test]
+fn pushed_deltas_carry_the_aovs() {
+    let dir = tempfile::tempdir().unwrap();
+    write_passes(dir.path());
+    let rt = runtime();
+    let upstream = Server::start(&[]);
+    let node = Server::start(&["--upstream", &upstream.url, "--push-interval-ms", "50"]);
+    let head = Client::new(&upstream.url).unwrap();
+    let local = Client::new(&node.url).unwrap();
+    let state = rt.block_on(async {
+        post(&local, dir.path(), 0..PASSES / 2, false).await;
+        // The first push has arrived when the upstream holds these samples.
+        let first = PASSES / 2 * (W * H) as u64;
+        let deadline = std::time::Instant::now() + PATIENCE;
+        loop {
+            match head.frame_info(FRAME).await {
+                Ok(info) if info.samples == first => break,
+                _ => assert!(
+                    std::time::Instant::now() < deadline,
+                    "the first push did not arrive"
+                ),
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+        post(&local, dir.path(), PASSES / 2..PASSES, false).await;
+        local.export_state(FRAME).await.unwrap()
+    });
+    assert_eq!(node.terminate(), Some(0));
+    let pushed = rt.block_on(head.export_state(FRAME)).unwrap();
+    assert!(
+        pushed == state,
+        "the upstream's state after the pushes differs from the node's"
+    );
 }
