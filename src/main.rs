@@ -99,6 +99,11 @@ struct PostArgs {
     /// file's layers). Without it the server finds the beauty in the order PROTOCOL.md gives.
     #[arg(long)]
     layer: Option<String>,
+    /// With `--create`: an AOV the frame keeps beside the beauty, as `LAYER=CHANNEL,CHANNEL...`
+    /// (`ViewLayer.DiffCol=R,G,B`, `ViewLayer.Depth=Z`); repeat for several. Every pass must
+    /// then carry all of them or none (PROTOCOL.md, "AOVs").
+    #[arg(long = "aov", value_parser = parse_aov)]
+    aovs: Vec<splatd_proto::api::AovSpec>,
     /// Worker id the passes are sent under. Each pass is numbered by a digest of its file, so
     /// posting a file again (a rerun, or from another machine) adds nothing twice, and new files
     /// are never mistaken for old ones; a different `--worker` makes the same files count again.
@@ -212,6 +217,9 @@ fn post(args: PostArgs) -> Result<()> {
             client = client.with_token(token.clone());
         }
         let worker = args.worker.unwrap_or(POST_WORKER);
+        if !args.create && !args.aovs.is_empty() {
+            bail!("--aov declares the AOVs of a frame being created: it needs --create");
+        }
         if args.create {
             let first = std::fs::read(&args.passes[0])
                 .with_context(|| format!("reading {}", args.passes[0].display()))?;
@@ -221,7 +229,10 @@ fn post(args: PostArgs) -> Result<()> {
                 splatd_server::passes::MAX_PASS_PIXELS,
             )
             .with_context(|| format!("decoding {}", args.passes[0].display()))?;
-            let request = splatd_proto::CreateFrame::new(&args.frame, pass.width, pass.height);
+            let request = splatd_proto::CreateFrame {
+                aovs: args.aovs.clone(),
+                ..splatd_proto::CreateFrame::new(&args.frame, pass.width, pass.height)
+            };
             match client.create_or_get(&request).await {
                 Ok(info) if info.batches > 0 => println!(
                     "frame {:?} exists with {} samples; adding to it",
@@ -311,25 +322,43 @@ fn is_state_file(path: &Path) -> Result<bool> {
     Ok(n == 4 && &magic == b"SPLS")
 }
 
-/// A state file: its frame id, cells and the batches they hold.
-fn read_state(path: &Path) -> Result<(String, FrameState, Vec<Applied>)> {
+/// `--aov LAYER=C1,C2,...`.
+fn parse_aov(s: &str) -> Result<splatd_proto::api::AovSpec, String> {
+    let (name, channels) = s
+        .rsplit_once('=')
+        .ok_or_else(|| format!("expected LAYER=CHANNEL,CHANNEL..., got {s:?}"))?;
+    Ok(splatd_proto::api::AovSpec {
+        name: name.to_owned(),
+        channels: channels.split(',').map(str::to_owned).collect(),
+    })
+}
+
+/// A state's AOVs: their declarations and sums.
+type StateAovs = Option<(Vec<splatd_proto::api::AovSpec>, splatd_estimator::AovSums)>;
+
+/// A state file: its frame id, cells, the batches they hold and its AOVs.
+fn read_state(path: &Path) -> Result<(String, FrameState, Vec<Applied>, StateAovs)> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
     let mut dump = StateDump::decode(&bytes, u64::MAX)
         .with_context(|| format!("{} is not a valid state", path.display()))?;
     let frame = dump.frame.clone();
     let batches = std::mem::take(&mut dump.batches);
+    let aovs = splatd_server::export::take_aovs(&mut dump)
+        .with_context(|| format!("loading the AOVs of {}", path.display()))?;
     let state =
         splatd_server::export::load(dump).with_context(|| format!("loading {}", path.display()))?;
-    Ok((frame, state, batches))
+    Ok((frame, state, batches, aovs))
 }
 
-/// Adds state files together, checking they are of one frame and hold no batch twice.
-fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState, Seen)> {
-    let (frame, mut total, batches) = read_state(&inputs[0])?;
+/// Adds state files together, checking they are of one frame and hold no batch twice. AOVs
+/// add up like the cells; a state without AOVs adds none (its passes carried none), and two
+/// states with different AOVs are refused.
+fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState, Seen, StateAovs)> {
+    let (frame, mut total, batches, mut total_aovs) = read_state(&inputs[0])?;
     let mut seen = Seen::default();
     seen.insert_applied(&batches);
     for path in &inputs[1..] {
-        let (other_frame, state, batches) = read_state(path)?;
+        let (other_frame, state, batches, aovs) = read_state(path)?;
         if other_frame != frame {
             bail!(
                 "{} is a state of frame {other_frame:?}, but {} is of frame {frame:?}",
@@ -350,14 +379,32 @@ fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState, Seen)> {
         total
             .merge(&state)
             .with_context(|| format!("merging {}", path.display()))?;
+        match (&mut total_aovs, aovs) {
+            (_, None) => {}
+            (None, some) => total_aovs = some,
+            (Some((specs, sums)), Some((other_specs, other_sums))) => {
+                if *specs != other_specs {
+                    bail!(
+                        "{} has AOVs {}, but {} has {}",
+                        path.display(),
+                        splatd_server::frame::describe_aovs(&other_specs),
+                        inputs[0].display(),
+                        splatd_server::frame::describe_aovs(specs)
+                    );
+                }
+                sums.merge_overlap(&other_sums)
+                    .with_context(|| format!("merging the AOVs of {}", path.display()))?;
+            }
+        }
         seen.insert_applied(&batches);
     }
-    Ok((frame, total, seen))
+    Ok((frame, total, seen, total_aovs))
 }
 
 fn merge(inputs: &[PathBuf], output: &Path) -> Result<()> {
-    let (frame, total, seen) = merge_states(inputs)?;
-    let bytes = splatd_server::export::dump(&total, &frame, None, seen.applied()).encode();
+    let (frame, total, seen, aovs) = merge_states(inputs)?;
+    let aovs = aovs.as_ref().map(|(specs, sums)| (specs.as_slice(), sums));
+    let bytes = splatd_server::export::dump(&total, aovs, &frame, None, seen.applied()).encode();
     std::fs::write(output, bytes).with_context(|| format!("writing {}", output.display()))?;
     println!(
         "merged {} states of frame {frame:?} ({} samples) into {}",
@@ -374,8 +421,11 @@ fn resolve(args: ResolveArgs) -> Result<()> {
         .iter()
         .map(|p| is_state_file(p))
         .collect::<Result<Vec<bool>>>()?;
+    let mut aovs = None;
     let state = if states.iter().all(|&s| s) {
-        merge_states(&args.inputs)?.1
+        let (_, state, _, merged) = merge_states(&args.inputs)?;
+        aovs = merged;
+        state
     } else if states.iter().all(|&s| !s) {
         let (Some(width), Some(height)) = (args.width, args.height) else {
             bail!("batch files do not carry the frame size: give --width and --height");
@@ -436,7 +486,11 @@ fn resolve(args: ResolveArgs) -> Result<()> {
         layout: state.layout(),
         params: &params,
     };
-    let bytes = encode_exr(&resolved, &extra, &provenance)?;
+    let aov_planes = aovs
+        .as_ref()
+        .map(|(specs, sums)| splatd_server::image::aov_planes(specs, sums))
+        .unwrap_or_default();
+    let bytes = encode_exr(&resolved, &extra, &aov_planes, &provenance)?;
     std::fs::write(&args.output, bytes)
         .with_context(|| format!("writing {}", args.output.display()))?;
     println!(

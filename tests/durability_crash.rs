@@ -131,7 +131,7 @@ fn reference() -> (u64, Vec<u8>) {
         layout: state.layout(),
         params: &params,
     };
-    let exr = encode_exr(&state.resolve(&params), &[], &provenance).unwrap();
+    let exr = encode_exr(&state.resolve(&params), &[], &[], &provenance).unwrap();
     (state.total_samples(), exr)
 }
 

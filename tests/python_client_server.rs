@@ -77,7 +77,7 @@ fn the_installed_python_client_posts_what_the_core_resolves() {
         layout: reference.layout(),
         params: &params,
     };
-    let expected = encode_exr(&reference.resolve(&params), &[], &provenance).unwrap();
+    let expected = encode_exr(&reference.resolve(&params), &[], &[], &provenance).unwrap();
     let served = std::fs::read(dir.path().join("served.exr")).unwrap();
     assert!(
         served == expected,

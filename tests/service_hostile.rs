@@ -210,7 +210,7 @@ fn ten_thousand_malformed_bodies_leave_the_server_well_and_the_frame_exact() {
         layout: reference.layout(),
         params: &params,
     };
-    let expected = encode_exr(&reference.resolve(&params), &[], &provenance).unwrap();
+    let expected = encode_exr(&reference.resolve(&params), &[], &[], &provenance).unwrap();
     assert!(
         image[..] == expected[..],
         "the frame is not what the valid batches make it"

@@ -15,12 +15,16 @@
 //! [`FRAC_BITS`]), so a state, and every image resolved from it, is bit-identical whatever the
 //! order samples arrived in and however they were split across partial states.
 
+mod aov;
 mod layout;
 mod need;
 mod resolve;
 mod resolve_spread;
 mod state;
 
+pub use aov::{
+    aov_units, aov_words, AovCellsError, AovSums, AovValueError, AOV_FRAC_BITS, AOV_MAX_ABS,
+};
 pub use layout::{
     rec709_luminance, CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_CASCADE_BASE,
     DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES, MAX_PIXEL_SAMPLES,

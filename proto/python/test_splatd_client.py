@@ -254,7 +254,6 @@ def test_create_or_get_puts_the_parameters_and_pass_layers_are_encoded():
         server.server_close()
 
 
-
 def _need_map(need, width=10, height=4, tile=4):
     tx, ty = -(-width // tile), -(-height // tile)
     return {"frame": "f", "width": width, "height": height, "tile": tile, "tiles_x": tx,
@@ -293,6 +292,23 @@ def test_plan_samples_by_hand():
         assert "negative" in str(e)
     else:
         raise AssertionError("a negative budget was accepted")
+
+
+def test_aovs_are_declared_as_the_server_expects():
+    info = {"id": "f", "width": 4, "height": 2}
+    server, base = _serve([(201, info), (200, info)])
+    try:
+        c = _client(base)
+        aovs = [("ViewLayer.DiffCol", ["R", "G", "B"]), ("ViewLayer.Depth", ("Z",))]
+        expected = [{"name": "ViewLayer.DiffCol", "channels": ["R", "G", "B"]},
+                    {"name": "ViewLayer.Depth", "channels": ["Z"]}]
+        assert c.create_frame("f", 4, 2, aovs=aovs) == info
+        assert json.loads(_Scripted.seen[0][3])["aovs"] == expected
+        assert c.create_or_get("f", 4, 2, aovs=aovs) == info
+        assert json.loads(_Scripted.seen[1][3]) == {"width": 4, "height": 2, "aovs": expected}
+    finally:
+        server.shutdown()
+        server.server_close()
 
 
 if __name__ == "__main__":

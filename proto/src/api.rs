@@ -236,6 +236,10 @@ pub struct CreateFrame {
     /// [`DEFAULT_CONVERGED_BELOW`]).
     #[serde(default = "default_converged_below")]
     pub converged_below: f64,
+    /// AOVs accumulated beside the beauty from passes that carry them (none when omitted); see
+    /// [`AovSpec`].
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub aovs: Vec<AovSpec>,
 }
 
 impl CreateFrame {
@@ -248,6 +252,33 @@ impl CreateFrame {
             cascades: CascadeParams::default(),
             resolve: ResolveParams::default(),
             converged_below: DEFAULT_CONVERGED_BELOW,
+            aovs: Vec::new(),
+        }
+    }
+}
+
+/// One AOV of a frame: a layer of the passes other than the beauty, accumulated as a plain
+/// per-pixel mean of each of its channels and served as the layer `name` of `image.exr`
+/// (channels `name.R`, `name.G`, ...).
+///
+/// `name` is the layer's name in the passes, as `POST /v1/frames/{id}/passes` lists layers
+/// (`albedo`, `ViewLayer.Denoising Albedo`, a part's name ...); `channels` are the channel names
+/// after the layer's prefix (`R`, `G`, `B`; `X`, `Y`, `Z`; `Z`; `V` ...).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AovSpec {
+    /// The layer's name.
+    pub name: String,
+    /// Its channels, in the order they are stored and served.
+    pub channels: Vec<String>,
+}
+
+impl AovSpec {
+    /// An AOV `name` with `channels`.
+    pub fn new(name: impl Into<String>, channels: &[&str]) -> AovSpec {
+        AovSpec {
+            name: name.into(),
+            channels: channels.iter().map(|c| c.to_string()).collect(),
         }
     }
 }
@@ -274,6 +305,10 @@ pub struct PutFrame {
     /// Convergence threshold ([`CreateFrame::converged_below`]); default when omitted.
     #[serde(default = "default_converged_below")]
     pub converged_below: f64,
+    /// AOVs accumulated beside the beauty from passes that carry them (none when omitted); see
+    /// [`AovSpec`].
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub aovs: Vec<AovSpec>,
 }
 
 impl PutFrame {
@@ -286,6 +321,7 @@ impl PutFrame {
             cascades: self.cascades,
             resolve: self.resolve,
             converged_below: self.converged_below,
+            aovs: self.aovs,
         }
     }
 }
@@ -299,6 +335,7 @@ impl From<&CreateFrame> for PutFrame {
             cascades: c.cascades.clone(),
             resolve: c.resolve.clone(),
             converged_below: c.converged_below,
+            aovs: c.aovs.clone(),
         }
     }
 }

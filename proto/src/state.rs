@@ -5,7 +5,7 @@
 //! of the same frame (same size and cascade layout) merge by adding them cell by cell, which is
 //! what makes a farm of nodes aggregate exactly, as if one server had seen every sample.
 //!
-//! # Byte layout (version 2)
+//! # Byte layout (version 3)
 //!
 //! Little-endian throughout. After a 6-byte preamble (magic `b"SPLS"`, `u16` version), the header
 //! is bincode 2 with `legacy()` configuration (fixed-width integers, `u64` lengths; the same
@@ -61,6 +61,17 @@
 //! A state that holds only some rows of a frame lists every batch with samples in those rows.
 //! Snapshot bands list none: a snapshot keeps the frame's applied batches itself.
 //!
+//! **AOVs** (version 3). Last, the frame's AOVs: a `u64` count, then per AOV its name (`u64`
+//! length and UTF-8), a `u64` channel count (at least 1) and the channel names (each a `u64`
+//! length and UTF-8). When there is an AOV, the AOV words of the rows held follow as runs laid out like
+//! the cells' (`first`, `pixels`, the pixels' words; ended by `first` = pixels held,
+//! `pixels` = 0), `1 + 2C` `u64` words per pixel for the `C` channels of all AOVs: the pixel's
+//! AOV sample count, then per channel the sum's low and high words (an `i128` in units of
+//! `2^-20`; see `splatd_estimator`'s aov module for the bounds a receiver checks).
+//!
+//! Version 2 is version 3 without the AOV section; [`StateDump::decode`] reads it as a state
+//! without AOVs.
+//!
 //! Version 1 (`frac_bits` 32, `4 * K` dense cells per pixel after a `u64` count in the header,
 //! sums that saturated, no batches) is refused by [`StateDump::decode`], naming both versions;
 //! [`StateDump::decode_v1`] reads it for servers that convert old snapshots.
@@ -73,11 +84,17 @@ use std::ops::Range;
 use bincode::config::{Configuration, Fixint, Limit, LittleEndian};
 use serde::{Deserialize, Serialize};
 
+use crate::api::AovSpec;
+
 /// The four bytes every state starts with.
 pub const STATE_MAGIC: [u8; 4] = *b"SPLS";
 
-/// The only state format version this crate reads and writes.
-pub const STATE_VERSION: u16 = 2;
+/// The state format version this crate writes; it reads this one and [`STATE_VERSION_2`].
+pub const STATE_VERSION: u16 = 3;
+
+/// The previous state format version, without the AOV section; still read by
+/// [`StateDump::decode`] (as a state without AOVs).
+pub const STATE_VERSION_2: u16 = 2;
 
 /// The previous state format version, read only by [`StateDump::decode_v1`].
 pub const STATE_VERSION_1: u16 = 1;
@@ -130,6 +147,11 @@ pub struct StateDump {
     pub cells: Vec<u64>,
     /// The batches whose samples the state holds, by increasing worker id.
     pub batches: Vec<Applied>,
+    /// The frame's AOVs (none in a version 2 state).
+    pub aovs: Vec<AovSpec>,
+    /// The AOV words: `width * rows * (1 + 2C)` values for the `C` channels of all `aovs`
+    /// together, empty pixels included (empty when there are no AOVs).
+    pub aov_cells: Vec<u64>,
 }
 
 /// The batches of one worker that a state holds.
@@ -216,7 +238,7 @@ pub enum StateError {
     /// A state of a version this build cannot read.
     #[error(
         "unsupported state format version {found}; this build reads version {supported} \
-         (version 1 states, with 32 fractional bits, must be re-exported by a current server)"
+         and version 2 (version 1 states, with 32 fractional bits, must be re-exported by a current server)"
     )]
     UnsupportedVersion {
         /// Version found.
@@ -341,8 +363,28 @@ impl StateDump {
         parts: &[&[u64]],
         out: &mut impl std::io::Write,
     ) -> std::io::Result<()> {
+        self.write_version(STATE_VERSION, parts, out)
+    }
+
+    /// Encodes the state in version 2's layout (no AOV section; `aovs` must be empty), for
+    /// tests of the migration.
+    #[doc(hidden)]
+    pub fn encode_v2(&self) -> Vec<u8> {
+        assert!(self.aovs.is_empty(), "version 2 has no AOVs");
+        let mut out = Vec::new();
+        self.write_version(STATE_VERSION_2, &[&self.cells], &mut out)
+            .expect("writing into a Vec<u8> is infallible");
+        out
+    }
+
+    fn write_version(
+        &self,
+        version: u16,
+        parts: &[&[u64]],
+        out: &mut impl std::io::Write,
+    ) -> std::io::Result<()> {
         out.write_all(&STATE_MAGIC)?;
-        out.write_all(&STATE_VERSION.to_le_bytes())?;
+        out.write_all(&version.to_le_bytes())?;
         out.write_all(&self.header_bytes())?;
         let pixels = Pixels::new(parts, self.cell_len());
         let mut block = Vec::with_capacity(8 * 8192);
@@ -363,7 +405,50 @@ impl StateDump {
         block.extend_from_slice(&(pixels.count() as u32).to_le_bytes());
         block.extend_from_slice(&0u32.to_le_bytes());
         out.write_all(&block)?;
-        out.write_all(&self.batches_bytes())
+        out.write_all(&self.batches_bytes())?;
+        if version >= 3 {
+            out.write_all(&self.aov_bytes())?;
+        }
+        Ok(())
+    }
+
+    /// Channels of all AOVs together.
+    pub fn aov_channels(&self) -> usize {
+        self.aovs.iter().map(|a| a.channels.len()).sum()
+    }
+
+    /// The AOV section (version 3): the AOVs' names and channels, then, when they have any
+    /// channel, the runs of pixels with AOV samples, laid out like the cells' runs.
+    fn aov_bytes(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        let string = |out: &mut Vec<u8>, s: &str| {
+            out.extend_from_slice(&(s.len() as u64).to_le_bytes());
+            out.extend_from_slice(s.as_bytes());
+        };
+        out.extend_from_slice(&(self.aovs.len() as u64).to_le_bytes());
+        for aov in &self.aovs {
+            string(&mut out, &aov.name);
+            out.extend_from_slice(&(aov.channels.len() as u64).to_le_bytes());
+            for c in &aov.channels {
+                string(&mut out, c);
+            }
+        }
+        let channels = self.aov_channels();
+        if channels == 0 {
+            return out;
+        }
+        let parts = [self.aov_cells.as_slice()];
+        let pixels = Pixels::new(&parts, 1 + 2 * channels);
+        for run in pixels.runs() {
+            out.extend_from_slice(&(run.start as u32).to_le_bytes());
+            out.extend_from_slice(&((run.end - run.start) as u32).to_le_bytes());
+            for words in pixels.cells(run) {
+                out.extend(words.iter().flat_map(|w| w.to_le_bytes()));
+            }
+        }
+        out.extend_from_slice(&(pixels.count() as u32).to_le_bytes());
+        out.extend_from_slice(&0u32.to_le_bytes());
+        out
     }
 
     /// The length of [`StateDump::write_with_cell_parts`]'s output, without writing it.
@@ -373,6 +458,7 @@ impl StateDump {
         let cells: usize = runs.iter().map(|r| r.len() * self.cell_len()).sum();
         (6 + self.header_bytes().len() + 8 * (runs.len() + 1) + 8 * cells) as u64
             + self.batches_bytes().len() as u64
+            + self.aov_bytes().len() as u64
     }
 
     fn cell_len(&self) -> usize {
@@ -436,8 +522,16 @@ impl StateDump {
     }
 
     /// Decodes an untrusted state body whose geometry holds at most `max_cells` cells.
+    ///
+    /// Reads version 3 and version 2 (a state without AOVs); `max_cells` bounds the cells and
+    /// the AOV words together.
     pub fn decode(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
-        let body = preamble(bytes, STATE_VERSION)?;
+        let (body, version) = match preamble(bytes, STATE_VERSION) {
+            Err(StateError::UnsupportedVersion { found, .. }) if found == STATE_VERSION_2 => {
+                (preamble(bytes, STATE_VERSION_2)?, STATE_VERSION_2)
+            }
+            other => (other?, STATE_VERSION),
+        };
         let (header, header_len): (Header, usize) = decode_header(body, bytes.len())?;
         let mut dump = StateDump::with_header(header)?;
         let count = dump.expected_cells();
@@ -454,6 +548,21 @@ impl StateDump {
         };
         dump.cells = rest.runs(count, dump.cell_len())?;
         dump.batches = rest.batches()?;
+        if version >= 3 {
+            dump.aovs = rest.aovs()?;
+            let channels = dump.aov_channels();
+            if channels > 0 {
+                let pixels = count / dump.cell_len() as u64;
+                let words = pixels.saturating_mul(1 + 2 * channels as u64);
+                if words.saturating_add(count) > max_cells {
+                    return Err(StateError::TooLarge {
+                        count: words.saturating_add(count),
+                        max: max_cells,
+                    });
+                }
+                dump.aov_cells = rest.runs(words, 1 + 2 * channels)?;
+            }
+        }
         if !rest.bytes.is_empty() {
             return Err(StateError::TrailingBytes {
                 count: rest.bytes.len(),
@@ -535,6 +644,8 @@ impl StateDump {
             origin: header.origin,
             cells: Vec::new(),
             batches: Vec::new(),
+            aovs: Vec::new(),
+            aov_cells: Vec::new(),
         })
     }
 }
@@ -648,6 +759,40 @@ impl<'a> Reader<'a> {
             }
             next = first + n + 1;
         }
+    }
+
+    fn string(&mut self, what: &str) -> Result<String, StateError> {
+        let len = self.u64()?;
+        let bytes = self.take(len)?;
+        String::from_utf8(bytes.to_vec())
+            .map_err(|_| StateError::Malformed(format!("{what} is not UTF-8")))
+    }
+
+    /// The AOV names and channels of a version 3 state.
+    fn aovs(&mut self) -> Result<Vec<AovSpec>, StateError> {
+        let count = self.u64()?;
+        // Each AOV takes at least 16 bytes: no allocation by what the count claims.
+        if count > self.bytes.len() as u64 / 16 {
+            return Err(StateError::Truncated {
+                needed: (self.at as u64).saturating_add(count.saturating_mul(16)),
+                available: self.total as u64,
+            });
+        }
+        let mut aovs = Vec::with_capacity(count as usize);
+        for _ in 0..count {
+            let name = self.string("an AOV name")?;
+            let channels = self.u64()?;
+            if channels == 0 || channels > self.bytes.len() as u64 / 8 {
+                return Err(StateError::Malformed(format!(
+                    "AOV {name:?} declares {channels} channels"
+                )));
+            }
+            let channels = (0..channels)
+                .map(|_| self.string("an AOV channel name"))
+                .collect::<Result<Vec<String>, StateError>>()?;
+            aovs.push(AovSpec { name, channels });
+        }
+        Ok(aovs)
     }
 
     fn batches(&mut self) -> Result<Vec<Applied>, StateError> {
@@ -785,7 +930,57 @@ mod tests {
                 Applied::from_batches(3, [(0, Some(11)), (1, Some(12)), (5, None)]),
                 Applied::from_batches(9, [(7, Some(u64::MAX))]),
             ],
+            aovs: vec![],
+            aov_cells: vec![],
         }
+    }
+
+    /// `dump()` with two AOVs (3 + 1 channels: 9 words per pixel), pixels 1 and 2 empty.
+    fn with_aovs() -> StateDump {
+        let mut aov_cells: Vec<u64> = (0..54).map(|i| i * 0x0123_4567 + 1).collect();
+        aov_cells[9..27].fill(0);
+        StateDump {
+            aovs: vec![
+                AovSpec::new("ViewLayer.Denoising Albedo", &["R", "G", "B"]),
+                AovSpec::new("depth", &["Z"]),
+            ],
+            aov_cells,
+            ..dump()
+        }
+    }
+
+    #[test]
+    fn aovs_round_trip_after_the_batches() {
+        let d = with_aovs();
+        let bytes = d.encode();
+        assert_eq!(StateDump::decode(&bytes, u64::MAX).unwrap(), d);
+        assert_eq!(
+            bytes.len() as u64,
+            d.encoded_len_with_cell_parts(&[&d.cells])
+        );
+        // The section is last: the state without AOVs is a prefix of it, up to the version.
+        let plain = dump().encode();
+        assert_eq!(bytes[6..plain.len() - 8], plain[6..plain.len() - 8]);
+        assert_eq!(plain[plain.len() - 8..], 0u64.to_le_bytes());
+        // Every truncation is refused, and the AOV words count against the limit.
+        for len in plain.len() - 8..bytes.len() {
+            assert!(StateDump::decode(&bytes[..len], u64::MAX).is_err(), "{len}");
+        }
+        assert!(matches!(
+            StateDump::decode(&bytes, 107),
+            Err(StateError::TooLarge { count: 108, .. })
+        ));
+        assert!(StateDump::decode(&bytes, 108).is_ok());
+    }
+
+    /// A version 2 state (no AOV section) is still read, as a state without AOVs.
+    #[test]
+    fn version_2_states_still_load_without_aovs() {
+        let d = dump();
+        let bytes = d.encode_v2();
+        assert_eq!(&bytes[4..6], &2u16.to_le_bytes());
+        assert_eq!(bytes.len(), d.encode().len() - 8);
+        assert_eq!(StateDump::decode(&bytes, u64::MAX).unwrap(), d);
     }
 
     #[test]
@@ -833,7 +1028,7 @@ mod tests {
         ));
         // Counts of applied batches are checked against the bytes present.
         let mut bytes = dump().encode();
-        let at = bytes.len() - dump().batches_bytes().len();
+        let at = bytes.len() - 8 - dump().batches_bytes().len();
         bytes[at..at + 8].copy_from_slice(&u64::MAX.to_le_bytes());
         assert!(matches!(
             StateDump::decode(&bytes, u64::MAX),
@@ -900,7 +1095,7 @@ mod tests {
         d.cells[0] = 1;
         d.cells[2 * cell] = 1;
         let bytes = d.encode();
-        let runs_at = bytes.len() - 8 - 8 - 2 * (8 + 8 * cell);
+        let runs_at = bytes.len() - 8 - 8 - 8 - 2 * (8 + 8 * cell);
         // Run 2 starts at pixel 2; moving it to pixel 1 makes it touch run 1.
         let mut touching = bytes.clone();
         touching[runs_at + 8 + 8 * cell..][..4].copy_from_slice(&1u32.to_le_bytes());
@@ -960,17 +1155,17 @@ mod tests {
             err,
             StateError::UnsupportedVersion {
                 found: 1,
-                supported: 2
+                supported: 3
             }
         );
         assert!(
-            err.to_string().contains("version 1") && err.to_string().contains("version 2"),
+            err.to_string().contains("version 1") && err.to_string().contains("version 3"),
             "{err}"
         );
         assert_eq!(StateDump::decode_v1(&bytes, u64::MAX).unwrap(), v1);
         assert!(matches!(
             StateDump::decode_v1(&dump().encode(), u64::MAX),
-            Err(StateError::UnsupportedVersion { found: 2, .. })
+            Err(StateError::UnsupportedVersion { found: 3, .. })
         ));
     }
 }

@@ -54,6 +54,8 @@ fn state_strategy() -> impl Strategy<Value = StateDump> {
                 seq: 3,
             }),
             cells,
+            aovs: vec![],
+            aov_cells: vec![],
             batches: batches
                 .into_iter()
                 .filter(|(_, seqs)| !seqs.is_empty())

@@ -53,8 +53,10 @@ const SNAPSHOT_MAGIC: [u8; 4] = *b"SPLC";
 /// still read, their batches without digests. 3 holds states of state format version 2
 /// (`frac_bits` 26, a high word per pixel); the version 1 states of snapshots 1 and 2 are
 /// converted when read, and a frame whose old state had a saturated sum (which cannot be
-/// converted honestly) is quarantined.
-const SNAPSHOT_VERSION: u16 = 3;
+/// converted honestly) is quarantined. 4 holds states of format version 3, whose AOV section
+/// carries each band's rows of the frame's AOV sums; snapshots 3 (version 2 states, no AOVs)
+/// are still read, as frames without AOV samples.
+const SNAPSHOT_VERSION: u16 = 4;
 const SNAPSHOT_FILE: &str = "snapshot.bin";
 const SNAPSHOT_TMP: &str = "snapshot.tmp";
 const FRAME_FILE: &str = "frame.json";
@@ -409,9 +411,13 @@ impl Durable {
             w.write_all(&meta)?;
             w.write_all(&(cut.bands.len() as u32).to_le_bytes())?;
             for band in &cut.bands {
+                let aov_rows = cut.aovs.as_ref().map(|a| a.rows_copy(band.rows()));
+                let aovs = aov_rows
+                    .as_ref()
+                    .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
                 // Length-prefixed, so a reader can bound each band before decoding it.
-                w.write_all(&encoded_len(band, frame.id())?.to_le_bytes())?;
-                crate::export::write(band, frame.id(), None, &mut w)?;
+                w.write_all(&encoded_len(band, aovs, frame.id())?.to_le_bytes())?;
+                crate::export::write(band, aovs, frame.id(), None, &mut w)?;
             }
             let crc = w.crc.clone().finalize();
             w.inner.write_all(&crc.to_le_bytes())
@@ -533,8 +539,8 @@ async fn run_blocking(
 }
 
 /// Bytes of a band's state encoding, without encoding it.
-fn encoded_len(band: &FrameState, frame: &str) -> io::Result<u64> {
-    Ok(crate::export::encoded_len(band, frame))
+fn encoded_len(band: &FrameState, aovs: crate::export::Aovs<'_>, frame: &str) -> io::Result<u64> {
+    Ok(crate::export::encoded_len(band, aovs, frame))
 }
 
 /// Counts a CRC-32 of everything written through it.
@@ -660,10 +666,26 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
         spec.request.height,
         spec.layout.clone(),
     );
+    let mut aovs = None;
     for _ in 0..bands {
         let len = u64::from_le_bytes(take(8)?.try_into().expect("8 bytes"));
         let band = if version >= 3 {
-            let dump = StateDump::decode(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
+            let mut dump =
+                StateDump::decode(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
+            let band_aovs =
+                crate::export::take_aovs(&mut dump).map_err(|e| damaged(e.to_string()))?;
+            if let Some((specs, sums)) = band_aovs {
+                if specs != spec.request.aovs {
+                    return Err(damaged(format!(
+                        "a band holds AOVs {}, the frame declares {}",
+                        crate::frame::describe_aovs(&specs),
+                        crate::frame::describe_aovs(&spec.request.aovs)
+                    )));
+                }
+                aovs.get_or_insert_with(|| spec.empty_aovs().expect("the frame declares AOVs"))
+                    .merge_overlap(&sums)
+                    .map_err(|e| damaged(e.to_string()))?;
+            }
             crate::export::load(dump)
         } else {
             let dump =
@@ -673,8 +695,15 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
         .map_err(|e| damaged(e.to_string()))?;
         whole.merge(&band).map_err(|e| damaged(e.to_string()))?;
     }
-    ShardedFrame::restore(spec, &whole, meta.seen, meta.counters, meta.version)
-        .map_err(|e| damaged(e.to_string()))
+    ShardedFrame::restore(
+        spec,
+        &whole,
+        aovs.as_ref(),
+        meta.seen,
+        meta.counters,
+        meta.version,
+    )
+    .map_err(damaged)
 }
 
 #[cfg(test)]
@@ -804,7 +833,7 @@ mod tests {
         if let Some(pixel) = saturate {
             cells[pixel * 4 * k + 4 * (k - 1)] = u64::MAX;
         }
-        let mut dump = crate::export::dump(state, id, None, vec![]);
+        let mut dump = crate::export::dump(state, None, id, None, vec![]);
         dump.frac_bits = 32;
         dump.cells = cells;
         dump.encode_v1()
@@ -825,6 +854,59 @@ mod tests {
         let crc = crc32fast::hash(&old);
         old.extend_from_slice(&crc.to_le_bytes());
         old
+    }
+
+    /// Snapshots of version 3 hold states of format version 2 (no AOV section): read as frames
+    /// without AOV samples.
+    #[tokio::test]
+    async fn version_3_snapshots_with_version_2_states_are_read_without_aovs() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        let f = frame("f");
+        durable.frame_created(&f).await.unwrap();
+        post(&f, 4, 0);
+        durable.snapshot(&f).await.unwrap();
+        let path = dir.path().join("frames/f").join(SNAPSHOT_FILE);
+        let bytes = fs::read(&path).unwrap();
+        let body = &bytes[..bytes.len() - 4];
+        let meta_len = u64::from_le_bytes(body[6..14].try_into().unwrap()) as usize;
+        // The snapshot a server of state format version 2 wrote: version 3, one band of a
+        // version 2 state.
+        let whole = f.cut().whole();
+        let v2 = crate::export::dump(&whole, None, "f", None, vec![]).encode_v2();
+        fs::write(&path, old_snapshot(3, &body[14..14 + meta_len], &[v2])).unwrap();
+
+        let back = recover(dir.path()).get("f").unwrap();
+        assert_eq!(back.info().samples, 20);
+        assert!(back.cut().whole() == whole);
+        assert!(back.cut().aovs.is_none());
+        post(&back, 4, 1);
+    }
+
+    /// A frame with AOVs keeps them through a snapshot and a restart, bit for bit.
+    #[tokio::test]
+    async fn aov_sums_survive_a_snapshot() {
+        let dir = tempfile::tempdir().unwrap();
+        let durable = open(dir.path());
+        let request = CreateFrame {
+            aovs: vec![splatd_proto::api::AovSpec::new("depth", &["Z"])],
+            ..CreateFrame::new("f", 8, 20)
+        };
+        let f = Arc::new(ShardedFrame::new(FrameSpec::new(request).unwrap()));
+        durable.frame_created(&f).await.unwrap();
+        for seq in 0..3 {
+            let records = (0..160)
+                .map(|i| Record::new(i % 8, i / 8, [1.0, 2.0, 3.0]))
+                .collect();
+            let batch = Batch::new("f", 1, seq, records).unwrap();
+            let depth: Vec<f32> = (0..160).map(|i| i as f32 * -0.37 + seq as f32).collect();
+            f.ingest_with_aovs(&batch, Some(&depth)).unwrap();
+        }
+        durable.snapshot(&f).await.unwrap();
+        let back = recover(dir.path()).get("f").unwrap();
+        let (before, after) = (f.cut().aovs.unwrap(), back.cut().aovs.unwrap());
+        assert_eq!(after.count(7, 19), 3);
+        assert_eq!(before, after);
     }
 
     /// Snapshots of versions 1 and 2 hold states of format version 1 (32 fractional bits, `4K`

@@ -4,9 +4,15 @@
 //! The dump is the state's fixed-point cells verbatim, so export followed by import is exact, and
 //! importing into a frame that has samples of its own adds the two exactly.
 
+use splatd_proto::api::AovSpec;
 use splatd_proto::{Applied, Origin, StateDump};
 
-use splatd_estimator::{CascadeLayout, CellsError, FrameState, ParamError, FRAC_BITS};
+use splatd_estimator::{
+    AovCellsError, AovSums, CascadeLayout, CellsError, FrameState, ParamError, FRAC_BITS,
+};
+
+/// A frame's AOVs as a state carries them: the declarations and the sums of the rows held.
+pub type Aovs<'a> = Option<(&'a [AovSpec], &'a AovSums)>;
 
 /// An imported state that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -23,36 +29,70 @@ pub enum ImportError {
     /// Its cells do not fit its geometry, or hold what no checked samples could have made.
     #[error(transparent)]
     Cells(#[from] CellsError),
+    /// Its AOV words do not fit its geometry, or hold what no checked values could have made.
+    #[error(transparent)]
+    Aovs(#[from] AovCellsError),
 }
 
 /// The wire form of a state (a whole frame or a band) holding the samples of `batches`.
 pub fn dump(
     state: &FrameState,
+    aovs: Aovs<'_>,
     frame: &str,
     origin: Option<Origin>,
     batches: Vec<Applied>,
 ) -> StateDump {
-    StateDump {
-        cells: state.cells().to_vec(),
-        batches,
-        ..header(state, state.rows(), frame, origin)
+    with_aovs(
+        StateDump {
+            cells: state.cells().to_vec(),
+            batches,
+            ..header(state, state.rows(), frame, origin)
+        },
+        aovs,
+    )
+}
+
+/// `dump` with the AOVs (declarations and words) set.
+fn with_aovs(dump: StateDump, aovs: Aovs<'_>) -> StateDump {
+    match aovs {
+        None => dump,
+        Some((specs, sums)) => StateDump {
+            aovs: specs.to_vec(),
+            aov_cells: sums.words().to_vec(),
+            ..dump
+        },
     }
+}
+
+/// Takes the AOVs out of a decoded state: `None` for a state without AOVs (version 2, or a
+/// frame that declares none), else its declarations and checked sums.
+pub fn take_aovs(dump: &mut StateDump) -> Result<Option<(Vec<AovSpec>, AovSums)>, ImportError> {
+    let specs = std::mem::take(&mut dump.aovs);
+    let words = std::mem::take(&mut dump.aov_cells);
+    let channels: usize = specs.iter().map(|a| a.channels.len()).sum();
+    if channels == 0 {
+        return Ok(None);
+    }
+    let sums = AovSums::from_words(dump.width, dump.rows_start..dump.rows_end, channels, words)?;
+    Ok(Some((specs, sums)))
 }
 
 /// Streams the wire form of a state (a whole frame or a band) to `out` without copying its cells,
 /// naming no applied batches (a snapshot band: the snapshot keeps the frame's batches itself).
 pub fn write(
     state: &FrameState,
+    aovs: Aovs<'_>,
     frame: &str,
     origin: Option<Origin>,
     out: &mut impl std::io::Write,
 ) -> std::io::Result<()> {
-    header(state, state.rows(), frame, origin).write_with_cells(state.cells(), out)
+    with_aovs(header(state, state.rows(), frame, origin), aovs).write_with_cells(state.cells(), out)
 }
 
 /// The length of what [`write`] writes, without encoding it.
-pub fn encoded_len(state: &FrameState, frame: &str) -> u64 {
-    header(state, state.rows(), frame, None).encoded_len_with_cell_parts(&[state.cells()])
+pub fn encoded_len(state: &FrameState, aovs: Aovs<'_>, frame: &str) -> u64 {
+    with_aovs(header(state, state.rows(), frame, None), aovs)
+        .encoded_len_with_cell_parts(&[state.cells()])
 }
 
 /// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) and
@@ -63,6 +103,7 @@ pub fn encoded_len(state: &FrameState, frame: &str) -> u64 {
 /// If `bands` is empty.
 pub fn write_bands(
     bands: &[FrameState],
+    aovs: Aovs<'_>,
     frame: &str,
     origin: Option<Origin>,
     batches: Vec<Applied>,
@@ -77,10 +118,13 @@ pub fn write_bands(
     );
     let rows = first.rows().start..bands[bands.len() - 1].rows().end;
     let parts: Vec<&[u64]> = bands.iter().map(|b| b.cells()).collect();
-    StateDump {
-        batches,
-        ..header(first, rows, frame, origin)
-    }
+    with_aovs(
+        StateDump {
+            batches,
+            ..header(first, rows, frame, origin)
+        },
+        aovs,
+    )
     .write_with_cell_parts(&parts, out)
 }
 
@@ -106,6 +150,8 @@ fn header(
         origin,
         cells: Vec::new(),
         batches: Vec::new(),
+        aovs: Vec::new(),
+        aov_cells: Vec::new(),
     }
 }
 
@@ -164,8 +210,8 @@ mod tests {
             seq: 2,
         });
         let mut streamed = Vec::new();
-        write(&state, "f", origin.clone(), &mut streamed).unwrap();
-        assert_eq!(streamed, dump(&state, "f", origin, vec![]).encode());
+        write(&state, None, "f", origin.clone(), &mut streamed).unwrap();
+        assert_eq!(streamed, dump(&state, None, "f", origin, vec![]).encode());
     }
 
     #[test]
@@ -182,8 +228,8 @@ mod tests {
             }
         }
         let mut streamed = Vec::new();
-        write_bands(&bands, "f", None, vec![], &mut streamed).unwrap();
-        assert_eq!(streamed, dump(&whole, "f", None, vec![]).encode());
+        write_bands(&bands, None, "f", None, vec![], &mut streamed).unwrap();
+        assert_eq!(streamed, dump(&whole, None, "f", None, vec![]).encode());
     }
 
     #[test]
@@ -193,7 +239,7 @@ mod tests {
         for pass in 0..20 {
             state.splat_all(scene.pass(pass));
         }
-        let bytes = dump(&state, "f", None, vec![]).encode();
+        let bytes = dump(&state, None, "f", None, vec![]).encode();
         let back = load(StateDump::decode(&bytes, u64::MAX).unwrap()).unwrap();
         assert_eq!(back, state);
     }
@@ -201,10 +247,10 @@ mod tests {
     #[test]
     fn nonsense_states_are_refused_by_name() {
         let state = FrameState::new(2, 2, CascadeLayout::with_defaults());
-        let mut d = dump(&state, "f", None, vec![]);
+        let mut d = dump(&state, None, "f", None, vec![]);
         d.frac_bits = 16;
         assert_eq!(load(d).unwrap_err(), ImportError::FracBits { found: 16 });
-        let mut d = dump(&state, "f", None, vec![]);
+        let mut d = dump(&state, None, "f", None, vec![]);
         d.base = 1.0;
         assert!(matches!(load(d), Err(ImportError::Params(p)) if p.name == "base"));
     }

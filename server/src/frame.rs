@@ -10,12 +10,12 @@
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
-use splatd_proto::api::{CreateFrame, FrameInfo};
+use splatd_proto::api::{AovSpec, CreateFrame, FrameInfo};
 use splatd_proto::{Applied, Batch, Origin};
 
 use splatd_estimator::{
-    self as estimator, cell_len, cell_spp, resolve_bands, CascadeLayout, FrameState, MergeError,
-    ParamError, Resolved, SampleError, MAX_PIXEL_SAMPLES,
+    self as estimator, aov_words, cell_len, cell_spp, resolve_bands, AovCellsError, AovSums,
+    CascadeLayout, FrameState, MergeError, ParamError, Resolved, SampleError, MAX_PIXEL_SAMPLES,
 };
 
 use super::dedup::{BatchId, Seen};
@@ -55,6 +55,7 @@ impl FrameSpec {
         let layout = CascadeLayout::new(c.base, c.cascades, c.lowest_scale, c.luminance)?;
         let resolve = core_resolve_params(&request.resolve)?;
         estimator::check_converged_below(request.converged_below)?;
+        check_aovs(&request.aovs)?;
         Ok(FrameSpec {
             request,
             layout,
@@ -62,13 +63,74 @@ impl FrameSpec {
         })
     }
 
-    /// Bytes of cascade memory a frame of this spec holds.
+    /// Bytes of cascade and AOV memory a frame of this spec holds.
     pub fn memory_bytes(&self) -> u64 {
+        let aovs = match self.aov_channels() {
+            0 => 0,
+            c => aov_words(c),
+        };
         self.request.width as u64
             * self.request.height as u64
-            * cell_len(self.layout.cascades()) as u64
+            * (cell_len(self.layout.cascades()) + aovs) as u64
             * 8
     }
+
+    /// Channels of all the frame's AOVs together (0: the frame has no AOVs).
+    pub fn aov_channels(&self) -> usize {
+        self.request.aovs.iter().map(|a| a.channels.len()).sum()
+    }
+
+    /// Empty AOV sums for the whole frame, if it has AOVs.
+    pub fn empty_aovs(&self) -> Option<AovSums> {
+        let c = self.aov_channels();
+        (c > 0).then(|| AovSums::new(self.request.width, 0..self.request.height, c))
+    }
+}
+
+/// Most AOV channels a frame may declare (each costs 16 bytes per pixel).
+pub const MAX_AOV_CHANNELS: usize = 64;
+
+/// Layer names of `image.exr` that an AOV may not take.
+const RESERVED_LAYERS: [&str; 3] = ["mean", "removed", "spp"];
+
+/// Checks a frame's AOV declarations: named, each name once and not one of the served layers'
+/// (`mean`, `removed`, `spp`, `cascadeN`, the unnamed beauty), channels named, each once.
+fn check_aovs(aovs: &[AovSpec]) -> Result<(), ParamError> {
+    let bad = |m: String| Err(ParamError::new("aovs", m));
+    let total: usize = aovs.iter().map(|a| a.channels.len()).sum();
+    if total > MAX_AOV_CHANNELS {
+        return bad(format!(
+            "{total} AOV channels declared, at most {MAX_AOV_CHANNELS} are allowed"
+        ));
+    }
+    for (i, aov) in aovs.iter().enumerate() {
+        let cascade = aov
+            .name
+            .strip_prefix("cascade")
+            .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
+        if aov.name.is_empty() || RESERVED_LAYERS.contains(&aov.name.as_str()) || cascade {
+            return bad(format!(
+                "AOV name {:?} is empty or taken by a layer image.exr serves (mean, removed, \
+                 spp, cascadeN)",
+                aov.name
+            ));
+        }
+        if aovs[..i].iter().any(|a| a.name == aov.name) {
+            return bad(format!("AOV {:?} is declared twice", aov.name));
+        }
+        if aov.channels.is_empty() {
+            return bad(format!("AOV {:?} has no channels", aov.name));
+        }
+        for (j, c) in aov.channels.iter().enumerate() {
+            if c.is_empty() || c.contains('.') || aov.channels[..j].contains(c) {
+                return bad(format!(
+                    "AOV {:?}: channel {c:?} is empty, has a dot or is named twice",
+                    aov.name
+                ));
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The core's resolve parameters from the API's.
@@ -129,6 +191,14 @@ pub enum IngestError {
         /// The frame.
         frame: String,
     },
+    /// A pixel's AOVs hold 2^32 samples already.
+    #[error("the AOVs of pixel ({x}, {y}) hold 2^32 samples already")]
+    AovFull {
+        /// Column.
+        x: u32,
+        /// Row.
+        y: u32,
+    },
 }
 
 /// What an applied (or recognised) batch did.
@@ -164,6 +234,14 @@ pub enum ImportRefused {
     Deleted {
         /// The frame.
         frame: String,
+    },
+    /// The state's AOVs are not the frame's, or cannot be added.
+    #[error("state's AOVs do not fit frame {frame:?}: {reason}")]
+    Aovs {
+        /// The frame.
+        frame: String,
+        /// What differs.
+        reason: String,
     },
     /// The state holds batches the frame has applied already: adding it would count them twice.
     #[error(
@@ -219,6 +297,8 @@ pub struct FrameCut {
     pub counters: CounterValues,
     /// The frame's version when the copy was taken (see [`ShardedFrame::version`]).
     pub version: u64,
+    /// The AOV sums of the whole frame, if it has AOVs.
+    pub aovs: Option<AovSums>,
 }
 
 impl FrameCut {
@@ -274,6 +354,8 @@ pub struct ShardedFrame {
     /// it is answered only after every such answer.
     requests: Arc<tokio::sync::RwLock<()>>,
     seen: Mutex<Seen>,
+    /// The AOV sums of the whole frame (if it has AOVs), locked after the bands.
+    aovs: Option<Mutex<AovSums>>,
     counters: Counters,
     /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
     /// happened since they last looked.
@@ -308,18 +390,28 @@ impl ShardedFrame {
         Self::from_bands(spec, bands, Seen::default(), CounterValues::default())
     }
 
-    /// A frame restored from a snapshot: its spec, a whole-frame state and what it had seen.
+    /// A frame restored from a snapshot: its spec, a whole-frame state, its AOV sums (`None`:
+    /// empty) and what it had seen.
     pub fn restore(
         spec: FrameSpec,
         state: &FrameState,
+        aovs: Option<&AovSums>,
         seen: Seen,
         counters: CounterValues,
         version: u64,
-    ) -> Result<ShardedFrame, MergeError> {
+    ) -> Result<ShardedFrame, String> {
         let frame = ShardedFrame::new(spec);
-        frame.check_fits(state)?;
+        frame.check_fits(state).map_err(|e| e.to_string())?;
         for band in &frame.bands {
-            lock(band).merge(state)?;
+            lock(band).merge(state).map_err(|e| e.to_string())?;
+        }
+        if let Some(restored) = aovs {
+            let Some(mine) = &frame.aovs else {
+                return Err("AOV sums for a frame that declares no AOVs".into());
+            };
+            lock(mine)
+                .merge_overlap(restored)
+                .map_err(|e| e.to_string())?;
         }
         *lock(&frame.seen) = seen;
         frame.set_counters(counters);
@@ -363,6 +455,7 @@ impl ShardedFrame {
             }
         }
         static NEXT_SERIAL: AtomicU64 = AtomicU64::new(1);
+        let aovs = spec.empty_aovs().map(Mutex::new);
         let frame = ShardedFrame {
             spec,
             serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),
@@ -372,6 +465,7 @@ impl ShardedFrame {
             retired: AtomicBool::new(false),
             requests: Arc::new(tokio::sync::RwLock::new(())),
             seen: Mutex::new(seen),
+            aovs,
             counters: Counters::default(),
             version: AtomicU64::new(0),
             durable_version: AtomicU64::new(0),
@@ -449,14 +543,28 @@ impl ShardedFrame {
     /// A batch whose `(worker, seq)` was applied before is recognised and not applied again.
     /// Blocking (it may take tens of milliseconds for a large batch): call from a blocking thread.
     pub fn ingest(&self, batch: &Batch) -> Result<Ingested, IngestError> {
-        let result = self.ingest_inner(batch);
+        self.ingest_with_aovs(batch, None)
+    }
+
+    /// [`ShardedFrame::ingest`] of a pass's samples with the values of its AOVs (every pixel,
+    /// row-major, the frame's AOV channels in order; checked with
+    /// [`AovSums::check_values`]), added with the samples or not at all.
+    ///
+    /// # Panics
+    /// If `aovs` is given for a frame without AOVs or has the wrong length.
+    pub fn ingest_with_aovs(
+        &self,
+        batch: &Batch,
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        let result = self.ingest_inner(batch, aovs);
         if result.is_err() {
             self.count_rejected(batch.records.len() as u64);
         }
         result
     }
 
-    fn ingest_inner(&self, batch: &Batch) -> Result<Ingested, IngestError> {
+    fn ingest_inner(&self, batch: &Batch, aovs: Option<&[f32]>) -> Result<Ingested, IngestError> {
         if batch.frame != self.id() {
             return Err(IngestError::WrongFrame {
                 batch: batch.frame.clone(),
@@ -514,12 +622,29 @@ impl ShardedFrame {
             .zip(&buckets)
             .map(|(band, samples)| (!samples.is_empty()).then(|| lock(band)))
             .collect();
+        let mut aov_sums = aovs.map(|_| {
+            lock(
+                self.aovs
+                    .as_ref()
+                    .expect("AOV values only for a frame with AOVs"),
+            )
+        });
         let id = lock(&self.seen).check_batch(batch.worker, batch.seq, digest);
         if id == BatchId::New {
             for (guard, samples) in guards.iter().zip(&buckets) {
                 if let Some((x, y)) = guard.as_deref().and_then(|g| first_full(g, samples)) {
                     let spp = guard.as_deref().map_or(0, |g| g.spp(x, y));
                     return Err(pixel_full(batch, x, y, spp));
+                }
+            }
+            if let Some(sums) = &aov_sums {
+                if !sums.has_room_for_pass() {
+                    let (w, h) = (self.spec.request.width, self.spec.request.height);
+                    let (x, y) = (0..h)
+                        .flat_map(|y| (0..w).map(move |x| (x, y)))
+                        .find(|&(x, y)| sums.count(x, y) >= estimator::MAX_PIXEL_SAMPLES)
+                        .unwrap_or((0, 0));
+                    return Err(IngestError::AovFull { x, y });
                 }
             }
         }
@@ -551,6 +676,10 @@ impl ShardedFrame {
                 debug_assert_eq!(report.rejected(), 0, "records were checked above");
             }
         }
+        if let (Some(sums), Some(values)) = (aov_sums.as_mut(), aovs) {
+            sums.add_pass(values);
+        }
+        drop(aov_sums);
         let n = batch.records.len() as u64;
         self.counters.samples.fetch_add(n, Ordering::Relaxed);
         self.counters.batches.fetch_add(1, Ordering::Relaxed);
@@ -574,10 +703,15 @@ impl ShardedFrame {
     /// All or nothing: everything that can refuse the state is checked before the origin and
     /// the batches are recorded or any band changes. The state may hold any rows of the frame (a
     /// band of another node's frame, say): each band adds the rows it shares with it.
+    ///
+    /// `aovs` are the state's AOVs: its declarations and sums. A state without AOVs (`None`, or
+    /// a version 2 state) adds to the cascades only; a state with AOVs must declare exactly the
+    /// frame's.
     pub fn import(
         &self,
         frame: &str,
         state: &FrameState,
+        aovs: Option<(&[AovSpec], &AovSums)>,
         origin: Option<&Origin>,
         batches: &[Applied],
     ) -> Result<bool, ImportRefused> {
@@ -592,6 +726,19 @@ impl ShardedFrame {
             error,
         };
         self.check_fits(state).map_err(mismatch)?;
+        let aov_refused = |reason: String| ImportRefused::Aovs {
+            frame: self.id().to_owned(),
+            reason,
+        };
+        if let Some((specs, _)) = aovs {
+            if specs != self.spec.request.aovs.as_slice() {
+                return Err(aov_refused(format!(
+                    "the state has AOVs {}, the frame {}",
+                    describe_aovs(specs),
+                    describe_aovs(&self.spec.request.aovs)
+                )));
+            }
+        }
         let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
         if self.retired.load(Ordering::Acquire) {
             return Err(ImportRefused::Deleted {
@@ -602,6 +749,11 @@ impl ShardedFrame {
         // that the room check and the additions see the same cells; then the applied set, so
         // that no batch is recorded between the overlap check and the recording.
         let mut bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
+        // The AOV sums after the bands and before the applied set, as ingest locks them.
+        let mut aov_sums = match (aovs, &self.aovs) {
+            (Some((_, theirs)), Some(mine)) => Some((lock(mine), theirs)),
+            _ => None,
+        };
         let mut seen = lock(&self.seen);
         if let Some(o) = origin {
             if seen.nodes.get(&o.node).is_some_and(|s| s.contains(o.seq)) {
@@ -619,6 +771,10 @@ impl ShardedFrame {
         for band in &bands {
             band.check_room_for(state).map_err(mismatch)?;
         }
+        if let Some((mine, theirs)) = &aov_sums {
+            mine.check_room_for(theirs)
+                .map_err(|e: AovCellsError| aov_refused(e.to_string()))?;
+        }
         if let Some(o) = origin {
             seen.insert_delta(&o.node, o.seq);
         }
@@ -629,6 +785,11 @@ impl ShardedFrame {
             band.merge_overlap(state)
                 .expect("a band has its frame's size and layout, and room for the state");
         }
+        if let Some((mine, theirs)) = aov_sums.as_mut() {
+            mine.merge_overlap(theirs)
+                .expect("AOV sums were checked for room above");
+        }
+        drop(aov_sums);
         drop(bands);
         self.counters
             .samples
@@ -688,6 +849,7 @@ impl ShardedFrame {
             seen: lock(&self.seen).clone(),
             counters: self.counter_values(),
             version: self.version(),
+            aovs: self.aovs.as_ref().map(|a| lock(a).clone()),
         }
     }
 
@@ -728,6 +890,18 @@ impl ShardedFrame {
             convergence: None,
         }
     }
+}
+
+/// AOV declarations for a message: `"albedo" (R, G, B), "depth" (Z)`, or `none`.
+pub fn describe_aovs(aovs: &[AovSpec]) -> String {
+    if aovs.is_empty() {
+        return "none".into();
+    }
+    let all: Vec<String> = aovs
+        .iter()
+        .map(|a| format!("{:?} ({})", a.name, a.channels.join(", ")))
+        .collect();
+    all.join(", ")
 }
 
 /// The first pixel of `samples` (of one band) that cannot take all of its samples in `band`.
@@ -888,14 +1062,14 @@ mod tests {
             node: "n1".into(),
             seq: 0,
         };
-        assert!(frame.import("f", &other, Some(&origin), &[]).unwrap());
-        assert!(!frame.import("f", &other, Some(&origin), &[]).unwrap());
+        assert!(frame.import("f", &other, None, Some(&origin), &[]).unwrap());
+        assert!(!frame.import("f", &other, None, Some(&origin), &[]).unwrap());
         let mut expected = other.clone();
         expected.merge(&other).unwrap();
         assert_eq!(frame.cut().whole(), expected);
 
         let wrong = FrameState::new(9, 31, CascadeLayout::with_defaults());
-        let err = frame.import("f", &wrong, None, &[]).unwrap_err();
+        let err = frame.import("f", &wrong, None, None, &[]).unwrap_err();
         assert!(err.to_string().contains("9x30"), "{err}");
         assert_eq!(frame.cut().whole(), expected);
     }
@@ -976,7 +1150,7 @@ mod tests {
             node: "n".into(),
             seq: 0,
         };
-        assert!(frame.import("f", &part, Some(&origin), &[]).unwrap());
+        assert!(frame.import("f", &part, None, Some(&origin), &[]).unwrap());
         assert_eq!(frame.cut().whole(), whole);
         assert_eq!(frame.version(), 1);
 
@@ -992,7 +1166,9 @@ mod tests {
             node: "m".into(),
             seq: 0,
         };
-        let err = frame.import("f", &misfit, Some(&retry), &[]).unwrap_err();
+        let err = frame
+            .import("f", &misfit, None, Some(&retry), &[])
+            .unwrap_err();
         assert!(matches!(err, ImportRefused::Mismatch { .. }), "{err}");
         assert_eq!(frame.cut().whole(), whole);
         assert_eq!(frame.version(), 1);
@@ -1034,7 +1210,7 @@ mod tests {
             let copy = full.clone();
             full.merge(&copy).unwrap();
         }
-        assert!(frame.import("f", &full, None, &[]).unwrap());
+        assert!(frame.import("f", &full, None, None, &[]).unwrap());
         let before = frame.cut().whole();
         let recs = vec![
             Record::new(0, 0, [1.0; 3]),
@@ -1056,7 +1232,7 @@ mod tests {
         let mut one = FrameState::new(4, 40, frame.spec().layout.clone());
         one.splat(2, 3, [1.0; 3]).unwrap();
         one.splat(0, 39, [1.0; 3]).unwrap();
-        let err = frame.import("f", &one, None, &[]).unwrap_err();
+        let err = frame.import("f", &one, None, None, &[]).unwrap_err();
         assert_eq!(
             err,
             ImportRefused::Mismatch {
@@ -1088,7 +1264,7 @@ mod tests {
         assert!(matches!(err, IngestError::Deleted { .. }), "{err}");
         let state = frame.cut().whole();
         assert!(matches!(
-            frame.import("f", &state, None, &[]),
+            frame.import("f", &state, None, None, &[]),
             Err(ImportRefused::Deleted { .. })
         ));
         assert_eq!(frame.info().samples, 1);

@@ -192,14 +192,27 @@ pub fn cascade_layers(means: Vec<Vec<[f32; 3]>>) -> Vec<ExtraLayer> {
         .collect()
 }
 
-/// Encodes a resolved frame (and any extra layers) as EXR bytes, with its provenance in the
-/// header.
+/// The AOV channels of `image.exr`: `name.channel` and the per-pixel means, in declaration
+/// order, from a whole frame's AOV sums.
+pub fn aov_planes(
+    specs: &[splatd_proto::api::AovSpec],
+    sums: &splatd_estimator::AovSums,
+) -> Vec<(String, Vec<f32>)> {
+    let names = specs
+        .iter()
+        .flat_map(|a| a.channels.iter().map(move |c| format!("{}.{c}", a.name)));
+    names.zip(sums.means()).collect()
+}
+
+/// Encodes a resolved frame (and any extra layers and AOV channels, see [`aov_planes`]) as EXR
+/// bytes, with its provenance in the header.
 ///
 /// `exr` compresses blocks on a thread pool it starts per call: from async code call this inside
 /// `spawn_blocking`.
 pub fn encode_exr(
     resolved: &Resolved,
     extra: &[ExtraLayer],
+    aovs: &[(String, Vec<f32>)],
     provenance: &Provenance<'_>,
 ) -> Result<Vec<u8>> {
     let size = (resolved.width as usize, resolved.height as usize);
@@ -213,6 +226,12 @@ pub fn encode_exr(
     ));
     for layer in extra {
         push_rgb(&mut channels, &format!("{}.", layer.name), &layer.rgb);
+    }
+    for (name, plane) in aovs {
+        channels.push(AnyChannel::new(
+            name.as_str(),
+            FlatSamples::F32(plane.clone()),
+        ));
     }
     let bytes = write_one_part(size, LayerAttributes::default(), channels)?;
     add_attributes(bytes, &provenance.attributes(resolved))
@@ -299,8 +318,8 @@ mod tests {
             layout: &layout,
             params: &params,
         };
-        let bytes = encode_exr(&resolved, &[], &provenance).unwrap();
-        assert!(bytes == encode_exr(&resolved, &[], &provenance).unwrap());
+        let bytes = encode_exr(&resolved, &[], &[], &provenance).unwrap();
+        assert!(bytes == encode_exr(&resolved, &[], &[], &provenance).unwrap());
 
         let image = read()
             .no_deep_data()

@@ -29,8 +29,9 @@
 //! (`f16`, `f32` or `u32`), from scanline or tiled parts with any compression the `exr` crate
 //! reads: none, RLE, ZIPS, ZIP, PIZ, PXR24, B44, B44A, DWAA, DWAB (not OpenEXR 3.3's HTJ2K and
 //! ZSTD, refused as [`PassError::Exr`] "unknown compression method"); of a mip- or rip-mapped
-//! part, the full-resolution level. Alpha, other channels and
-//! other parts are not decoded. The pass must cover exactly its display window: a cropped
+//! part, the full-resolution level. Alpha and other channels are not decoded, except the
+//! frame's AOVs ([`decode_pass_with_aovs`]: the channels of the named layers, in any part of the
+//! beauty's size); parts holding neither are not decompressed. The pass must cover exactly its display window: a cropped
 //! (border) render or an overscan would put its pixels at the wrong place in the frame, so it
 //! is refused rather than guessed at.
 //!
@@ -48,6 +49,7 @@ use exr::block::UncompressedBlock;
 use exr::meta::attribute::{IntegerBounds, SampleType};
 use exr::meta::header::Header;
 use exr::prelude::{f16, Vec2};
+use splatd_proto::api::AovSpec;
 use splatd_proto::Record;
 
 /// The four bytes every OpenEXR file starts with.
@@ -76,6 +78,10 @@ pub struct Pass {
     /// Row-major RGB samples, top row first, `width * height` of them. Not checked: negative,
     /// NaN and infinite values are kept (see the module docs).
     pub rgb: Vec<[f32; 3]>,
+    /// The values of the AOVs asked for, when the pass carries them: pixel by pixel (row-major),
+    /// each pixel's channels in the order asked for. `None` when the pass carries none of them.
+    /// Not checked either.
+    pub aovs: Option<Vec<f32>>,
 }
 
 /// One layer of an EXR: the channels of one part that share a name prefix.
@@ -212,6 +218,26 @@ pub enum PassError {
         pixels: u64,
         /// The first row with a missing pixel.
         first_missing_row: u64,
+    },
+    /// The pass carries some of the frame's AOV channels but not all.
+    #[error(
+        "the pass has some of the frame's AOVs but not {}: a pass carries every AOV channel of \
+         its frame or none; layers found: {}",
+        names(.missing), list(.layers)
+    )]
+    MissingAovs {
+        /// The AOV channels (`layer.channel`) not found.
+        missing: Vec<String>,
+        /// Every layer of the file, in file order.
+        layers: Vec<LayerInfo>,
+    },
+    /// An AOV layer that cannot be read with the beauty.
+    #[error("AOV layer {layer:?} cannot be read: {reason}")]
+    BadAov {
+        /// The layer.
+        layer: String,
+        /// Why.
+        reason: String,
     },
     /// The pass does not have the frame's size.
     #[error("pass is {pass_width}x{pass_height} but the frame is {frame_width}x{frame_height}")]
@@ -370,6 +396,57 @@ pub fn decode_pass(bytes: &[u8]) -> Result<Pass, PassError> {
     decode_pass_with(bytes, None, MAX_PASS_PIXELS)
 }
 
+/// Where each AOV channel asked for is: `(part, channel index in the part)`, in the order
+/// asked for; `None` when the file has none of them.
+///
+/// # Errors
+/// [`PassError::MissingAovs`] when it has some but not all; [`PassError::BadAov`] for an AOV
+/// in a deep part.
+fn find_aovs(
+    headers: &[Header],
+    all: &[LayerInfo],
+    aovs: &[AovSpec],
+) -> Result<Option<Vec<(usize, usize)>>, PassError> {
+    let mut found = Vec::new();
+    let mut missing = Vec::new();
+    for aov in aovs {
+        let layer = all.iter().find(|l| l.name == aov.name);
+        for c in &aov.channels {
+            let full = match layer {
+                Some(l) if l.prefix.is_empty() => c.clone(),
+                Some(l) => format!("{}.{c}", l.prefix),
+                None => String::new(),
+            };
+            let at = layer.and_then(|l| {
+                headers[l.part]
+                    .channels
+                    .list
+                    .iter()
+                    .position(|ch| ch.name.eq(full.as_str()))
+                    .map(|i| (l.part, i))
+            });
+            match at {
+                Some((part, _)) if headers[part].deep => {
+                    return Err(PassError::BadAov {
+                        layer: aov.name.clone(),
+                        reason: "it is deep data".into(),
+                    })
+                }
+                Some(at) => found.push(at),
+                None => missing.push(format!("{}.{c}", aov.name)),
+            }
+        }
+    }
+    match (found.is_empty(), missing.is_empty()) {
+        (true, _) => Ok(None),
+        (false, true) => Ok(Some(found)),
+        (false, false) => Err(PassError::MissingAovs {
+            missing,
+            layers: all.to_vec(),
+        }),
+    }
+}
+
 /// [`decode_pass`] with a caller-chosen limit on the pass's pixel count, for example the size
 /// of the frame the pass is for.
 pub fn decode_pass_with_limit(bytes: &[u8], max_pixels: u64) -> Result<Pass, PassError> {
@@ -391,6 +468,22 @@ pub fn decode_pass_with(
     layer: Option<&str>,
     max_pixels: u64,
 ) -> Result<Pass, PassError> {
+    decode_pass_with_aovs(bytes, layer, max_pixels, &[])
+}
+
+/// [`decode_pass_with`], also reading the AOV channels `aovs` (a frame's AOVs) into
+/// [`Pass::aovs`] when the pass carries them. An AOV layer may be in any part of the same size
+/// as the beauty's (covering its display window, not subsampled).
+///
+/// # Errors
+/// As [`decode_pass_with`]; and [`PassError::MissingAovs`] for a pass with some of the AOV
+/// channels but not all, [`PassError::BadAov`] for an AOV that cannot be read with the beauty.
+pub fn decode_pass_with_aovs(
+    bytes: &[u8],
+    layer: Option<&str>,
+    max_pixels: u64,
+    aovs: &[AovSpec],
+) -> Result<Pass, PassError> {
     if bytes.len() < EXR_MAGIC.len() || bytes[..EXR_MAGIC.len()] != EXR_MAGIC {
         let found: Vec<String> = bytes.iter().take(4).map(|b| format!("{b:02x}")).collect();
         return Err(PassError::NotExr {
@@ -406,6 +499,7 @@ pub fn decode_pass_with(
     let reader = exr::block::read(Cursor::new(bytes), false)?;
     let all = layers(reader.headers());
     let beauty = all[choose_beauty(&all, layer)?].clone();
+    let aov_channels = find_aovs(reader.headers(), &all, aovs)?;
     let part = beauty.part;
     let header = &reader.headers()[part];
     let (w, h) = (header.layer_size.width(), header.layer_size.height());
@@ -437,17 +531,28 @@ pub fn decode_pass_with(
     if data != display {
         return Err(PassError::Window { data, display });
     }
-    if let Some(c) = header
-        .channels
-        .list
-        .iter()
-        .find(|c| c.sampling != Vec2(1, 1))
-    {
-        return Err(PassError::Subsampled {
-            channel: c.name.to_string(),
-            x: c.sampling.x(),
-            y: c.sampling.y(),
-        });
+    check_sampling(header)?;
+    // The parts holding AOVs must lie exactly over the beauty's pixels.
+    for &(aov_part, _) in aov_channels.iter().flatten() {
+        let other = &reader.headers()[aov_part];
+        if aov_part == part {
+            continue;
+        }
+        let name = all
+            .iter()
+            .find(|l| l.part == aov_part)
+            .map_or_else(String::new, |l| l.name.clone());
+        if other.data_window() != data || other.shared_attributes.display_window != display {
+            return Err(PassError::BadAov {
+                layer: name,
+                reason: format!(
+                    "its part's data window {} is not the beauty's {}",
+                    show_window(&other.data_window()),
+                    show_window(&data)
+                ),
+            });
+        }
+        check_sampling(other)?;
     }
     let full_name = |base: &str| {
         if beauty.prefix.is_empty() {
@@ -469,57 +574,123 @@ pub fn decode_pass_with(
             })?;
     }
 
-    let mut buffer = RgbBuffer {
-        width: w,
-        height: h,
-        part,
-        channels: rgb_channels,
-        rgb: vec![[0.0; 3]; w * h],
-        writes: vec![0; w * h],
-    };
-    // Only the beauty's part, full resolution: other parts (AOVs) are never decompressed.
+    let mut wanted: Vec<(usize, usize)> = rgb_channels.iter().map(|&c| (part, c)).collect();
+    wanted.extend(aov_channels.iter().flatten().copied());
+    let mut buffer = Planes::new(w, h, reader.headers().len(), &wanted);
+    // Only the parts read, full resolution: other parts are never decompressed.
+    let parts: Vec<bool> = (0..reader.headers().len())
+        .map(|p| wanted.iter().any(|&(q, _)| q == p))
+        .collect();
     let chunks = reader.filter_chunks(false, |_, _, block| {
-        block.layer == part && block.level == Vec2(0, 0)
+        parts.get(block.layer).copied().unwrap_or(false) && block.level == Vec2(0, 0)
     })?;
     chunks.decompress_parallel(false, |meta, block| {
-        buffer.insert(&meta.headers[part], &block)
+        let header = meta
+            .headers
+            .get(block.index.layer)
+            .ok_or_else(|| exr::error::Error::Invalid("a block of no part".into()))?;
+        buffer.insert(header, &block)
     })?;
     buffer.check_coverage()?;
+    let mut planes = buffer.planes.into_iter();
+    let (r, g, b) = (
+        planes.next().expect("R"),
+        planes.next().expect("G"),
+        planes.next().expect("B"),
+    );
+    let rgb = r
+        .into_iter()
+        .zip(g)
+        .zip(b)
+        .map(|((r, g), b)| [r, g, b])
+        .collect();
+    let aovs = aov_channels.map(|_| {
+        let planes: Vec<Vec<f32>> = planes.collect();
+        let mut values = Vec::with_capacity(w * h * planes.len());
+        for i in 0..w * h {
+            values.extend(planes.iter().map(|p| p[i]));
+        }
+        values
+    });
     Ok(Pass {
         width,
         height,
         layer: beauty.name,
-        rgb: buffer.rgb,
+        rgb,
+        aovs,
     })
 }
 
-/// Pixel storage while `exr` decodes.
-struct RgbBuffer {
-    width: usize,
-    height: usize,
-    /// The part read.
-    part: usize,
-    /// Indices of `R`, `G` and `B` in the part's channel list.
-    channels: [usize; 3],
-    rgb: Vec<[f32; 3]>,
-    /// How often each pixel was written. `exr` decodes whatever blocks the offset table points
-    /// at, so a table that names one block twice leaves another block's pixels at their initial
-    /// zeros without an error; counting writes is what proves each pixel came from its own data
-    /// exactly once.
-    writes: Vec<u8>,
+/// Refuses a part with a subsampled channel (`exr` cannot lay out such blocks).
+fn check_sampling(header: &Header) -> Result<(), PassError> {
+    match header
+        .channels
+        .list
+        .iter()
+        .find(|c| c.sampling != Vec2(1, 1))
+    {
+        Some(c) => Err(PassError::Subsampled {
+            channel: c.name.to_string(),
+            x: c.sampling.x(),
+            y: c.sampling.y(),
+        }),
+        None => Ok(()),
+    }
 }
 
-impl RgbBuffer {
-    /// Copies the beauty's samples of one decompressed block.
+/// Pixel storage while `exr` decodes: one plane per channel read.
+struct Planes {
+    width: usize,
+    height: usize,
+    /// Per part, the channels read from it: `(channel index in the part, plane)`.
+    by_part: Vec<Vec<(usize, usize)>>,
+    planes: Vec<Vec<f32>>,
+    /// Per part read, how often each pixel was written. `exr` decodes whatever blocks the
+    /// offset table points at, so a table that names one block twice leaves another block's
+    /// pixels at their initial zeros without an error; counting writes is what proves each
+    /// pixel came from its own data exactly once.
+    writes: Vec<Vec<u8>>,
+}
+
+impl Planes {
+    /// Planes for `wanted` channels `(part, channel index)` of a `width x height` pass.
+    fn new(width: usize, height: usize, parts: usize, wanted: &[(usize, usize)]) -> Planes {
+        let mut by_part = vec![Vec::new(); parts];
+        for (plane, &(part, channel)) in wanted.iter().enumerate() {
+            by_part[part].push((channel, plane));
+        }
+        let writes = by_part
+            .iter()
+            .map(|w| {
+                if w.is_empty() {
+                    Vec::new()
+                } else {
+                    vec![0; width * height]
+                }
+            })
+            .collect();
+        Planes {
+            width,
+            height,
+            by_part,
+            planes: vec![vec![0.0; width * height]; wanted.len()],
+            writes,
+        }
+    }
+
+    /// Copies the wanted channels of one decompressed block.
     fn insert(&mut self, header: &Header, block: &UncompressedBlock) -> exr::error::UnitResult {
         let index = block.index;
         // The chunk names its own part and level; a corrupt table can point at another's.
-        if index.layer != self.part || index.level != Vec2(0, 0) {
-            return Err(exr::error::Error::Invalid(
-                "a block of another part or resolution level where the beauty's was expected"
-                    .into(),
-            ));
-        }
+        let wanted = match self.by_part.get(index.layer) {
+            Some(w) if !w.is_empty() && index.level == Vec2(0, 0) => w,
+            _ => {
+                return Err(exr::error::Error::Invalid(
+                    "a block of another part or resolution level where the pass's was expected"
+                        .into(),
+                ))
+            }
+        };
         let (x0, y0) = (index.pixel_position.x(), index.pixel_position.y());
         let (bw, bh) = (index.pixel_size.width(), index.pixel_size.height());
         if x0 + bw > self.width || y0 + bh > self.height {
@@ -536,36 +707,36 @@ impl RgbBuffer {
         if block.data.len() != bw * bh * per_pixel {
             return Err(exr::error::Error::Invalid("a block's size".into()));
         }
+        // Writes are counted on the part's first wanted channel.
+        let counted = wanted.iter().map(|&(c, _)| c).min();
         for line in block.lines(&header.channels) {
-            let Some(c) = self
-                .channels
-                .iter()
-                .position(|&i| i == line.location.channel)
-            else {
+            let channel = line.location.channel;
+            let Some(&(_, plane)) = wanted.iter().find(|&&(c, _)| c == channel) else {
                 continue;
             };
             let (x, y) = (line.location.position.x(), line.location.position.y());
             let start = y * self.width + x;
-            let row = &mut self.rgb[start..start + line.location.sample_count];
-            match header.channels.list[line.location.channel].sample_type {
+            let row = &mut self.planes[plane][start..start + line.location.sample_count];
+            match header.channels.list[channel].sample_type {
                 SampleType::F16 => {
                     for (px, v) in row.iter_mut().zip(line.read_samples::<f16>()) {
-                        px[c] = v?.to_f32();
+                        *px = v?.to_f32();
                     }
                 }
                 SampleType::F32 => {
                     for (px, v) in row.iter_mut().zip(line.read_samples::<f32>()) {
-                        px[c] = v?;
+                        *px = v?;
                     }
                 }
                 SampleType::U32 => {
                     for (px, v) in row.iter_mut().zip(line.read_samples::<u32>()) {
-                        px[c] = v? as f32;
+                        *px = v? as f32;
                     }
                 }
             }
-            if c == 0 {
-                for n in &mut self.writes[start..start + line.location.sample_count] {
+            if Some(channel) == counted {
+                let writes = &mut self.writes[index.layer];
+                for n in &mut writes[start..start + line.location.sample_count] {
                     *n = n.saturating_add(1);
                 }
             }
@@ -574,26 +745,28 @@ impl RgbBuffer {
     }
 
     fn check_coverage(&self) -> Result<(), PassError> {
-        let (mut missing, mut repeated, mut first_missing) = (0u64, 0u64, None);
-        for (i, &n) in self.writes.iter().enumerate() {
-            match n {
-                1 => {}
-                0 => {
-                    missing += 1;
-                    first_missing.get_or_insert(i / self.width.max(1));
+        for writes in self.writes.iter().filter(|w| !w.is_empty()) {
+            let (mut missing, mut repeated, mut first_missing) = (0u64, 0u64, None);
+            for (i, &n) in writes.iter().enumerate() {
+                match n {
+                    1 => {}
+                    0 => {
+                        missing += 1;
+                        first_missing.get_or_insert(i / self.width.max(1));
+                    }
+                    _ => repeated += 1,
                 }
-                _ => repeated += 1,
+            }
+            if first_missing.is_some() || repeated > 0 {
+                return Err(PassError::Coverage {
+                    missing,
+                    repeated,
+                    pixels: writes.len() as u64,
+                    first_missing_row: first_missing.unwrap_or(0) as u64,
+                });
             }
         }
-        match first_missing {
-            None if repeated == 0 => Ok(()),
-            _ => Err(PassError::Coverage {
-                missing,
-                repeated,
-                pixels: self.writes.len() as u64,
-                first_missing_row: first_missing.unwrap_or(0) as u64,
-            }),
-        }
+        Ok(())
     }
 }
 
@@ -800,6 +973,7 @@ mod tests {
             width: 64,
             height: 32,
             layer: String::new(),
+            aovs: None,
             rgb: vec![[0.0; 3]; 64 * 32],
         };
         assert!(pass.check(64, 32).is_ok());
@@ -815,6 +989,7 @@ mod tests {
             width: 2,
             height: 1,
             layer: String::new(),
+            aovs: None,
             rgb: vec![[-1.0, f32::NAN, f32::INFINITY], [0.0; 3]],
         };
         let r: Vec<Record> = pass.records().collect();
@@ -829,6 +1004,7 @@ mod tests {
             width: 0,
             height: 5,
             layer: String::new(),
+            aovs: None,
             rgb: vec![[1.0; 3]; 3],
         };
         assert_eq!(pass.records().count(), 0);
@@ -836,6 +1012,7 @@ mod tests {
             width: 2,
             height: 1,
             layer: String::new(),
+            aovs: None,
             rgb: vec![[1.0; 3]; 3],
         };
         assert_eq!(pass.records().count(), 2);

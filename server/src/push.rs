@@ -142,6 +142,8 @@ struct Pending {
 struct Baseline {
     state: FrameState,
     seen: Seen,
+    /// The AOV sums, if the frame has AOVs.
+    aovs: Option<splatd_estimator::AovSums>,
 }
 
 /// What this node knows about one frame id's pushes.
@@ -412,21 +414,36 @@ async fn next_delta(frame: &Arc<ShardedFrame>, track: &mut Track, node: &str) ->
         let whole = Baseline {
             state: cut.whole(),
             seen: cut.seen,
+            aovs: cut.aovs,
         };
-        let (delta, batches) = match &baseline {
+        let (delta, batches, aov_delta) = match &baseline {
             Some(b) => (
                 whole
                     .state
                     .delta_since(&b.state)
                     .expect("a frame's states share its size and layout"),
                 whole.seen.applied_since(&b.seen),
+                match (&whole.aovs, &b.aovs) {
+                    (Some(now), Some(then)) => Some(
+                        now.delta_since(then)
+                            .expect("a frame's AOV sums only grow, in one geometry"),
+                    ),
+                    (now, _) => now.clone(),
+                },
             ),
-            None => (whole.state.clone(), whole.seen.applied()),
+            None => (
+                whole.state.clone(),
+                whole.seen.applied(),
+                whole.aovs.clone(),
+            ),
         };
         let samples = delta.total_samples();
         let empty = delta.cells().iter().all(|&c| c == 0);
-        let body = (!empty)
-            .then(|| crate::export::dump(&delta, frame2.id(), Some(origin), batches).encode());
+        let specs = frame2.spec().request.aovs.as_slice();
+        let aovs = aov_delta.as_ref().map(|sums| (specs, sums));
+        let body = (!empty).then(|| {
+            crate::export::dump(&delta, aovs, frame2.id(), Some(origin), batches).encode()
+        });
         (baseline, whole, cut.version, samples, body)
     })
     .await;

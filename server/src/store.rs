@@ -235,6 +235,13 @@ fn describe_difference(ours: &CreateFrame, theirs: &CreateFrame) -> String {
             ours.resolve, theirs.resolve
         ));
     }
+    if ours.aovs != theirs.aovs {
+        diffs.push(format!(
+            "aovs {} here, {} requested",
+            crate::frame::describe_aovs(&ours.aovs),
+            crate::frame::describe_aovs(&theirs.aovs)
+        ));
+    }
     if ours.converged_below != theirs.converged_below {
         diffs.push(format!(
             "converged_below {} here, {} requested",

@@ -95,7 +95,7 @@ fn main() -> Result<()> {
     for pass in 0..args.spp {
         fill.splat_all(scene.pass(pass));
     }
-    let fill_bytes = splatd_server::export::dump(&fill, "bench.src", None, vec![]).encode();
+    let fill_bytes = splatd_server::export::dump(&fill, None, "bench.src", None, vec![]).encode();
     drop(fill);
 
     let server = start_server()?;

@@ -116,6 +116,11 @@ class Batch(NamedTuple):
     rgb: np.ndarray  # float32, shape (n, 3)
 
 
+def _aovs(aovs: List[Tuple[str, List[str]]]) -> List[Dict[str, Any]]:
+    """The ``aovs`` field of a create request from ``(layer name, [channel names])`` pairs."""
+    return [{"name": str(name), "channels": [str(c) for c in channels]} for name, channels in aovs]
+
+
 def validate_frame_id(frame: str) -> None:
     """1..128 characters of [A-Za-z0-9._-], not "." or ".." (same rules as Rust)."""
     if not isinstance(frame, str):
@@ -282,6 +287,7 @@ class Client:
         height: int,
         cascades: Optional[dict] = None,
         resolve: Optional[dict] = None,
+        aovs: Optional[List[Tuple[str, List[str]]]] = None,
     ) -> Dict[str, Any]:
         """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults.
 
@@ -290,7 +296,11 @@ class Client:
         ``kappa`` (support, in samples beyond ``kappa_min``, at which a brightness band gets full
         weight; bands with less are down-weighted, not rejected), ``kappa_min`` (subtracted from a
         band's support count; not a bound on kappa), ``kappa_exponent`` (kappa grows as
-        kappa * N**kappa_exponent). See proto/PROTOCOL.md and docs/ALGORITHM.md.
+        kappa * N**kappa_exponent). ``aovs``: ``(layer name, [channel names])`` of the passes'
+        other layers to keep as per-pixel means beside the beauty, e.g.
+        ``[("ViewLayer.DiffCol", ["R", "G", "B"]), ("ViewLayer.Depth", ["Z"])]``; served as
+        ``<layer>.<channel>`` channels of ``image.exr``. See proto/PROTOCOL.md and
+        docs/ALGORITHM.md.
         """
         validate_frame_id(id)
         req: Dict[str, Any] = {"id": id, "width": int(width), "height": int(height)}
@@ -298,6 +308,8 @@ class Client:
             req["cascades"] = cascades
         if resolve is not None:
             req["resolve"] = resolve
+        if aovs:
+            req["aovs"] = _aovs(aovs)
         # The id also goes in a header, for proxies that route frames by id (deploy/nginx/).
         return self._request(
             "POST", "/v1/frames", json.dumps(req).encode(), "application/json", headers={"X-Splatd-Frame": id}
@@ -310,6 +322,7 @@ class Client:
         height: int,
         cascades: Optional[Dict[str, Any]] = None,
         resolve: Optional[Dict[str, Any]] = None,
+        aovs: Optional[List[Tuple[str, List[str]]]] = None,
     ) -> Dict[str, Any]:
         """``PUT /v1/frames/{id}``: creates the frame, or returns it when it exists with exactly
         these parameters (the FrameInfo as a dict). A frame with other parameters is refused with
@@ -322,6 +335,8 @@ class Client:
             req["cascades"] = cascades
         if resolve is not None:
             req["resolve"] = resolve
+        if aovs:
+            req["aovs"] = _aovs(aovs)
         return self._request("PUT", f"/v1/frames/{id}", json.dumps(req).encode(), "application/json")
 
     def frame_info(self, id: str) -> Dict[str, Any]:

@@ -140,6 +140,7 @@ impl From<IngestError> for ApiError {
             IngestError::Deleted { .. } => {
                 return ApiError::new(StatusCode::NOT_FOUND, "unknown_frame", e.to_string())
             }
+            IngestError::AovFull { .. } => "pixel_full",
             IngestError::Sample { error, .. } => match error {
                 SampleError::OutOfFrame { .. } => "pixel_out_of_range",
                 SampleError::NonFinite => "non_finite_sample",
@@ -170,6 +171,9 @@ impl From<ImportRefused> for ApiError {
             }
             ImportRefused::Overlap { .. } => {
                 ApiError::new(StatusCode::CONFLICT, "batches_overlap", e.to_string())
+            }
+            ImportRefused::Aovs { .. } => {
+                ApiError::new(StatusCode::CONFLICT, "aov_mismatch", e.to_string())
             }
         }
     }

@@ -32,7 +32,10 @@ pub async fn get_image(
     };
     // The copy of the state, three resolved layers and the EXR holding them (and the raw
     // cascades when asked for), at 12 bytes per pixel and layer.
-    let cost = frame.spec().memory_bytes() + pixels(&frame) * 12 * (6 + 2 * extra_layers);
+    // AOV means: two copies (planes and channels) of 4 bytes per channel and pixel.
+    let aov_bytes = pixels(&frame) * 8 * frame.spec().aov_channels() as u64;
+    let cost =
+        frame.spec().memory_bytes() + pixels(&frame) * 12 * (6 + 2 * extra_layers) + aov_bytes;
     let key = format!("exr {params:?} {query:?}");
     let exr = app
         .renders
@@ -44,12 +47,17 @@ pub async fn get_image(
             } else {
                 Vec::new()
             };
+            let aovs = cut
+                .aovs
+                .as_ref()
+                .map(|sums| crate::image::aov_planes(&frame.spec().request.aovs, sums))
+                .unwrap_or_default();
             drop(cut);
             let provenance = Provenance {
                 layout: &frame.spec().layout,
                 params: &params,
             };
-            encode_exr(&resolved, &extra, &provenance)
+            encode_exr(&resolved, &extra, &aovs, &provenance)
                 .map(Bytes::from)
                 .map_err(|e| ApiError::internal("EXR encoding", e))
         })

@@ -6,6 +6,7 @@
 use std::sync::Arc;
 
 use axum::extract::State;
+use axum::http::StatusCode;
 use splatd_proto::api::BatchAck;
 use splatd_proto::{Batch, BATCH_CONTENT_TYPE};
 
@@ -47,17 +48,18 @@ pub struct Pass;
 impl Upload for Pass {
     const CONTENT_TYPE: &'static str = EXR_CONTENT_TYPE;
 
-    /// An EXR of the frame's size: its floats, plus generous room for headers and poor
-    /// compression.
+    /// An EXR of the frame's size: its floats (16 channels, and two more per AOV channel of
+    /// the frame), plus generous room for headers and poor compression.
     fn limit(_: &AppState, frame: &ShardedFrame) -> usize {
         (pass_pixels(frame) as usize)
-            .saturating_mul(4 * 16)
+            .saturating_mul(4 * (16 + 2 * frame.spec().aov_channels()))
             .saturating_add(1 << 20)
     }
 
-    /// The decoded pixels (12 bytes each), their records (20) and the decoder's own buffers.
+    /// The decoded pixels (12 bytes each), their records (20) and the decoder's own buffers;
+    /// and per AOV channel its plane and its values (4 bytes each).
     fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
-        pass_pixels(frame) * 48
+        pass_pixels(frame) * (48 + 8 * frame.spec().aov_channels() as u64)
     }
 
     fn refused(frame: &ShardedFrame) {
@@ -83,10 +85,11 @@ pub async fn post_samples(
     metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
     let limits = app.decode_limits;
     ingest(&app, frame, reservation, move |frame| {
-        Batch::decode(&bytes, &limits).map_err(|e| {
+        let batch = Batch::decode(&bytes, &limits).map_err(|e| {
             reject(frame, 0, e.code());
             ApiError::from(&e)
-        })
+        })?;
+        Ok((batch, None))
     })
     .await
 }
@@ -126,15 +129,21 @@ pub async fn post_pass(
         };
         let spec = &frame.spec().request;
         let layer = query.layer.as_deref();
-        let pass =
-            crate::passes::decode_pass_with(&bytes, layer, pass_pixels(frame)).map_err(refuse)?;
+        let mut pass =
+            crate::passes::decode_pass_with_aovs(&bytes, layer, pass_pixels(frame), &spec.aovs)
+                .map_err(refuse)?;
         pass.check(spec.width, spec.height).map_err(refuse)?;
-        Ok(Batch {
+        let aovs = pass.aovs.take();
+        if let Some(values) = &aovs {
+            check_aovs(frame, values)?;
+        }
+        let batch = Batch {
             frame: frame.id().to_owned(),
             worker: query.worker,
             seq: query.seq,
             records: pass.records().collect(),
-        })
+        };
+        Ok((batch, aovs))
     })
     .await
 }
@@ -145,7 +154,9 @@ async fn ingest(
     app: &AppState,
     frame: Arc<ShardedFrame>,
     reservation: Reservation,
-    make_batch: impl FnOnce(&ShardedFrame) -> Result<Batch, ApiError> + Send + 'static,
+    make_batch: impl FnOnce(&ShardedFrame) -> Result<(Batch, Option<Vec<f32>>), ApiError>
+        + Send
+        + 'static,
 ) -> Result<Json<BatchAck>, ApiError> {
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
@@ -153,11 +164,13 @@ async fn ingest(
     let (batch_id, ingested) = blocking("ingest", move || {
         // The body's and the batch's working memory is held until both are gone.
         let _reservation = reservation;
-        let batch = make_batch(&worker_frame)?;
-        let ingested = worker_frame.ingest(&batch).map_err(|e| {
-            reject_counted(batch.records.len() as u64, "samples");
-            ApiError::from(e)
-        })?;
+        let (batch, aovs) = make_batch(&worker_frame)?;
+        let ingested = worker_frame
+            .ingest_with_aovs(&batch, aovs.as_deref())
+            .map_err(|e| {
+                reject_counted(batch.records.len() as u64, "samples");
+                ApiError::from(e)
+            })?;
         Ok(((batch.worker, batch.seq), ingested))
     })
     .await?;
@@ -178,6 +191,40 @@ async fn ingest(
         boot: app.boot,
         durable_floor,
     }))
+}
+
+/// Refuses a pass whose AOV values are outside the AOV bounds (see
+/// [`splatd_estimator::AovSums`]): 422 `invalid_aov` naming the layer, channel and pixel.
+fn check_aovs(frame: &ShardedFrame, values: &[f32]) -> Result<(), ApiError> {
+    let spec = frame.spec();
+    let channels = spec.aov_channels();
+    let Some((i, error)) = values
+        .iter()
+        .enumerate()
+        .find_map(|(i, &v)| splatd_estimator::aov_units(v).err().map(|e| (i, e)))
+    else {
+        return Ok(());
+    };
+    let (pixel, channel) = (i / channels, i % channels);
+    let name = spec
+        .request
+        .aovs
+        .iter()
+        .flat_map(|a| a.channels.iter().map(move |c| format!("{}.{c}", a.name)))
+        .nth(channel)
+        .unwrap_or_default();
+    let width = spec.request.width as usize;
+    reject(frame, pass_pixels(frame), "aov");
+    Err(ApiError::new(
+        StatusCode::UNPROCESSABLE_ENTITY,
+        "invalid_aov",
+        format!(
+            "pass for frame {:?}: AOV channel {name:?} at pixel ({}, {}): {error}",
+            frame.id(),
+            pixel % width,
+            pixel / width
+        ),
+    ))
 }
 
 /// Counts a batch refused before the frame saw it (body or decode errors).

@@ -57,8 +57,19 @@ pub async fn export(
     let (bytes, mut reservation) = blocking("export", move || {
         let cut = frame.cut();
         let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
-        crate::export::write_bands(&cut.bands, frame.id(), None, cut.seen.applied(), &mut out)
-            .expect("writing into a Vec<u8> is infallible");
+        let aovs = cut
+            .aovs
+            .as_ref()
+            .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
+        crate::export::write_bands(
+            &cut.bands,
+            aovs,
+            frame.id(),
+            None,
+            cut.seen.applied(),
+            &mut out,
+        )
+        .expect("writing into a Vec<u8> is infallible");
         Ok((out, reservation))
     })
     .await?;
@@ -124,8 +135,10 @@ pub async fn import(
         let origin = dump.origin.clone();
         let name = dump.frame.clone();
         let batches = std::mem::take(&mut dump.batches);
+        let aovs = crate::export::take_aovs(&mut dump)?;
         let state = crate::export::load(dump)?;
-        let applied = target.import(&name, &state, origin.as_ref(), &batches)?;
+        let aovs = aovs.as_ref().map(|(specs, sums)| (specs.as_slice(), sums));
+        let applied = target.import(&name, &state, aovs, origin.as_ref(), &batches)?;
         Ok((state.total_samples(), applied))
     })
     .await?;

@@ -627,3 +627,93 @@ async fn put_creates_or_gets_a_frame_for_write_and_admin_only() {
         (StatusCode::FORBIDDEN, "forbidden")
     );
 }
+
+/// AOV declarations: checked like the other parameters (400 naming the problem, nothing made),
+/// part of what create-or-get compares (409 naming both sets), and their memory counted against
+/// the server's limit (409 `memory_limit` for a frame whose cascades alone would fit).
+#[tokio::test]
+async fn aov_declarations_are_checked_compared_and_counted() {
+    use serde_json::json;
+    let auth = Auth::parse(&format!("write {WRITE}"), false).unwrap();
+    // Room for a 64x64 frame's cascades (25 words per pixel, 800 KiB) but not its AOVs too.
+    let limits = Limits {
+        max_memory_bytes: 1 << 20,
+        ..Limits::default()
+    };
+    let server = AppState::with_auth(limits, None, None, auth);
+    let albedo = json!([{"name": "albedo", "channels": ["R", "G", "B"]}]);
+    for (aovs, mentions) in [
+        (json!([{"name": "mean", "channels": ["R"]}]), "\"mean\""),
+        (
+            json!([{"name": "cascade2", "channels": ["R"]}]),
+            "\"cascade2\"",
+        ),
+        (json!([{"name": "n", "channels": []}]), "no channels"),
+        (json!([{"name": "n", "channels": ["X", "X"]}]), "\"X\""),
+        (
+            json!([{"name": "a", "channels": ["R"]}, {"name": "a", "channels": ["G"]}]),
+            "twice",
+        ),
+    ] {
+        let (status, err) = put_frame(
+            &server,
+            "x",
+            WRITE,
+            json!({"width": 4, "height": 4, "aovs": aovs}),
+        )
+        .await;
+        assert_eq!(
+            (status, err["error"].as_str()),
+            (StatusCode::BAD_REQUEST, Some("invalid_parameters")),
+            "{aovs}"
+        );
+        let message = err["message"].as_str().unwrap();
+        assert!(message.contains(mentions), "{message}");
+        assert!(server.store.get("x").is_err());
+    }
+    let (status, created) = put_frame(
+        &server,
+        "f",
+        WRITE,
+        json!({"width": 4, "height": 4, "aovs": albedo}),
+    )
+    .await;
+    assert_eq!(status, StatusCode::CREATED, "{created}");
+    // 25 cascade words and 1 + 2 * 3 AOV words per pixel.
+    assert_eq!(created["memory_bytes"], 16 * (25 + 7) * 8);
+    let (status, again) = put_frame(
+        &server,
+        "f",
+        WRITE,
+        json!({"width": 4, "height": 4, "aovs": albedo}),
+    )
+    .await;
+    assert_eq!((status, &again), (StatusCode::OK, &created));
+    let (status, err) = put_frame(&server, "f", WRITE, json!({"width": 4, "height": 4})).await;
+    assert_eq!(
+        (status, err["error"].as_str()),
+        (StatusCode::CONFLICT, Some("frame_exists"))
+    );
+    let message = err["message"].as_str().unwrap();
+    assert!(
+        message.contains("aovs \"albedo\" (R, G, B) here, none requested"),
+        "{message}"
+    );
+
+    let (status, big) = put_frame(&server, "big", WRITE, json!({"width": 64, "height": 64})).await;
+    assert_eq!(status, StatusCode::CREATED, "{big}");
+    server.store.remove("big").unwrap();
+    let (status, err) = put_frame(
+        &server,
+        "big",
+        WRITE,
+        json!({"width": 64, "height": 64, "aovs": albedo}),
+    )
+    .await;
+    assert_eq!(
+        (status, err["error"].as_str()),
+        (StatusCode::CONFLICT, Some("memory_limit")),
+        "{err}"
+    );
+    assert!(server.store.get("big").is_err());
+}

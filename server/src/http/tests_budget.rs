@@ -226,7 +226,7 @@ async fn imports_wait_for_working_memory_and_long_bodies_are_refused_from_their_
     });
     let frame = app.store.get("f").unwrap();
     let mut state = Vec::new();
-    crate::export::write_bands(&frame.cut().bands, "f", None, vec![], &mut state).unwrap();
+    crate::export::write_bands(&frame.cut().bands, None, "f", None, vec![], &mut state).unwrap();
     let held = app.renders.budget().reserve(1 << 20).await.unwrap();
     let (status, _, error) = answer(
         &app,

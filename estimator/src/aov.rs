@@ -1,0 +1,480 @@
+//! Arbitrary output variables (AOVs): the other layers of a rendered pass (albedo, normal,
+//! depth, any named layer), accumulated as plain per-pixel means beside the cascades.
+//!
+//! A denoiser wants the reweighted beauty *and* its guides. AOVs are smooth where the beauty is
+//! noisy, so they are not reweighted: each channel is the plain mean of the values the passes
+//! carried. Like the cascades they are exact and mergeable: every value is rounded once to a
+//! fixed-point integer (units of `2^-AOV_FRAC_BITS`) and sums are integer additions, so the
+//! same passes give the same sums in any order, split over any number of nodes.
+//!
+//! # Bounds
+//!
+//! A value must be finite with `|v| <= AOV_MAX_ABS` (`2^40`, about `1.1e12`: Cycles writes
+//! `1e10` as the depth of the background). It is stored as `round(v * 2^20)` (half away from
+//! zero), an integer of at most 61 bits with its sign; a pixel holds at most
+//! [`MAX_PIXEL_SAMPLES`] (`2^32`) of them, so a sum stays below `2^92`, held as an `i128`.
+//! The step `2^-20` (about `9.5e-7`) is far below what a guide needs; a mean is exact to within
+//! half a step of the true mean of the values as stored (`f32`).
+//!
+//! # Words
+//!
+//! A pixel is `1 + 2C` `u64` words for `C` channels: its AOV sample count, then per channel the
+//! sum's low and high 64 bits (two's complement). This is also the state format's layout, so
+//! states carry the words verbatim.
+
+use std::ops::Range;
+
+use crate::layout::MAX_PIXEL_SAMPLES;
+
+/// Fractional bits of the AOV fixed point: values are stored in units of `2^-20`.
+pub const AOV_FRAC_BITS: u32 = 20;
+
+/// Largest magnitude an AOV value may have: `2^40`.
+pub const AOV_MAX_ABS: f64 = (1u64 << 40) as f64;
+
+/// Largest stored magnitude of one value: `AOV_MAX_ABS * 2^AOV_FRAC_BITS`.
+const MAX_UNITS: i128 = 1 << 60;
+
+/// Words per pixel for `channels` AOV channels.
+pub fn aov_words(channels: usize) -> usize {
+    1 + 2 * channels
+}
+
+/// Why an AOV value was refused.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum AovValueError {
+    /// NaN or infinite.
+    #[error("AOV value {0} is not finite")]
+    NotFinite(f32),
+    /// Outside `[-2^40, 2^40]`.
+    #[error("AOV value {0} is outside [-2^40, 2^40] (about 1.1e12)")]
+    TooLarge(f32),
+}
+
+/// A value in fixed point, or why it cannot be stored.
+pub fn aov_units(v: f32) -> Result<i128, AovValueError> {
+    if !v.is_finite() {
+        return Err(AovValueError::NotFinite(v));
+    }
+    if f64::from(v).abs() > AOV_MAX_ABS {
+        return Err(AovValueError::TooLarge(v));
+    }
+    // Exact: f32 -> f64 and a power-of-two scale lose nothing; round() is deterministic.
+    Ok((f64::from(v) * (1u64 << AOV_FRAC_BITS) as f64).round() as i128)
+}
+
+/// AOV words that no checked values could have made.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum AovCellsError {
+    /// The word count does not fit the geometry.
+    #[error(
+        "AOV section has {count} words, but {pixels} pixels of {channels} channels need {expected}"
+    )]
+    Shape {
+        /// Words given.
+        count: usize,
+        /// Words expected.
+        expected: usize,
+        /// Pixels held.
+        pixels: usize,
+        /// Channels.
+        channels: usize,
+    },
+    /// A pixel's words break the bounds of the module docs.
+    #[error("AOV of pixel ({x}, {y}): {reason}")]
+    Invalid {
+        /// Column.
+        x: u32,
+        /// Row.
+        y: u32,
+        /// What is wrong.
+        reason: String,
+    },
+    /// Two AOV states of different geometry were merged.
+    #[error("AOV states differ: {0}")]
+    Mismatch(String),
+    /// A merge would take a pixel past [`MAX_PIXEL_SAMPLES`] AOV samples.
+    #[error("AOV of pixel ({x}, {y}) would hold more than 2^32 samples")]
+    Full {
+        /// Column.
+        x: u32,
+        /// Row.
+        y: u32,
+    },
+}
+
+/// The AOV sums of a frame, or of a band of its rows.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AovSums {
+    width: u32,
+    rows: Range<u32>,
+    channels: usize,
+    words: Vec<u64>,
+}
+
+fn get(words: &[u64], at: usize) -> i128 {
+    (((words[at + 1] as u128) << 64) | words[at] as u128) as i128
+}
+
+fn set(words: &mut [u64], at: usize, v: i128) {
+    words[at] = v as u64;
+    words[at + 1] = ((v as u128) >> 64) as u64;
+}
+
+impl AovSums {
+    /// Empty sums of `channels` channels for rows `rows` of a frame `width` wide.
+    pub fn new(width: u32, rows: Range<u32>, channels: usize) -> AovSums {
+        let pixels = width as usize * rows.len();
+        AovSums {
+            width,
+            rows,
+            channels,
+            words: vec![0; pixels * aov_words(channels)],
+        }
+    }
+
+    /// Sums from words (a state's AOV section), checked against the bounds of the module docs.
+    ///
+    /// # Errors
+    /// [`AovCellsError::Shape`] for a wrong word count, [`AovCellsError::Invalid`] naming the
+    /// first pixel whose words no checked values could have made.
+    pub fn from_words(
+        width: u32,
+        rows: Range<u32>,
+        channels: usize,
+        words: Vec<u64>,
+    ) -> Result<AovSums, AovCellsError> {
+        let pixels = width as usize * rows.len();
+        let expected = pixels * aov_words(channels);
+        if words.len() != expected {
+            return Err(AovCellsError::Shape {
+                count: words.len(),
+                expected,
+                pixels,
+                channels,
+            });
+        }
+        let sums = AovSums {
+            width,
+            rows,
+            channels,
+            words,
+        };
+        for p in 0..pixels {
+            if let Err(reason) = sums.check_pixel(p) {
+                let (x, y) = sums.position(p);
+                return Err(AovCellsError::Invalid { x, y, reason });
+            }
+        }
+        Ok(sums)
+    }
+
+    fn check_pixel(&self, p: usize) -> Result<(), String> {
+        let n = aov_words(self.channels);
+        let px = &self.words[p * n..(p + 1) * n];
+        let count = px[0];
+        if count > MAX_PIXEL_SAMPLES {
+            return Err(format!("{count} samples, more than 2^32"));
+        }
+        for c in 0..self.channels {
+            let sum = get(px, 1 + 2 * c);
+            if sum.unsigned_abs() > (count as u128) * MAX_UNITS as u128 {
+                return Err(format!(
+                    "channel {c}: sum {sum} is more than {count} values of at most 2^60 units"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn position(&self, p: usize) -> (u32, u32) {
+        let w = self.width.max(1) as usize;
+        ((p % w) as u32, self.rows.start + (p / w) as u32)
+    }
+
+    /// Channels per pixel.
+    pub fn channels(&self) -> usize {
+        self.channels
+    }
+
+    /// Rows held.
+    pub fn rows(&self) -> Range<u32> {
+        self.rows.clone()
+    }
+
+    /// The words, pixel by pixel (see the module docs).
+    pub fn words(&self) -> &[u64] {
+        &self.words
+    }
+
+    /// AOV samples of the pixel `(x, y)` (a row held).
+    pub fn count(&self, x: u32, y: u32) -> u64 {
+        let p = (y - self.rows.start) as usize * self.width as usize + x as usize;
+        self.words[p * aov_words(self.channels)]
+    }
+
+    /// Checks every value of a pass: `values` holds the rows held, pixel by pixel, `channels`
+    /// values per pixel. Returns the first bad value's pixel number, channel and error.
+    pub fn check_values(&self, values: &[f32]) -> Result<(), (usize, usize, AovValueError)> {
+        for (i, &v) in values.iter().enumerate() {
+            aov_units(v).map_err(|e| (i / self.channels.max(1), i % self.channels.max(1), e))?;
+        }
+        Ok(())
+    }
+
+    /// Whether every pixel can take one more AOV sample.
+    pub fn has_room_for_pass(&self) -> bool {
+        let n = aov_words(self.channels);
+        self.words
+            .chunks_exact(n)
+            .all(|px| px[0] < MAX_PIXEL_SAMPLES)
+    }
+
+    /// Adds one pass: one value per channel for every pixel held (see
+    /// [`AovSums::check_values`]), each pixel's count going up by one.
+    ///
+    /// # Panics
+    /// If `values` has the wrong length or holds a value [`aov_units`] refuses: check first.
+    pub fn add_pass(&mut self, values: &[f32]) {
+        let n = aov_words(self.channels);
+        assert_eq!(
+            values.len(),
+            self.words.len() / n * self.channels,
+            "one value per channel and pixel"
+        );
+        if self.channels == 0 {
+            return;
+        }
+        for (px, vals) in self
+            .words
+            .chunks_exact_mut(n)
+            .zip(values.chunks_exact(self.channels))
+        {
+            px[0] += 1;
+            for (c, &v) in vals.iter().enumerate() {
+                let units = aov_units(v).expect("AOV values are checked before they are added");
+                let at = 1 + 2 * c;
+                let sum = get(px, at) + units;
+                set(px, at, sum);
+            }
+        }
+    }
+
+    /// Checks that `other` (any rows of the same frame, same channels) can be added.
+    ///
+    /// # Errors
+    /// [`AovCellsError::Mismatch`] for another width or channel count, [`AovCellsError::Full`]
+    /// for a pixel that would hold more than 2^32 samples.
+    pub fn check_room_for(&self, other: &AovSums) -> Result<(), AovCellsError> {
+        if other.width != self.width || other.channels != self.channels {
+            return Err(AovCellsError::Mismatch(format!(
+                "{} channels of a frame {} wide here, {} channels of a frame {} wide in the state",
+                self.channels, self.width, other.channels, other.width
+            )));
+        }
+        let n = aov_words(self.channels);
+        for y in self.rows.start.max(other.rows.start)..self.rows.end.min(other.rows.end) {
+            for x in 0..self.width {
+                let a = self.words[self.index(x, y) * n];
+                let b = other.words[other.index(x, y) * n];
+                if a + b > MAX_PIXEL_SAMPLES {
+                    return Err(AovCellsError::Full { x, y });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn index(&self, x: u32, y: u32) -> usize {
+        (y - self.rows.start) as usize * self.width as usize + x as usize
+    }
+
+    /// Adds the rows `other` shares with `self`.
+    ///
+    /// # Errors
+    /// As [`AovSums::check_room_for`]; nothing is added then.
+    pub fn merge_overlap(&mut self, other: &AovSums) -> Result<(), AovCellsError> {
+        self.check_room_for(other)?;
+        let n = aov_words(self.channels);
+        let w = self.width as usize;
+        for y in self.rows.start.max(other.rows.start)..self.rows.end.min(other.rows.end) {
+            let a = self.index(0, y) * n;
+            let b = other.index(0, y) * n;
+            let dst = &mut self.words[a..a + w * n];
+            let src = &other.words[b..b + w * n];
+            for (d, s) in dst.chunks_exact_mut(n).zip(src.chunks_exact(n)) {
+                d[0] += s[0];
+                for c in 0..self.channels {
+                    let at = 1 + 2 * c;
+                    let sum = get(d, at) + get(s, at);
+                    set(d, at, sum);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// What was added since `base` (an earlier copy of the same sums): `self - base`, word by
+    /// word, for push deltas.
+    ///
+    /// # Errors
+    /// [`AovCellsError::Mismatch`] if `base` has another geometry or is not an earlier copy.
+    pub fn delta_since(&self, base: &AovSums) -> Result<AovSums, AovCellsError> {
+        if (base.width, &base.rows, base.channels) != (self.width, &self.rows, self.channels) {
+            return Err(AovCellsError::Mismatch(
+                "the base of a delta has another geometry".into(),
+            ));
+        }
+        let n = aov_words(self.channels);
+        let mut delta = self.clone();
+        for (d, b) in delta
+            .words
+            .chunks_exact_mut(n)
+            .zip(base.words.chunks_exact(n))
+        {
+            d[0] = d[0].checked_sub(b[0]).ok_or_else(|| {
+                AovCellsError::Mismatch("the base of a delta holds more samples".into())
+            })?;
+            for c in 0..self.channels {
+                let at = 1 + 2 * c;
+                let v = get(d, at) - get(b, at);
+                set(d, at, v);
+            }
+        }
+        Ok(delta)
+    }
+
+    /// The sums of rows `rows` (inside the rows held), for a band of a snapshot.
+    pub fn rows_copy(&self, rows: Range<u32>) -> AovSums {
+        let n = aov_words(self.channels);
+        let (a, b) = (self.index(0, rows.start), self.index(0, rows.end));
+        AovSums {
+            width: self.width,
+            rows,
+            channels: self.channels,
+            words: self.words[a * n..b * n].to_vec(),
+        }
+    }
+
+    /// The means, one plane per channel (pixels of the rows held, row-major); 0 where a pixel
+    /// has no AOV sample.
+    pub fn means(&self) -> Vec<Vec<f32>> {
+        let n = aov_words(self.channels);
+        let scale = (1u64 << AOV_FRAC_BITS) as f64;
+        let mut planes = vec![Vec::with_capacity(self.words.len() / n); self.channels];
+        for px in self.words.chunks_exact(n) {
+            let count = px[0];
+            for (c, plane) in planes.iter_mut().enumerate() {
+                plane.push(if count == 0 {
+                    0.0
+                } else {
+                    (get(px, 1 + 2 * c) as f64 / count as f64 / scale) as f32
+                });
+            }
+        }
+        planes
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn values_are_rounded_once_and_bounded() {
+        assert_eq!(aov_units(1.0).unwrap(), 1 << 20);
+        assert_eq!(aov_units(-0.5).unwrap(), -(1 << 19));
+        assert_eq!(
+            aov_units(1e10).unwrap(),
+            (1e10f32 as f64 * 1048576.0) as i128
+        );
+        assert_eq!(aov_units(2f32.powi(40)).unwrap(), MAX_UNITS);
+        assert!(matches!(aov_units(2.2e12), Err(AovValueError::TooLarge(_))));
+        assert!(matches!(
+            aov_units(f32::NAN),
+            Err(AovValueError::NotFinite(_))
+        ));
+        assert!(matches!(
+            aov_units(f32::NEG_INFINITY),
+            Err(AovValueError::NotFinite(_))
+        ));
+    }
+
+    #[test]
+    fn means_are_exact_and_merge_is_order_free() {
+        // 2 channels, 3x2 frame; passes split over two "nodes" and a band.
+        let passes: Vec<Vec<f32>> = (0..7)
+            .map(|k| {
+                (0..12)
+                    .map(|i| ((k * 31 + i * 17) % 23) as f32 * 0.37 - 4.0)
+                    .collect()
+            })
+            .collect();
+        let mut one = AovSums::new(3, 0..2, 2);
+        let (mut a, mut b) = (AovSums::new(3, 0..2, 2), AovSums::new(3, 0..2, 2));
+        for (k, p) in passes.iter().enumerate() {
+            one.check_values(p).unwrap();
+            one.add_pass(p);
+            if k % 2 == 0 { &mut a } else { &mut b }.add_pass(p);
+        }
+        a.merge_overlap(&b).unwrap();
+        assert_eq!(a, one);
+        let means = one.means();
+        for c in 0..2 {
+            for px in 0..6 {
+                let exact: f64 = passes.iter().map(|p| p[px * 2 + c] as f64).sum::<f64>() / 7.0;
+                let step = 1.0 / (1u64 << AOV_FRAC_BITS) as f64;
+                assert!((means[c][px] as f64 - exact).abs() <= step, "{c} {px}");
+            }
+        }
+        // A band of the lower row adds only to that row.
+        let band = one.rows_copy(1..2);
+        let mut twice = one.clone();
+        twice.merge_overlap(&band).unwrap();
+        assert_eq!(twice.count(0, 0), 7);
+        assert_eq!(twice.count(2, 1), 14);
+        // A delta against an earlier copy adds back to the later one.
+        let mut later = a.clone();
+        later.add_pass(&passes[0]);
+        let delta = later.delta_since(&a).unwrap();
+        assert_eq!(delta.count(1, 1), 1);
+        a.merge_overlap(&delta).unwrap();
+        assert_eq!(a, later);
+        // Words survive a round trip through their checked constructor.
+        let back = AovSums::from_words(3, 0..2, 2, one.words().to_vec()).unwrap();
+        assert_eq!(back, one);
+    }
+
+    #[test]
+    fn words_no_pass_could_make_are_refused() {
+        let mut sums = AovSums::new(2, 4..5, 1);
+        sums.add_pass(&[1.0, 2.0]);
+        let mut words = sums.words().to_vec();
+        words[3] = 0; // pixel 1's count: a sum with no samples
+        let err = AovSums::from_words(2, 4..5, 1, words).unwrap_err();
+        assert!(
+            matches!(err, AovCellsError::Invalid { x: 1, y: 4, .. }),
+            "{err}"
+        );
+        let err = AovSums::from_words(2, 4..5, 1, vec![0; 5]).unwrap_err();
+        assert!(
+            matches!(err, AovCellsError::Shape { expected: 6, .. }),
+            "{err}"
+        );
+        let mut words = sums.words().to_vec();
+        words[0] = MAX_PIXEL_SAMPLES + 1;
+        assert!(AovSums::from_words(2, 4..5, 1, words).is_err());
+        let err = AovSums::new(2, 0..1, 2).merge_overlap(&sums).unwrap_err();
+        assert!(matches!(err, AovCellsError::Mismatch(_)), "{err}");
+    }
+
+    #[test]
+    fn negative_sums_keep_their_sign_across_words() {
+        let mut sums = AovSums::new(1, 0..1, 1);
+        for _ in 0..3 {
+            sums.add_pass(&[-1e12]);
+        }
+        assert_eq!(sums.means()[0][0], -1e12);
+        assert!(sums.words()[2] == u64::MAX, "high word of a negative sum");
+    }
+}
