@@ -147,7 +147,7 @@ fn concurrent_clients_get_the_cores_image_bit_for_bit() {
                 layout: &f.layout,
                 params: &params,
             };
-            let expected = encode_exr(&resolved, &[], &provenance).unwrap();
+            let expected = encode_exr(&resolved, &[], &[], &provenance).unwrap();
             let query = ImageQuery {
                 variant: Some(variant),
                 ..ImageQuery::default()
