@@ -13,7 +13,7 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use common::{python_package_venv, runtime, Server};
+use common::{python_package_venv, runtime, venv_site_packages, Server};
 use splatd_proto::api::ImageQuery;
 use splatd_proto::Client;
 
@@ -40,14 +40,7 @@ fn blender_passes_converge_to_the_antialiased_image() {
 
     let dir = tempfile::tempdir().unwrap();
     let python = python_package_venv(dir.path());
-    let site = Command::new(&python)
-        .args([
-            "-c",
-            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
-        ])
-        .output()
-        .unwrap();
-    let site = String::from_utf8_lossy(&site.stdout).trim().to_owned();
+    let site = venv_site_packages(&python);
     let server = Server::start_with_env(
         &[],
         &[("SPLATD_TOKENS", &format!("write {WRITE};read {READ}"))],

@@ -15,7 +15,7 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use common::{python_package_venv, runtime, Server};
+use common::{python_package_venv, runtime, venv_site_packages, Server};
 use splatd_estimator::{NeedMap, TileNeed};
 use splatd_proto::api::NeedMap as ApiNeedMap;
 use splatd_proto::Client;
@@ -67,14 +67,7 @@ fn guided_mitsuba_renders_land_where_the_need_map_points() {
     let dir = tempfile::tempdir().unwrap();
     // The client package as pip installs it; Mitsuba from python3's own site-packages.
     let venv_python = python_package_venv(dir.path());
-    let site = Command::new(&venv_python)
-        .args([
-            "-c",
-            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
-        ])
-        .output()
-        .unwrap();
-    let site = String::from_utf8_lossy(&site.stdout).trim().to_owned();
+    let site = venv_site_packages(&venv_python);
 
     let server = Server::start(&[]);
     let worker = |args: &[&str], what: &str| -> String {

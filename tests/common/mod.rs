@@ -163,6 +163,25 @@ pub fn free_port() -> u16 {
         .port()
 }
 
+/// The site-packages directory of a virtual environment's `python`, for a `PYTHONPATH` that lets
+/// an interpreter outside the environment (Blender's, or `python3` with Mitsuba) import the
+/// client package installed there.
+pub fn venv_site_packages(python: &Path) -> String {
+    let out = Command::new(python)
+        .args([
+            "-c",
+            "import sysconfig; print(sysconfig.get_paths()['purelib'])",
+        ])
+        .output()
+        .unwrap_or_else(|e| panic!("{}: {e}", python.display()));
+    assert!(
+        out.status.success(),
+        "{} found no site-packages",
+        python.display()
+    );
+    String::from_utf8_lossy(&out.stdout).trim().to_owned()
+}
+
 /// A fresh Python virtual environment in `dir` with the client package installed by pip from a
 /// copy of `proto/python` (so no build files land in the checkout); returns its `python`.
 ///
