@@ -789,11 +789,8 @@ mod tests {
 
         // Rewrite the snapshot as version 1 wrote it: metadata without digests.
         let path = dir.path().join("frames/f").join(SNAPSHOT_FILE);
-        let bytes = fs::read(&path).unwrap();
-        let body = &bytes[..bytes.len() - 4];
-        let meta_len = u64::from_le_bytes(body[6..14].try_into().unwrap()) as usize;
         let (meta, _): (SnapshotMeta, usize) =
-            bincode::serde::decode_from_slice(&body[14..14 + meta_len], bincode::config::legacy())
+            bincode::serde::decode_from_slice(&snapshot_meta(&path), bincode::config::legacy())
                 .unwrap();
         let v1 = SnapshotMetaV1 {
             frame: meta.frame,
@@ -839,6 +836,14 @@ mod tests {
         dump.encode_v1()
     }
 
+    /// The metadata bytes of the snapshot file at `path` (after magic, version and their
+    /// length), as [`old_snapshot`] takes them.
+    fn snapshot_meta(path: &Path) -> Vec<u8> {
+        let bytes = fs::read(path).unwrap();
+        let meta_len = u64::from_le_bytes(bytes[6..14].try_into().unwrap()) as usize;
+        bytes[14..14 + meta_len].to_vec()
+    }
+
     /// A snapshot of `version` with metadata `meta` and `states` as its bands.
     fn old_snapshot(version: u16, meta: &[u8], states: &[Vec<u8>]) -> Vec<u8> {
         let mut old = Vec::new();
@@ -867,14 +872,11 @@ mod tests {
         post(&f, 4, 0);
         durable.snapshot(&f).await.unwrap();
         let path = dir.path().join("frames/f").join(SNAPSHOT_FILE);
-        let bytes = fs::read(&path).unwrap();
-        let body = &bytes[..bytes.len() - 4];
-        let meta_len = u64::from_le_bytes(body[6..14].try_into().unwrap()) as usize;
         // The snapshot a server of state format version 2 wrote: version 3, one band of a
         // version 2 state.
         let whole = f.cut().whole();
         let v2 = crate::export::dump(&whole, None, "f", None, vec![]).encode_v2();
-        fs::write(&path, old_snapshot(3, &body[14..14 + meta_len], &[v2])).unwrap();
+        fs::write(&path, old_snapshot(3, &snapshot_meta(&path), &[v2])).unwrap();
 
         let back = recover(dir.path()).get("f").unwrap();
         assert_eq!(back.info().samples, 20);
@@ -932,12 +934,9 @@ mod tests {
 
         for (id, saturate) in [("f", false), ("sat", true)] {
             let path = dir.path().join("frames").join(id).join(SNAPSHOT_FILE);
-            let bytes = fs::read(&path).unwrap();
-            let body = &bytes[..bytes.len() - 4];
-            let meta_len = u64::from_le_bytes(body[6..14].try_into().unwrap()) as usize;
-            let meta = &body[14..14 + meta_len];
+            let meta = snapshot_meta(&path);
             let state = v1_state(&expected, id, saturate.then_some(7 * 8 + 5));
-            fs::write(&path, old_snapshot(2, meta, &[state])).unwrap();
+            fs::write(&path, old_snapshot(2, &meta, &[state])).unwrap();
         }
 
         let store = FrameStore::new(Limits::default());
