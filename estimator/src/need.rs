@@ -485,8 +485,9 @@ mod tests {
                 },
             ],
         };
-        // 40 samples: square roots 3 and 1, shares 30 and 10, i.e. 7.5 and 2.5 passes of 4 pixels; floors 7 and 2
-        // spend 36, the 4 left go to the first tile (remainders tie; the earlier tile wins).
+        // 40 samples: square roots 3 and 1, shares 30 and 10, i.e. 7.5 and 2.5 passes of 4
+        // pixels; floors 7 and 2 spend 36, the 4 left go to the first tile (remainders tie; the
+        // earlier tile wins).
         assert_eq!(m.plan(40), [8, 2]);
         assert_eq!(m.plan(3), [0, 0], "less than one pass of any tile");
         let flat = NeedMap {

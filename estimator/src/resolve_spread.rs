@@ -222,7 +222,8 @@ pub(crate) fn spread(
                     // samples) in a pixel of the window: this energy was cut at the edge of a
                     // light or highlight, and blurring it would smear that edge. Right next to
                     // the solid pixel it is the pixel's partial cover of the light: given back
-                    // in place (if the band holds `edge_share` of the pixel's samples); farther away it stays removed.
+                    // in place (if the band holds `edge_share` of the pixel's samples); farther
+                    // away it stays removed.
                     let own = band[3] as f64;
                     let spp = out.spp[p] as f64;
                     if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {

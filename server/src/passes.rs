@@ -31,9 +31,9 @@
 //! ZSTD, refused as [`PassError::Exr`] "unknown compression method"); of a mip- or rip-mapped
 //! part, the full-resolution level. Alpha and other channels are not decoded, except the
 //! frame's AOVs ([`decode_pass_with_aovs`]: the channels of the named layers, in any part of the
-//! beauty's size); parts holding neither are not decompressed. The pass must cover exactly its display window: a cropped
-//! (border) render or an overscan would put its pixels at the wrong place in the frame, so it
-//! is refused rather than guessed at.
+//! beauty's size); parts holding neither are not decompressed. The pass must cover exactly its
+//! display window: a cropped (border) render or an overscan would put its pixels at the wrong
+//! place in the frame, so it is refused rather than guessed at.
 //!
 //! What is **not** done: values are not checked. Negative, NaN and infinite samples pass through
 //! unchanged; the server rejects and counts them with the same checks it applies to streamed
