@@ -138,6 +138,13 @@ fn aovs_are_exact_means_through_merge_restart_and_old_states() {
         assert_eq!(info.rejected_batches, 2);
         // The AOVs count against the frame's memory: 7 channels, 15 words per pixel.
         assert_eq!(info.memory_bytes, (W * H) as u64 * (25 + 15) * 8);
+        let listed: Vec<(&str, usize)> = info
+            .aovs
+            .iter()
+            .map(|a| (a.name.as_str(), a.channels.len()))
+            .collect();
+        assert_eq!(listed.len(), 3, "{listed:?}");
+        assert_eq!(listed.iter().map(|l| l.1).sum::<usize>(), 7, "{listed:?}");
         let image = ca.image(FRAME, &ImageQuery::default()).await.unwrap();
         let state = ca.export_state(FRAME).await.unwrap();
         ca.sync(FRAME).await.unwrap();

@@ -370,6 +370,10 @@ pub struct FrameInfo {
     pub rejected_batches: u64,
     /// Memory the frame's accumulation buffers use.
     pub memory_bytes: u64,
+    /// The AOV layers the frame was created with (served in `image.exr` as
+    /// `<layer>.<channel>`); empty for a frame without AOVs.
+    #[serde(default)]
+    pub aovs: Vec<AovSpec>,
     /// How far the frame is from converged (`GET /v1/frames/{id}` only; absent in lists, and
     /// when the server's working memory was too busy to resolve the frame).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -786,6 +790,7 @@ mod tests {
             rejected_samples: 3,
             rejected_batches: 1,
             memory_bytes: 4096,
+            aovs: vec![AovSpec::new("albedo", &["R", "G", "B"])],
             convergence: None,
         };
         let mut v = serde_json::to_value(&info).expect("serialises");
@@ -794,7 +799,14 @@ mod tests {
             Some(info.clone())
         );
         v["added_later"] = json!(1);
-        assert_eq!(serde_json::from_value::<FrameInfo>(v).ok(), Some(info));
+        assert_eq!(
+            serde_json::from_value::<FrameInfo>(v.clone()).ok(),
+            Some(info)
+        );
+        // A server from before AOVs were listed: no `aovs` field, read as none.
+        v.as_object_mut().unwrap().remove("aovs");
+        let old = serde_json::from_value::<FrameInfo>(v).expect("an older server's answer");
+        assert!(old.aovs.is_empty());
 
         let ack = BatchAck {
             frame: "f".into(),

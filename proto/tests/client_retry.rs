@@ -166,6 +166,7 @@ async fn create_frame_and_frame_info() {
             rejected_samples: 0,
             rejected_batches: 0,
             memory_bytes: 1024,
+            aovs: vec![],
             convergence: None,
         };
         let json = serde_json::to_string(&info).expect("serialises");

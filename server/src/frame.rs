@@ -887,6 +887,7 @@ impl ShardedFrame {
             rejected_samples: c.rejected_samples,
             rejected_batches: c.rejected_batches,
             memory_bytes: self.spec.memory_bytes(),
+            aovs: r.aovs.clone(),
             convergence: None,
         }
     }

@@ -681,6 +681,7 @@ async fn aov_declarations_are_checked_compared_and_counted() {
     assert_eq!(status, StatusCode::CREATED, "{created}");
     // 25 cascade words and 1 + 2 * 3 AOV words per pixel.
     assert_eq!(created["memory_bytes"], 16 * (25 + 7) * 8);
+    assert_eq!(created["aovs"], albedo, "the frame lists its AOVs");
     let (status, again) = put_frame(
         &server,
         "f",
