@@ -32,7 +32,8 @@ pub use layout::{
 };
 pub use need::{
     check_converged_below, check_tile, Convergence, NeedError, NeedMap, TileNeed,
-    DEFAULT_CONVERGED_BELOW, DEFAULT_NEED_TILE, MAX_NEED_TILE,
+    DEFAULT_BASE_DOUBT, DEFAULT_CONVERGED_BELOW, DEFAULT_NEED_TILE, DEFAULT_UNIFORM_SHARE,
+    MAX_NEED_TILE,
 };
 pub use resolve::{
     resolve_bands, resolve_bands_into, resolve_bands_with, ResolveParams, Resolved, TilingError,

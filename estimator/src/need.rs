@@ -38,6 +38,12 @@ use crate::state::{cascade_units, cell_len, FrameState};
 pub const DEFAULT_NEED_TILE: u32 = 16;
 /// Largest tile edge accepted.
 pub const MAX_NEED_TILE: u32 = 4096;
+/// Doubt a guided worker gives every tile beyond the map's score before it plans
+/// ([`NeedMap::with_base_doubt`]).
+pub const DEFAULT_BASE_DOUBT: f64 = 0.5;
+/// Share of each guided round a worker renders as uniform passes (every pixel once per pass)
+/// before it plans the rest of the round on the need map.
+pub const DEFAULT_UNIFORM_SHARE: f64 = 0.25;
 /// Default convergence threshold: a frame is converged once the resolve removes at most this
 /// fraction of the mean's energy (1 %) and every pixel has samples.
 pub const DEFAULT_CONVERGED_BELOW: f64 = 0.01;
@@ -342,6 +348,26 @@ impl NeedMap {
 }
 
 impl NeedMap {
+    /// The map with `base / (spp + 1)` added to every tile's need, `spp` the tile's mean
+    /// samples per pixel: the doubt every tile has that the score cannot see. The score counts
+    /// energy removed as fireflies or in thinly supported bands, not plain Monte Carlo noise,
+    /// which every tile has.
+    ///
+    /// Which is better depends on the scene. On the Mitsuba scenes of
+    /// `benches/quality/guided.py` (a small light, caustics), planned on the score alone the
+    /// light's tile kept its doubt and took nearly every sample, and guided sampling lost to
+    /// uniform sampling everywhere; with [`DEFAULT_BASE_DOUBT`] and [`DEFAULT_UNIFORM_SHARE`]
+    /// (the Mitsuba worker's defaults) it drew even. On the demo and synthetic scenes of
+    /// `bench need`, whose doubt is spread over many tiles, the score alone does better
+    /// (relMSE 0.92 to 0.97 of uniform against 0.94 to 1.03), so `splatd demo --guided` plans
+    /// on the score alone.
+    pub fn with_base_doubt(mut self, base: f64) -> NeedMap {
+        for t in &mut self.tiles {
+            t.need += base / (t.spp_mean() + 1.0);
+        }
+        self
+    }
+
     /// The pixels a [`NeedMap::plan`] asks for, once per pass: for each tile in order, its
     /// pixels row by row, repeated `plan[i]` times. A worker renders one sample of each.
     pub fn planned_pixels(&self, plan: &[u64]) -> Vec<(u32, u32)> {
@@ -432,6 +458,27 @@ mod tests {
         assert!(close(c.spp_mean, 5.0) && close(c.removed_fraction, 0.375));
         assert!(close(c.deficit_fraction, 0.375));
         assert!(!c.converged(0.01) && c.converged(0.4));
+    }
+
+    #[test]
+    fn base_doubt_adds_a_share_per_sample_to_every_tile() {
+        // Per pixel: A has 8 samples and no need, B has 2 and a need of 0.5 (above).
+        let doubted = map(&two_pixels(), 1).with_base_doubt(0.5);
+        assert!(
+            close(doubted.tiles[0].need, 0.5 / 9.0),
+            "{:?}",
+            doubted.tiles[0]
+        );
+        assert!(
+            close(doubted.tiles[1].need, 0.5 + 0.5 / 3.0),
+            "{:?}",
+            doubted.tiles[1]
+        );
+        // A tile in no doubt gets nothing of a plan on the score alone; with the base it gets
+        // its share: 4 samples over square roots 0.2357 and 0.8165 are 0.90 and 3.10, floored
+        // to 0 and 3, and the one left goes to the larger remainder, A's.
+        assert_eq!(map(&two_pixels(), 1).plan(4), vec![0, 4]);
+        assert_eq!(doubted.plan(4), vec![1, 3]);
     }
 
     #[test]

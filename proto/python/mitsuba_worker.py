@@ -359,6 +359,8 @@ def main(argv):
     g.add_argument("--samples", type=int, default=None, help="total samples (default: passes x pixels)")
     g.add_argument("--warmup", type=float, default=0.25, help="share of the budget rendered uniformly first")
     g.add_argument("--rounds", type=int, default=6, help="need map requests for the rest")
+    # The defaults are the estimator's DEFAULT_UNIFORM_SHARE and DEFAULT_BASE_DOUBT
+    # (splatd_estimator::NeedMap::with_base_doubt).
     g.add_argument("--uniform-share", type=float, default=0.25,
                    help="share of each round rendered as uniform passes before the guided part")
     g.add_argument("--base-doubt", type=float, default=0.5,

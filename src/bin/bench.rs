@@ -20,7 +20,8 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use splatd_estimator::{
     cell_len, resolve_bands, resolve_bands_into, CascadeLayout, FrameState, Kernel, NeedMap,
-    ResolveParams, Resolved, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
+    ResolveParams, Resolved, DEFAULT_BASE_DOUBT, DEFAULT_LOWEST_SCALE, DEFAULT_UNIFORM_SHARE,
+    REC709_LUMINANCE,
 };
 use splatd_scenes::quality::rel_mse;
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
@@ -103,10 +104,18 @@ fn uniform(source: &Source, spp: u64) -> FrameState {
     state
 }
 
+/// How a guided round spends its budget: `uniform_share` of it as uniform passes, the rest
+/// planned on the need map with `base_doubt` added ([`NeedMap::with_base_doubt`]).
+#[derive(Clone, Copy)]
+struct Policy {
+    uniform_share: f64,
+    base_doubt: f64,
+}
+
 /// The same total as `uniform(source, spp)`: a uniform warm-up of `spp / WARM_UP_DIVISOR`
-/// passes, then the rest in `ROUNDS` rounds, each spread over the tiles by the need map of the
+/// passes, then the rest in `ROUNDS` rounds, each spent by `policy` on the need map of the
 /// state so far, as a worker using `GET /v1/frames/{id}/need` would.
-fn guided(source: &Source, spp: u64, params: &ResolveParams) -> Result<FrameState> {
+fn guided(source: &Source, spp: u64, params: &ResolveParams, policy: Policy) -> Result<FrameState> {
     let warm = spp / WARM_UP_DIVISOR;
     let mut state = uniform(source, warm);
     let mut counts = vec![warm; source.gt.len()];
@@ -119,14 +128,23 @@ fn guided(source: &Source, spp: u64, params: &ResolveParams) -> Result<FrameStat
         } else {
             per_round * pixels
         };
+        let passes = (policy.uniform_share * budget as f64) as u64 / pixels;
+        for _ in 0..passes {
+            for y in 0..source.height {
+                for x in 0..source.width {
+                    render_one(source, &mut state, &mut counts, x, y);
+                }
+            }
+        }
         let resolved = state.resolve(params);
-        let map = NeedMap::build(&[&state], &resolved, params, NEED_TILE)?;
-        let plan = map.plan(budget);
+        let map = NeedMap::build(&[&state], &resolved, params, NEED_TILE)?
+            .with_base_doubt(policy.base_doubt);
+        let plan = map.plan(budget - passes * pixels);
         let planned = map.planned_pixels(&plan);
         for &(x, y) in &planned {
             render_one(source, &mut state, &mut counts, x, y);
         }
-        left -= planned.len() as u64;
+        left -= passes * pixels + planned.len() as u64;
     }
     let total: u64 = counts.iter().sum();
     if total != spp * pixels || left != 0 {
@@ -209,27 +227,51 @@ fn need() -> Result<()> {
         format_args!("1/{WARM_UP_DIVISOR}")
     );
     println!(
-        "{:<10} {:>4}  {:>14} {:>14} {:>14} {:>8}",
-        "scene", "spp", "uniform mean", "uniform", "need-guided", "ratio"
+        "  map alone: every round planned on the map's score; default: {DEFAULT_UNIFORM_SHARE} \
+         of every round uniform, the rest planned with a base doubt of {DEFAULT_BASE_DOUBT}"
     );
+    println!(
+        "{:<10} {:>4}  {:>12} {:>10} {:>10} {:>6} {:>10} {:>6}",
+        "scene", "spp", "uniform mean", "uniform", "map alone", "ratio", "default", "ratio"
+    );
+    let alone = Policy {
+        uniform_share: 0.0,
+        base_doubt: 0.0,
+    };
+    let default = Policy {
+        uniform_share: DEFAULT_UNIFORM_SHARE,
+        base_doubt: DEFAULT_BASE_DOUBT,
+    };
     for source in &sources {
         for spp in [16u64, 64] {
             let uniform = uniform(source, spp);
-            let guided = guided(source, spp, &params)?;
             let e_mean = rel_mse(
                 &uniform.resolve(&ResolveParams::off()).reweighted,
                 &source.gt,
             );
             let e_uniform = rel_mse(&uniform.resolve(&params).reweighted, &source.gt);
-            let e_guided = rel_mse(&guided.resolve(&params).reweighted, &source.gt);
+            let e_alone = rel_mse(
+                &guided(source, spp, &params, alone)?
+                    .resolve(&params)
+                    .reweighted,
+                &source.gt,
+            );
+            let e_default = rel_mse(
+                &guided(source, spp, &params, default)?
+                    .resolve(&params)
+                    .reweighted,
+                &source.gt,
+            );
             println!(
-                "{:<10} {:>4}  {:>14.4} {:>14.4} {:>14.4} {:>8.3}",
+                "{:<10} {:>4}  {:>12.4} {:>10.4} {:>10.4} {:>6.3} {:>10.4} {:>6.3}",
                 source.name,
                 spp,
                 e_mean,
                 e_uniform,
-                e_guided,
-                e_guided / e_uniform
+                e_alone,
+                e_alone / e_uniform,
+                e_default,
+                e_default / e_uniform
             );
         }
     }
