@@ -3,7 +3,8 @@
 //! `write` token. The served `mean` is the mean of the passes as Blender wrote them, `spp` is the
 //! pass count, and the mean of the passes agrees with a high-spp box-filtered render within
 //! noise, over the whole image, at the lamp and along edges (where a fixed sub-pixel position is
-//! biased).
+//! biased). The passes carry Cycles' albedo, normal and depth passes as AOVs (multilayer EXRs),
+//! and the served AOV layers are their exact means.
 //!
 //! Blender is installed by `tests/setup/blender.sh`; when that cannot be done the test says why
 //! and passes without running (the rest of the suite does not need Blender).
@@ -82,6 +83,8 @@ fn blender_passes_converge_to_the_antialiased_image() {
             "--seed",
             "15",
             "--demo-scene",
+            "--aovs",
+            "albedo,normal,depth",
             "--keep-dir",
             passes_dir.to_str().unwrap(),
         ],
@@ -107,6 +110,24 @@ fn blender_passes_converge_to_the_antialiased_image() {
     std::fs::write(dir.path().join("served.exr"), &served).unwrap();
     let info = rt.block_on(read.frame_info("cycles")).unwrap();
     assert_eq!((info.spp_min, info.spp_max), (PASSES as u64, PASSES as u64));
+    let declared: Vec<(&str, Vec<&str>)> = info
+        .aovs
+        .iter()
+        .map(|a| {
+            (
+                a.name.as_str(),
+                a.channels.iter().map(|c| c.as_str()).collect(),
+            )
+        })
+        .collect();
+    assert_eq!(
+        declared,
+        [
+            ("ViewLayer.DiffCol", vec!["R", "G", "B"]),
+            ("ViewLayer.Normal", vec!["X", "Y", "Z"]),
+            ("ViewLayer.Depth", vec!["Z"]),
+        ]
+    );
 
     let out = Command::new("python3")
         .arg(root.join("tests/py/blender_stats.py"))
@@ -130,6 +151,15 @@ fn blender_passes_converge_to_the_antialiased_image() {
             || f(&stats["served_vs_passes"]["max_abs"]) < 1e-6,
         "{stats}"
     );
+    // Every AOV channel of the passes is served, as their mean to the fixed point's step.
+    let aovs: Vec<&str> = stats["aovs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert_eq!(aovs.len(), 7, "{stats}");
+    assert!(f(&stats["aovs_worst"]) <= 1.0, "{stats}");
     assert_eq!(f(&stats["spp_min"]), PASSES as f64, "{stats}");
     assert_eq!(f(&stats["spp_max"]), PASSES as f64, "{stats}");
     // No systematic offset: over the image, at the lamp and along edges, within 5 standard

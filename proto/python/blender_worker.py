@@ -20,6 +20,13 @@ The frame is created with create-or-get, so a ``write`` token (``--token`` or ``
 is enough. A pass is posted as ``(worker, seq = pass number)``: rerunning the same passes with
 the same ``--worker`` adds nothing twice.
 
+``--aovs albedo,normal,depth`` renders those Cycles passes too (diffuse colour, normal, depth)
+and sends them with every pass: the pass is written as a multilayer EXR (``ViewLayer.Combined``
+is the beauty, ``ViewLayer.DiffCol``, ``ViewLayer.Normal`` and ``ViewLayer.Depth`` the AOVs, named
+after the scene's active view layer, which is the only one rendered), and the frame is created
+with those layers declared, so the server serves their means beside the reweighted beauty (for a
+denoiser). A frame that already exists must have been created with the same AOVs.
+
 ``--demo-scene`` replaces the scene with a tiny built-in one (32x24: a diffuse floor and wall, a
 sphere, and an emitting sphere less than a pixel across that lights them), and ``--reference SPP --output
 PATH`` renders one image of the scene with a 1-pixel box filter at SPP samples instead of
@@ -42,6 +49,24 @@ except ImportError:  # pragma: no cover - depends on the environment
              "Blender's Python, or PYTHONPATH=... blender --python-use-system-env")
 
 
+# `--aovs` names: the view layer's switch, the layer Blender writes, and its channels.
+AOV_PASSES = {
+    "albedo": ("use_pass_diffuse_color", "DiffCol", ["R", "G", "B"]),
+    "normal": ("use_pass_normal", "Normal", ["X", "Y", "Z"]),
+    "depth": ("use_pass_z", "Depth", ["Z"]),
+}
+
+
+def aov_list(text):
+    """``--aovs``: comma-separated names of ``AOV_PASSES``, each at most once."""
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    unknown = [n for n in names if n not in AOV_PASSES]
+    if unknown or len(set(names)) != len(names):
+        raise argparse.ArgumentTypeError(
+            f"--aovs takes distinct names among {', '.join(AOV_PASSES)}, not {text!r}")
+    return names
+
+
 def parse_args(argv):
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--url", default="http://127.0.0.1:7878")
@@ -55,6 +80,8 @@ def parse_args(argv):
                    help="worker id (default: derived from --seed, so reruns match)")
     p.add_argument("--resolution", type=int, nargs=2, metavar=("W", "H"))
     p.add_argument("--keep-dir", help="keep each pass's EXR here (pass_K.exr)")
+    p.add_argument("--aovs", type=aov_list, default=[],
+                   help=f"Cycles passes to send with the beauty: some of {','.join(AOV_PASSES)}")
     p.add_argument("--demo-scene", action="store_true")
     p.add_argument("--reference", type=int, metavar="SPP",
                    help="render one box-filtered image at SPP samples to --output instead")
@@ -136,15 +163,30 @@ def configure(scene, resolution, spp):
     settings.exr_codec = "ZIP"
 
 
+def enable_aovs(scene, names):
+    """Turns on the Cycles passes `names` in the active view layer and switches the output to a
+    multilayer EXR; returns the layers as the frame declares them: ``(layer, [channels])``."""
+    layer = bpy.context.view_layer
+    for name in names:
+        switch, _, _ = AOV_PASSES[name]
+        setattr(layer, switch, True)
+    scene.render.image_settings.file_format = "OPEN_EXR_MULTILAYER"
+    return [(f"{layer.name}.{AOV_PASSES[n][1]}", AOV_PASSES[n][2]) for n in names]
+
+
 def pass_seeds(seed, k):
     """Cycles' seed and the camera's sub-pixel shift (in pixels, in [-0.5, 0.5)) of pass k."""
     rng = random.Random(f"splatd-blender {seed} {k}")
     return rng.randrange(1 << 31), rng.random() - 0.5, rng.random() - 0.5
 
 
-def render(scene, path):
+def render(scene, path, layer=None):
+    """Renders the scene (only view layer `layer`, if given) to `path`; returns the file."""
     scene.render.filepath = path
-    bpy.ops.render.render(write_still=True)
+    if layer:
+        bpy.ops.render.render(write_still=True, layer=layer)
+    else:
+        bpy.ops.render.render(write_still=True)
     with open(path, "rb") as f:
         return f.read()
 
@@ -180,7 +222,11 @@ def main(argv):
     frame = args.frame or scene.name
     worker = args.worker if args.worker is not None else random.Random(args.seed).getrandbits(53)
     client = sc.Client(args.url, token=args.token)
-    client.create_or_get(frame, width, height)
+    aovs = enable_aovs(scene, args.aovs) if args.aovs else None
+    # With AOVs the output is multilayer: render only the active view layer, whose Combined
+    # layer is then the only candidate for the beauty.
+    only = bpy.context.view_layer.name if aovs else None
+    client.create_or_get(frame, width, height, aovs=aovs)
     keep = args.keep_dir or tempfile.mkdtemp(prefix="splatd-blender-")
     os.makedirs(keep, exist_ok=True)
     for k in range(args.first_pass, args.first_pass + args.passes):
@@ -189,7 +235,7 @@ def main(argv):
         camera.data.shift_x = base_x + dx * per_pixel
         # Image rows go down, the camera's y up: a shift of +dy pixels downwards is -dy.
         camera.data.shift_y = base_y - dy * per_pixel
-        exr = render(scene, os.path.join(keep, f"pass_{k}.exr"))
+        exr = render(scene, os.path.join(keep, f"pass_{k}.exr"), only)
         ack = client.post_pass(frame, worker, k, exr)
         print(f"pass {k}: seed {seed}, shift ({dx:+.3f}, {dy:+.3f}) px, "
               f"{ack['accepted']} samples{' (already there)' if ack['duplicate'] else ''}")

@@ -3,12 +3,16 @@ tests/blender_worker.rs. Every file is read with OpenEXR's own Python package.
 
     python3 tests/py/blender_stats.py DIR PASSES
 
-reads DIR/passes/pass_{0..PASSES-1}.exr (as Blender wrote them), DIR/served.exr (splatd's
-image.exr) and DIR/reference.exr (one render with a 1-pixel box filter at many spp), and prints
-JSON:
+reads DIR/passes/pass_{0..PASSES-1}.exr (as Blender wrote them: RGB, or multilayer with the
+beauty in `ViewLayer.Combined` and AOV layers beside it), DIR/served.exr (splatd's image.exr)
+and DIR/reference.exr (one render with a 1-pixel box filter at many spp), and prints JSON:
 
 * `served_vs_passes`: the largest |served mean - mean of the passes| over pixels and channels,
   and the largest such difference relative to the value;
+* `aovs`: the passes' AOV channels (every channel outside the beauty), and `aovs_worst`, the
+  largest |served - mean of the passes| over pixels and channels in units of
+  `1e-6 * (1 + |mean|)` (the fixed point's step 2^-20, and float32's rounding of large depths):
+  at most 1 when the server keeps exact means;
 * `spp_min`, `spp_max`: of the served `spp.Y`;
 * `global`, `lamp`, `edges`: for all pixels, the lamp's pixels (the reference's six brightest,
   where a fixed sub-pixel position is most biased) and the edges (the tenth of the other pixels
@@ -29,23 +33,37 @@ import OpenEXR
 LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 
-def rgb(path, prefix=""):
+# The beauty's layer in a multilayer pass.
+COMBINED = "ViewLayer.Combined."
+
+
+def channels(path):
     with OpenEXR.File(path, separate_channels=True) as f:
-        ch = f.channels()
-        return np.stack([np.asarray(ch[f"{prefix}{c}"].pixels, dtype=np.float64) for c in "RGB"],
-                        axis=-1)
+        return {name: np.asarray(c.pixels, dtype=np.float64) for name, c in f.channels().items()}
+
+
+def rgb(ch, prefix=""):
+    return np.stack([ch[f"{prefix}{c}"] for c in "RGB"], axis=-1)
 
 
 def main(d, passes, reference_spp):
-    stack = np.stack([rgb(os.path.join(d, "passes", f"pass_{k}.exr")) for k in range(passes)])
+    files = [channels(os.path.join(d, "passes", f"pass_{k}.exr")) for k in range(passes)]
+    beauty = COMBINED if f"{COMBINED}R" in files[0] else ""
+    stack = np.stack([rgb(ch, beauty) for ch in files])
     mean = stack.mean(axis=0)
-    served = rgb(os.path.join(d, "served.exr"), "mean.")
-    with OpenEXR.File(os.path.join(d, "served.exr"), separate_channels=True) as f:
-        spp = np.asarray(f.channels()["spp.Y"].pixels)
+    served_ch = channels(os.path.join(d, "served.exr"))
+    served = rgb(served_ch, "mean.")
+    spp = served_ch["spp.Y"]
     diff = np.abs(served - mean)
     rel = diff / np.maximum(np.abs(mean), 1e-30)
+    aovs = sorted(n for n in files[0] if beauty and not n.startswith(beauty))
+    aovs_worst = 0.0
+    for name in aovs:
+        aov_mean = np.mean([ch[name] for ch in files], axis=0)
+        off = np.abs(served_ch[name] - aov_mean) / (1e-6 * (1.0 + np.abs(aov_mean)))
+        aovs_worst = max(aovs_worst, float(off.max()))
 
-    reference = rgb(os.path.join(d, "reference.exr"))
+    reference = rgb(channels(os.path.join(d, "reference.exr")))
     luma_passes = stack @ LUMA  # (passes, H, W)
     per_pass_var = luma_passes.var(axis=0, ddof=1)
     var = per_pass_var / passes + per_pass_var / reference_spp
@@ -66,6 +84,7 @@ def main(d, passes, reference_spp):
     edges = (step >= np.quantile(step, 0.9)) & ~lamp
     json.dump({
         "served_vs_passes": {"max_abs": float(diff.max()), "max_rel": float(rel.max())},
+        "aovs": aovs, "aovs_worst": aovs_worst,
         "spp_min": float(spp.min()), "spp_max": float(spp.max()),
         "global": region(np.ones_like(lamp)),
         "lamp": region(lamp),
