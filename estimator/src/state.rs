@@ -616,8 +616,9 @@ impl FrameState {
 
     /// Accumulates every valid sample of `samples` (pixel, RGB) and counts the rest.
     ///
-    /// This is the fast path for batches in no particular order. Random pixels of a large frame
-    /// miss every cache, so the work is pipelined: a sample's split is computed and the
+    /// For samples in a slice, [`FrameState::splat_records`] is faster (vectorized arithmetic a
+    /// block at a time). Random pixels of a large frame miss every cache, so the work is
+    /// pipelined: a sample's split is computed and the
     /// cascades it will touch are prefetched, and it is applied 16 samples later, by which time
     /// the memory is on its way. The result is identical to splatting the samples one by one.
     pub fn splat_all<I>(&mut self, samples: I) -> SplatReport
@@ -686,10 +687,11 @@ impl FrameState {
     }
 
     /// Accumulates `records` (pixel, RGB) like [`FrameState::splat_all`], with the same state and
-    /// report, but finds the runs of consecutive pixels of one row in them (a pass, a tile, any
-    /// batch in scan order) and splats those with [`FrameState::splat_row`]; records in no run
-    /// go through [`FrameState::splat_all`]. Records are applied in their order, so which
-    /// sample a full pixel refuses is the same too.
+    /// report, a block of 16 records at a time with the arithmetic vectorized and the cells
+    /// of a block fetched while the block before is added (see [`Kernel`]), in any order: scan
+    /// order (a pass, a tile) gains the vector arithmetic, random order that and the
+    /// prefetching. Records are applied in their order, so which sample a full pixel refuses is
+    /// the same too.
     pub fn splat_records(&mut self, records: &[(u32, u32, [f32; 3])]) -> SplatReport {
         self.splat_records_with(Kernel::detect(), records)
     }
@@ -703,30 +705,53 @@ impl FrameState {
         kernel: Kernel,
         records: &[(u32, u32, [f32; 3])],
     ) -> SplatReport {
-        /// Shorter runs are not worth a block.
-        const MIN_RUN: usize = BLOCK / 2;
+        let mut pipe = Pipeline::new(kernel, &self.layout);
         let mut report = SplatReport::default();
-        let (mut i, mut loose) = (0, 0);
-        while i < records.len() {
-            let (x0, y, _) = records[i];
-            let len = 1 + records[i + 1..]
-                .iter()
-                .zip(1u32..)
-                .take_while(|((x, ry, _), d)| *ry == y && Some(*x) == x0.checked_add(*d))
-                .count();
-            if len >= MIN_RUN {
-                report.add(&self.splat_all(records[loose..i].iter().copied()));
-                let run = &records[i..i + len];
-                report.add(&self.splat_run(kernel, x0, y, len, |n| run[n].2));
-                loose = i + len;
+        let mut block = [[0.0f32; 3]; BLOCK];
+        let mut pixel = [0usize; BLOCK];
+        for chunk in records.chunks(BLOCK) {
+            let len = chunk.len();
+            let mut inside = true;
+            for (i, &(x, y, rgb)) in chunk.iter().enumerate() {
+                // `y - y0` wraps to a huge row for rows above the band.
+                let row = y.wrapping_sub(self.y0);
+                inside &= x < self.width && row < self.rows;
+                // Only used if every record is inside (then this cannot wrap).
+                pixel[i] = (row as usize)
+                    .wrapping_mul(self.width as usize)
+                    .wrapping_add(x as usize);
+                block[i] = rgb;
             }
-            i += len;
+            if !(inside && pipe.tables.all_valid(&block[..len])) {
+                pipe.flush(self);
+                report.add(&self.splat_all(chunk.iter().copied()));
+                continue;
+            }
+            // Room for the block as if every sample in flight and in the block were in one
+            // pixel: first against all samples of the state (no cell read), then, in a state
+            // holding 2^32 samples or more, against the pixels' own counts.
+            let others = pipe.in_flight() + len as u64;
+            let room = self.samples + others <= MAX_PIXEL_SAMPLES || {
+                let stride = cell_len(self.layout.cascades());
+                pixel[..len].iter().all(|&p| {
+                    cell_spp(&self.cells[p * stride..(p + 1) * stride]) + others
+                        <= MAX_PIXEL_SAMPLES
+                })
+            };
+            if !room {
+                pipe.flush(self);
+                report.add(&self.splat_all(chunk.iter().copied()));
+                continue;
+            }
+            pipe.push(self, &block[..len], |i| pixel[i]);
+            report.accepted += len as u64;
         }
-        report.add(&self.splat_all(records[loose..].iter().copied()));
+        pipe.flush(self);
         report
     }
 
-    /// Splats `rgb(i)` into pixel `(x0 + i, y)` for `i < n`, a block at a time.
+    /// Splats `rgb(i)` into pixel `(x0 + i, y)` for `i < n`, a block at a time, through a
+    /// [`Pipeline`] (the cells of the next block are fetched while this one is added).
     fn splat_run(
         &mut self,
         kernel: Kernel,
@@ -742,11 +767,9 @@ impl FrameState {
         if !in_frame {
             return one_by_one(self, 0, n);
         }
-        let tables = Tables::new(&self.layout);
-        let stride = cell_len(self.layout.cascades());
-        let row_start = (y - self.y0) as usize * self.width as usize * stride;
+        let mut pipe = Pipeline::new(kernel, &self.layout);
+        let row_start = (y - self.y0) as usize * self.width as usize;
         let mut report = SplatReport::default();
-        let mut shares = Shares::new();
         let mut block = [[0.0f32; 3]; BLOCK];
         for from in (0..n).step_by(BLOCK) {
             let len = BLOCK.min(n - from);
@@ -754,38 +777,45 @@ impl FrameState {
                 *b = rgb(from + i);
             }
             let x = x0 + from as u32;
-            // One sample per pixel: each pixel needs room for one.
-            let room = self.samples + len as u64 <= MAX_PIXEL_SAMPLES
+            // One sample per pixel, and the pixels of a run are distinct (those in flight are
+            // others): each pixel needs room for one.
+            let room = self.samples + pipe.in_flight() + len as u64 <= MAX_PIXEL_SAMPLES
                 || (x..x + len as u32).all(|x| self.has_room(x, y, 1));
-            if !(room && tables.all_valid(&block[..len])) {
+            if !(room && pipe.tables.all_valid(&block[..len])) {
+                pipe.flush(self);
                 report.add(&one_by_one(self, from, from + len));
                 continue;
             }
-            row::shares(kernel, &tables, &block[..len], &mut shares);
-            let first = row_start + x as usize * stride;
-            for i in 0..len {
-                let lo = shares.lo[i] as usize;
-                let at = first + i * stride + 4 * lo;
-                let cascades = &mut self.cells[at..at + 8];
-                let mut carry = 0;
-                for (sum, low) in cascades[..4].iter_mut().zip(&shares.low) {
-                    debug_assert!(sum.checked_add(low[i]).is_some(), "cascade sum overflows");
-                    *sum = sum.wrapping_add(low[i]);
-                }
-                for c in 0..3 {
-                    let (sum, over) = cascades[4 + c].overflowing_add(shares.high[c][i]);
-                    cascades[4 + c] = sum;
-                    carry |= u64::from(over) << (HI_BITS * c as u32);
-                }
-                cascades[7] = cascades[7].wrapping_add(shares.high[3][i]);
-                if carry != 0 {
-                    self.carry_at(lo, at, carry);
-                }
-            }
-            self.samples += len as u64;
+            let first = row_start + x as usize;
+            pipe.push(self, &block[..len], |i| first + i);
             report.accepted += len as u64;
         }
+        pipe.flush(self);
         report
+    }
+
+    /// Adds a block's shares to the two cascades starting at `at[i]` of each sample `i`.
+    #[inline]
+    fn add_block(&mut self, shares: &Shares, at: &[usize]) {
+        for (i, &at) in at.iter().enumerate() {
+            let lo = shares.lo[i] as usize;
+            let cascades = &mut self.cells[at..at + 8];
+            let mut carry = 0;
+            for (sum, low) in cascades[..4].iter_mut().zip(&shares.low) {
+                debug_assert!(sum.checked_add(low[i]).is_some(), "cascade sum overflows");
+                *sum = sum.wrapping_add(low[i]);
+            }
+            for c in 0..3 {
+                let (sum, over) = cascades[4 + c].overflowing_add(shares.high[c][i]);
+                cascades[4 + c] = sum;
+                carry |= u64::from(over) << (HI_BITS * c as u32);
+            }
+            cascades[7] = cascades[7].wrapping_add(shares.high[3][i]);
+            if carry != 0 {
+                self.carry_at(lo, at, carry);
+            }
+        }
+        self.samples += at.len() as u64;
     }
 
     /// Whether pixel `(x, y)` can take one more sample besides those of `pending` in it.
@@ -1032,6 +1062,86 @@ impl FrameState {
                     .collect()
             })
             .collect()
+    }
+}
+
+/// The block splat's two stages: a block's shares are computed (vectorized, [`row::shares`]) and
+/// the cascades they go to are prefetched; they are added when the next block has been through
+/// the first stage, so the memory of one block is on its way while the one before is added.
+/// Blocks are added in the order they were pushed, so the cells end up exactly as if each
+/// sample were splatted one by one.
+struct Pipeline {
+    kernel: Kernel,
+    tables: Tables,
+    /// Two blocks: `blocks[current]` is in flight (computed, not added) if `pending`.
+    blocks: [Block; 2],
+    current: usize,
+    pending: bool,
+}
+
+/// A computed block: its shares, and where each sample's lower cascade starts in the cells.
+struct Block {
+    shares: Shares,
+    at: [usize; BLOCK],
+    len: usize,
+}
+
+impl Pipeline {
+    fn new(kernel: Kernel, layout: &CascadeLayout) -> Self {
+        let block = || Block {
+            shares: Shares::new(),
+            at: [0; BLOCK],
+            len: 0,
+        };
+        Pipeline {
+            kernel,
+            tables: Tables::new(layout),
+            blocks: [block(), block()],
+            current: 0,
+            pending: false,
+        }
+    }
+
+    /// Samples computed but not yet added to the state.
+    fn in_flight(&self) -> u64 {
+        if self.pending {
+            self.blocks[self.current].len as u64
+        } else {
+            0
+        }
+    }
+
+    /// Computes the shares of `rgb` (valid samples, at most [`BLOCK`]) going to the cells of
+    /// pixels `pixel(i)` (indices into this state's cells, each with room for its sample),
+    /// prefetches their cascades, then adds the block pushed before.
+    #[inline]
+    fn push(&mut self, state: &mut FrameState, rgb: &[[f32; 3]], pixel: impl Fn(usize) -> usize) {
+        let next = if self.pending {
+            1 - self.current
+        } else {
+            self.current
+        };
+        let stride = cell_len(state.layout.cascades());
+        let b = &mut self.blocks[next];
+        row::shares(self.kernel, &self.tables, rgb, &mut b.shares);
+        for i in 0..rgb.len() {
+            b.at[i] = pixel(i) * stride + 4 * b.shares.lo[i] as usize;
+            prefetch(&state.cells, b.at[i]);
+        }
+        b.len = rgb.len();
+        self.flush(state);
+        self.current = next;
+        self.pending = true;
+    }
+
+    /// Adds the block in flight, if any.
+    #[inline]
+    fn flush(&mut self, state: &mut FrameState) {
+        if self.pending {
+            let b = &self.blocks[self.current];
+            state.add_block(&b.shares, &b.at[..b.len]);
+            self.pending = false;
+        }
     }
 }
 

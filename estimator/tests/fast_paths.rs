@@ -146,6 +146,35 @@ proptest! {
     }
 }
 
+/// Records in random order over a band of the frame, many blocks of them, some above, below or
+/// beside the band, some invalid: the blocks that take the fast path and those that do not.
+fn scattered(edges: Vec<f32>) -> impl Strategy<Value = Vec<Rec>> {
+    let record = (0..W + 2, 0..H + 2, sample(edges));
+    prop::collection::vec(record, 0..300)
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(200))]
+
+    #[test]
+    fn scattered_records_in_a_band_give_the_bits_of_one_by_one(
+        (layout, records) in prop::sample::select(layouts()).prop_flat_map(|layout| {
+            let edges = edge_values(&layout);
+            (Just(layout), scattered(edges))
+        })
+    ) {
+        let band = 1..H - 1;
+        let mut simple = FrameState::band(W, H, band.clone(), layout.clone());
+        let expected = one_by_one(&mut simple, &records);
+        for kernel in kernels() {
+            let mut fast = FrameState::band(W, H, band.clone(), layout.clone());
+            let report = fast.splat_records_with(kernel, &records);
+            prop_assert_eq!(report, expected, "{:?}", kernel);
+            prop_assert!(fast == simple, "{:?}: cells differ", kernel);
+        }
+    }
+}
+
 /// Every edge value in every channel position, as whole rows, on every kernel.
 #[test]
 fn rows_of_edge_values_give_the_bits_of_one_by_one() {

@@ -145,17 +145,27 @@ impl Record {
 
 /// [`Batch::content_digest`] of a batch with these records.
 pub fn records_digest(records: &[Record]) -> u64 {
+    records_digest_of(records.iter().copied())
+}
+
+/// [`records_digest`] of records made on the fly (say, the pixels of a rendered pass), without
+/// collecting them first: the same digest as of the slice of the same records.
+pub fn records_digest_of(records: impl IntoIterator<Item = Record>) -> u64 {
     // Records go through a small buffer of wire bytes, so the digest is the same on every
     // platform and costs one pass over the records.
     const CHUNK: usize = 1024;
     let mut hasher = xxhash_rust::xxh3::Xxh3::new();
     let mut buffer = [0u8; CHUNK * RECORD_SIZE];
-    for chunk in records.chunks(CHUNK) {
-        for (record, out) in chunk.iter().zip(buffer.chunks_exact_mut(RECORD_SIZE)) {
-            out.copy_from_slice(&record.to_wire());
+    let mut filled = 0;
+    for record in records {
+        buffer[filled..filled + RECORD_SIZE].copy_from_slice(&record.to_wire());
+        filled += RECORD_SIZE;
+        if filled == buffer.len() {
+            hasher.update(&buffer);
+            filled = 0;
         }
-        hasher.update(&buffer[..chunk.len() * RECORD_SIZE]);
     }
+    hasher.update(&buffer[..filled]);
     hasher.digest()
 }
 
@@ -825,6 +835,11 @@ mod tests {
             batch.content_digest(),
             xxhash_rust::xxh3::xxh3_64(wire),
             "digest of the record section as sent"
+        );
+        // Made on the fly, a whole number of its buffers (the last one ends exactly full).
+        assert_eq!(
+            records_digest_of(records[..2048].iter().copied()),
+            xxhash_rust::xxh3::xxh3_64(&wire[..2048 * RECORD_SIZE])
         );
         let other = Batch::new("g", 9, 9, records.clone()).unwrap();
         assert_eq!(

@@ -63,7 +63,7 @@ pub use api::{
     BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
     PutFrame, ResolveParams, SyncAck, Variant,
 };
-pub use batch::{validate_frame_id, Batch, DecodeLimits, Record, WireError};
+pub use batch::{records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};
 pub use state::{Applied, Origin, StateDump, StateError, STATE_CONTENT_TYPE};

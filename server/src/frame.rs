@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 use splatd_proto::api::{AovSpec, CreateFrame, FrameInfo};
-use splatd_proto::{Applied, Batch, Origin};
+use splatd_proto::{records_digest_of, Applied, Batch, Origin, Record};
 
 use splatd_estimator::{
     self as estimator, aov_words, cell_len, cell_spp, resolve_bands, AovCellsError, AovSums,
@@ -608,6 +608,75 @@ impl ShardedFrame {
 
         // Outside the gate: a pass over the records, as long as a copy of them.
         let digest = batch.content_digest();
+        let parts = Parts::Records { batch, buckets };
+        self.apply(batch.worker, batch.seq, digest, parts, aovs)
+    }
+
+    /// [`ShardedFrame::ingest_with_aovs`] of a whole pass: `rgb` holds one sample per pixel of
+    /// the frame, row-major, top row first; `aovs` as there. The same checks, refusals, digest
+    /// and exactly-once as for the batch of the pass's records (pixel `(x, y)` is record
+    /// `y * width + x`), without making those records: each band splats its rows straight from
+    /// `rgb` ([`FrameState::splat_row`]).
+    ///
+    /// # Panics
+    /// If `rgb` does not have one sample per pixel, or as [`ShardedFrame::ingest_with_aovs`].
+    pub fn ingest_pass(
+        &self,
+        worker: u64,
+        seq: u64,
+        rgb: &[[f32; 3]],
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        let result = self.ingest_pass_inner(worker, seq, rgb, aovs);
+        if result.is_err() {
+            self.count_rejected(rgb.len() as u64);
+        }
+        result
+    }
+
+    fn ingest_pass_inner(
+        &self,
+        worker: u64,
+        seq: u64,
+        rgb: &[[f32; 3]],
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        let w = self.spec.request.width as usize;
+        assert_eq!(
+            rgb.len(),
+            w * self.spec.request.height as usize,
+            "a pass has one sample per pixel"
+        );
+        let record = |index: usize| Record::new((index % w) as u32, (index / w) as u32, rgb[index]);
+        let valid = rgb
+            .iter()
+            .fold(true, |ok, &c| ok & self.spec.layout.check_sample(c).is_ok());
+        if !valid {
+            let (index, error) = rgb
+                .iter()
+                .enumerate()
+                .find_map(|(i, &c)| self.spec.layout.check_sample(c).err().map(|e| (i, e)))
+                .expect("an invalid sample");
+            return Err(IngestError::Sample {
+                index,
+                record: record(index),
+                error,
+            });
+        }
+        let digest = records_digest_of((0..rgb.len()).map(record));
+        self.apply(worker, seq, digest, Parts::Pass { rgb }, aovs)
+    }
+
+    /// Applies checked samples as batch `(worker, seq)` with content `digest`: all of them, or
+    /// none if the batch was applied before or a pixel cannot take them.
+    fn apply(
+        &self,
+        worker: u64,
+        seq: u64,
+        digest: u64,
+        parts: Parts<'_>,
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
         let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
         if self.retired.load(Ordering::Acquire) {
             return Err(IngestError::Deleted {
@@ -619,8 +688,8 @@ impl ShardedFrame {
         let mut guards: Vec<Option<MutexGuard<'_, FrameState>>> = self
             .bands
             .iter()
-            .zip(&buckets)
-            .map(|(band, samples)| (!samples.is_empty()).then(|| lock(band)))
+            .enumerate()
+            .map(|(i, band)| parts.touches(i).then(|| lock(band)))
             .collect();
         let mut aov_sums = aovs.map(|_| {
             lock(
@@ -629,12 +698,11 @@ impl ShardedFrame {
                     .expect("AOV values only for a frame with AOVs"),
             )
         });
-        let id = lock(&self.seen).check_batch(batch.worker, batch.seq, digest);
+        let id = lock(&self.seen).check_batch(worker, seq, digest);
         if id == BatchId::New {
-            for (guard, samples) in guards.iter().zip(&buckets) {
-                if let Some((x, y)) = guard.as_deref().and_then(|g| first_full(g, samples)) {
-                    let spp = guard.as_deref().map_or(0, |g| g.spp(x, y));
-                    return Err(pixel_full(batch, x, y, spp));
+            for (i, guard) in guards.iter().enumerate() {
+                if let Some(refusal) = guard.as_deref().and_then(|g| parts.first_full(i, g)) {
+                    return Err(refusal);
                 }
             }
             if let Some(sums) = &aov_sums {
@@ -650,7 +718,7 @@ impl ShardedFrame {
         }
         // Checked again while recording: a batch with the same id may have been applied since.
         let id = match id {
-            BatchId::New => lock(&self.seen).insert_batch(batch.worker, batch.seq, digest),
+            BatchId::New => lock(&self.seen).insert_batch(worker, seq, digest),
             other => other,
         };
         match id {
@@ -663,24 +731,23 @@ impl ShardedFrame {
             }
             BatchId::Conflict { applied } => {
                 return Err(IngestError::IdReused {
-                    worker: batch.worker,
-                    seq: batch.seq,
+                    worker,
+                    seq,
                     applied,
                     digest,
                 })
             }
         }
-        for (guard, samples) in guards.iter_mut().zip(buckets) {
+        let n = parts.len();
+        for (i, guard) in guards.iter_mut().enumerate() {
             if let Some(mut band) = guard.take() {
-                let report = band.splat_records(&samples);
-                debug_assert_eq!(report.rejected(), 0, "records were checked above");
+                parts.splat(i, &mut band);
             }
         }
         if let (Some(sums), Some(values)) = (aov_sums.as_mut(), aovs) {
             sums.add_pass(values);
         }
         drop(aov_sums);
-        let n = batch.records.len() as u64;
         self.counters.samples.fetch_add(n, Ordering::Relaxed);
         self.counters.batches.fetch_add(1, Ordering::Relaxed);
         self.version.fetch_add(1, Ordering::AcqRel);
@@ -903,6 +970,82 @@ pub fn describe_aovs(aovs: &[AovSpec]) -> String {
         .map(|a| format!("{:?} ({})", a.name, a.channels.join(", ")))
         .collect();
     all.join(", ")
+}
+
+/// The checked samples of one ingest.
+enum Parts<'a> {
+    /// A batch's records, sorted into one bucket per band.
+    Records {
+        batch: &'a Batch,
+        buckets: Vec<Vec<(u32, u32, [f32; 3])>>,
+    },
+    /// A whole pass: one sample per pixel of the frame, row-major.
+    Pass { rgb: &'a [[f32; 3]] },
+}
+
+impl Parts<'_> {
+    /// Samples in all.
+    fn len(&self) -> u64 {
+        match self {
+            Parts::Records { batch, .. } => batch.records.len() as u64,
+            Parts::Pass { rgb } => rgb.len() as u64,
+        }
+    }
+
+    /// Whether band `i` receives samples.
+    fn touches(&self, i: usize) -> bool {
+        match self {
+            Parts::Records { buckets, .. } => !buckets[i].is_empty(),
+            Parts::Pass { .. } => true,
+        }
+    }
+
+    /// The refusal for the first sample band `i` (`band`) cannot take, if any.
+    fn first_full(&self, i: usize, band: &FrameState) -> Option<IngestError> {
+        match self {
+            Parts::Records { batch, buckets } => first_full(band, &buckets[i]).map(|(x, y)| {
+                let spp = band.spp(x, y);
+                pixel_full(batch, x, y, spp)
+            }),
+            Parts::Pass { rgb } => {
+                // One sample per pixel of the band's rows.
+                let w = band.width();
+                let pixels = w as u64 * band.rows().len() as u64;
+                if band.total_samples().saturating_add(pixels) <= MAX_PIXEL_SAMPLES {
+                    return None;
+                }
+                let (x, y) = band
+                    .rows()
+                    .flat_map(|y| (0..w).map(move |x| (x, y)))
+                    .find(|&(x, y)| !band.has_room(x, y, 1))?;
+                let index = y as usize * w as usize + x as usize;
+                Some(IngestError::Sample {
+                    index,
+                    record: Record::new(x, y, rgb[index]),
+                    error: SampleError::PixelFull { x, y },
+                })
+            }
+        }
+    }
+
+    /// Adds band `i`'s samples to `band`.
+    fn splat(&self, i: usize, band: &mut FrameState) {
+        let report = match self {
+            Parts::Records { buckets, .. } => band.splat_records(&buckets[i]),
+            Parts::Pass { rgb } => {
+                let w = band.width() as usize;
+                let mut report = estimator::SplatReport::default();
+                for y in band.rows() {
+                    let row = &rgb[y as usize * w..(y as usize + 1) * w];
+                    let r = band.splat_row(0, y, row);
+                    report.accepted += r.accepted;
+                    report.pixel_full += r.rejected();
+                }
+                report
+            }
+        };
+        debug_assert_eq!(report.rejected(), 0, "samples were checked before");
+    }
 }
 
 /// The first pixel of `samples` (of one band) that cannot take all of its samples in `band`.
@@ -1249,6 +1392,85 @@ mod tests {
         // Other pixels still take samples.
         let ok = vec![Record::new(0, 0, [1.0; 3]), Record::new(3, 39, [2.0; 3])];
         assert_eq!(frame.ingest(&batch(1, 2, ok)).unwrap().accepted, 2);
+    }
+
+    /// A pass ingested whole (rows straight into the bands) against the batch of its records:
+    /// the same cells over several bands, the same digest (a pass retried as records is a
+    /// duplicate, other records under its id a conflict), the same refusals with the same
+    /// index and record for a bad sample and for a full pixel, and nothing applied by them.
+    #[test]
+    fn a_pass_is_ingested_as_the_batch_of_its_records() {
+        let (w, h) = (13, 70);
+        let scene = FireflyScene::new(w, h, 5);
+        let by_pass = ShardedFrame::new(spec(w, h));
+        let by_records = ShardedFrame::new(spec(w, h));
+        assert!(by_pass.bands.len() > 1, "the test needs several bands");
+        for pass in 0..6 {
+            let recs = records(&scene, pass);
+            let rgb: Vec<[f32; 3]> = recs.iter().map(|r| r.rgb).collect();
+            let got = by_pass.ingest_pass(1, pass, &rgb, None).unwrap();
+            assert_eq!(got.accepted, (w * h) as u64);
+            by_records.ingest(&batch(1, pass, recs)).unwrap();
+        }
+        assert_eq!(by_pass.cut().whole(), by_records.cut().whole());
+        let again = by_pass.ingest(&batch(1, 5, records(&scene, 5))).unwrap();
+        assert!(again.duplicate, "the records of pass 5 are its retry");
+        let err = by_pass
+            .ingest(&batch(1, 5, records(&scene, 6)))
+            .unwrap_err();
+        assert!(matches!(err, IngestError::IdReused { .. }), "{err}");
+
+        // A bad sample: refused naming the same record as the batch refusal does.
+        let mut recs = records(&scene, 6);
+        recs[200].rgb[1] = -1.0;
+        let rgb: Vec<[f32; 3]> = recs.iter().map(|r| r.rgb).collect();
+        let version = by_pass.version();
+        let err = by_pass.ingest_pass(1, 6, &rgb, None).unwrap_err();
+        assert_eq!(err, by_records.ingest(&batch(1, 6, recs)).unwrap_err());
+        assert!(
+            matches!(err, IngestError::Sample { index: 200, .. }),
+            "{err}"
+        );
+        assert_eq!(by_pass.version(), version);
+
+        // A full pixel: pixel (2, 3), holding 6 samples, to 2^32 by an import into both frames
+        // of 2^32 samples less 6.
+        let layout = by_pass.spec().layout.clone();
+        let mut full = FrameState::new(w, h, layout.clone());
+        full.splat(2, 3, [1.0; 3]).unwrap();
+        for _ in 0..32 {
+            let copy = full.clone();
+            full.merge(&copy).unwrap();
+        }
+        let mut six = FrameState::new(w, h, layout);
+        for _ in 0..6 {
+            six.splat(2, 3, [1.0; 3]).unwrap();
+        }
+        let top = full.delta_since(&six).unwrap();
+        for frame in [&by_pass, &by_records] {
+            assert!(frame.import("f", &top, None, None, &[]).unwrap());
+            assert_eq!(frame.cut().whole().spp(2, 3), MAX_PIXEL_SAMPLES);
+        }
+        let before = by_pass.cut().whole();
+        let recs = records(&scene, 7);
+        let rgb: Vec<[f32; 3]> = recs.iter().map(|r| r.rgb).collect();
+        let err = by_pass.ingest_pass(1, 7, &rgb, None).unwrap_err();
+        assert_eq!(err, by_records.ingest(&batch(1, 7, recs)).unwrap_err());
+        assert!(
+            matches!(
+                err,
+                IngestError::Sample {
+                    index: 41,
+                    error: SampleError::PixelFull { x: 2, y: 3 },
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        assert_eq!(by_pass.cut().whole(), before, "nothing of it applied");
+        let info = by_pass.info();
+        // The conflicting id, the bad sample and the full pixel.
+        assert_eq!((info.rejected_batches, info.rejected_samples), (3, 3 * 910));
     }
 
     /// After `retire` returns, nothing is applied: batches and imports are refused by name.

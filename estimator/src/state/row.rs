@@ -63,8 +63,10 @@ pub(crate) struct Tables {
     luminance: [f64; 3],
     max_component: f64,
     scales: [f64; K_MAX],
-    inv_scales: [f64; K_MAX],
-    to_units: [f64; K_MAX],
+    /// Per lower cascade `j`: `[c_{j+1}, 1 / c_j, units of j, units of j + 1]`, looked up by a
+    /// lane's `j` (one load where a select over every `j` would take `K` compares and
+    /// branches that a random `j` mispredicts).
+    by_lo: [[f64; 4]; K_MAX],
 }
 
 impl Tables {
@@ -76,13 +78,18 @@ impl Tables {
             luminance: layout.luminance_weights(),
             max_component: layout.max_component(),
             scales: [0.0; K_MAX],
-            inv_scales: [0.0; K_MAX],
-            to_units: [0.0; K_MAX],
+            by_lo: [[0.0; 4]; K_MAX],
         };
         for j in 0..k {
             t.scales[j] = layout.scales()[j];
-            t.inv_scales[j] = layout.inv_scale(j);
-            t.to_units[j] = layout.units_per_value(j);
+        }
+        for j in 0..k - 1 {
+            t.by_lo[j] = [
+                layout.scales()[j + 1],
+                layout.inv_scale(j),
+                layout.units_per_value(j),
+                layout.units_per_value(j + 1),
+            ];
         }
         t
     }
@@ -129,38 +136,48 @@ pub(crate) fn shares(kernel: Kernel, t: &Tables, rgb: &[[f32; 3]], out: &mut Sha
             // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
             unsafe { shares_avx2(t, rgb, out) }
         }
-        _ => shares_block(t, rgb, out),
+        _ => shares_block::<false>(t, rgb, out),
     }
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 unsafe fn shares_avx2(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares) {
-    shares_block(t, rgb, out)
+    shares_block::<true>(t, rgb, out)
 }
 
 /// `(value * units + 0.5) as u64` for a non-negative product, as the one-sample path's
 /// `to_fixed` computes it. With `EXACT` false in operations that have vector forms: exact while
 /// the rounded value stays below `2^52`; `big` is set otherwise (only a component within a few
 /// units of the largest one comes near it), and the caller redoes the block with `EXACT`.
+/// `ROUND`: the CPU has an instruction that truncates a vector of `f64` (SSE4.1's `roundpd`,
+/// which every AVX2 CPU has); without it the truncation takes four operations.
 #[inline(always)]
-fn fixed<const EXACT: bool>(value: f64, units: f64, big: &mut u64) -> u64 {
+fn fixed<const EXACT: bool, const ROUND: bool>(value: f64, units: f64, big: &mut u64) -> u64 {
     let y = value * units + 0.5;
     if EXACT {
         return y as u64;
     }
     *big |= u64::from(y >= TWO_52);
-    // Nearest integer (ties to even), then down one if that went up: the truncation of y.
-    let r = (y + TWO_52) - TWO_52;
-    let t = if r > y { r - 1.0 } else { r };
+    let t = if ROUND {
+        y.trunc()
+    } else {
+        // Nearest integer (ties to even), then down one if that went up: the truncation of y.
+        let r = (y + TWO_52) - TWO_52;
+        if r > y {
+            r - 1.0
+        } else {
+            r
+        }
+    };
     // t is an integer in [0, 2^52): the bits of 2^52 + t are those of 2^52 plus t.
     (t + TWO_52).to_bits().wrapping_sub(TWO_52.to_bits())
 }
 
 /// The block arithmetic, one quantity at a time across the block's lanes.
 #[inline(always)]
-fn shares_block(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares) {
-    if shares_with::<false>(t, rgb, out) {
+fn shares_block<const ROUND: bool>(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares) {
+    if shares_with::<false, ROUND>(t, rgb, out) {
         redo_exactly(t, rgb, out);
     }
 }
@@ -170,12 +187,16 @@ fn shares_block(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares) {
 #[cold]
 #[inline(never)]
 fn redo_exactly(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares) {
-    shares_with::<true>(t, rgb, out);
+    shares_with::<true, false>(t, rgb, out);
 }
 
 /// Fills `out`; returns whether a conversion went out of the fast conversion's range.
 #[inline(always)]
-fn shares_with<const EXACT: bool>(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares) -> bool {
+fn shares_with<const EXACT: bool, const ROUND: bool>(
+    t: &Tables,
+    rgb: &[[f32; 3]],
+    out: &mut Shares,
+) -> bool {
     debug_assert!(rgb.len() <= BLOCK);
     let mut s = [[0.0f64; BLOCK]; 3];
     for (i, v) in rgb.iter().enumerate() {
@@ -201,20 +222,16 @@ fn shares_with<const EXACT: bool>(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares
             j[i] += u64::from(c <= lc[i]);
         }
     }
-    // c_{j+1}, 1 / c_j and the units of j and j + 1 of every lane, selected by j.
+    // c_{j+1}, 1 / c_j and the units of j and j + 1 of every lane, looked up by j (which is at
+    // most K - 2; the mask only spares a bounds check, K_MAX being a power of two).
+    const _: () = assert!(K_MAX.is_power_of_two());
     let mut up = [0.0f64; BLOCK];
     let mut inv = [0.0f64; BLOCK];
     let mut u_lo = [0.0f64; BLOCK];
     let mut u_hi = [0.0f64; BLOCK];
-    for m in 0..k - 1 {
-        let mm = m as u64;
-        for i in 0..BLOCK {
-            let here = j[i] == mm;
-            up[i] = if here { t.scales[m + 1] } else { up[i] };
-            inv[i] = if here { t.inv_scales[m] } else { inv[i] };
-            u_lo[i] = if here { t.to_units[m] } else { u_lo[i] };
-            u_hi[i] = if here { t.to_units[m + 1] } else { u_hi[i] };
-        }
+    for i in 0..BLOCK {
+        let [a, b, c, d] = t.by_lo[j[i] as usize & (K_MAX - 1)];
+        (up[i], inv[i], u_lo[i], u_hi[i]) = (a, b, c, d);
     }
     let bm1 = t.base - 1.0;
     let one = COUNT_ONE as f64;
@@ -233,11 +250,11 @@ fn shares_with<const EXACT: bool>(t: &Tables, rgb: &[[f32; 3]], out: &mut Shares
         } else {
             (w, n)
         };
-        let count = fixed::<EXACT>(n, one, &mut big);
+        let count = fixed::<EXACT, ROUND>(n, one, &mut big);
         let (ulo, uhi) = (u_lo[i] * w, u_hi[i] * (1.0 - w));
         for c in 0..3 {
-            out.low[c][i] = fixed::<EXACT>(s[c][i], ulo, &mut big);
-            out.high[c][i] = fixed::<EXACT>(s[c][i], uhi, &mut big);
+            out.low[c][i] = fixed::<EXACT, ROUND>(s[c][i], ulo, &mut big);
+            out.high[c][i] = fixed::<EXACT, ROUND>(s[c][i], uhi, &mut big);
         }
         out.low[3][i] = count;
         out.high[3][i] = COUNT_ONE - count;
@@ -282,16 +299,28 @@ mod tests {
                 }
                 let mut big = 0;
                 assert_eq!(
-                    fixed::<false>(value, units, &mut big),
+                    fixed::<false, false>(value, units, &mut big),
                     y as u64,
                     "{value} * {units}"
+                );
+                assert_eq!(
+                    fixed::<false, true>(value, units, &mut big),
+                    y as u64,
+                    "{value} * {units}, truncated by rounding"
                 );
                 assert_eq!(big, 0);
             }
         }
+        for round in [false, true] {
+            let mut big = 0;
+            if round {
+                fixed::<false, true>(TWO_52, 1.0, &mut big);
+            } else {
+                fixed::<false, false>(TWO_52, 1.0, &mut big);
+            }
+            assert_eq!(big, 1, "out of range is flagged");
+        }
         let mut big = 0;
-        fixed::<false>(TWO_52, 1.0, &mut big);
-        assert_eq!(big, 1, "out of range is flagged");
-        assert_eq!(fixed::<true>(TWO_52 * 3.0, 1.0, &mut big), 3 << 52);
+        assert_eq!(fixed::<true, false>(TWO_52 * 3.0, 1.0, &mut big), 3 << 52);
     }
 }

@@ -56,8 +56,9 @@ impl Upload for Pass {
             .saturating_add(1 << 20)
     }
 
-    /// The decoded pixels (12 bytes each), their records (20) and the decoder's own buffers;
-    /// and per AOV channel its plane and its values (4 bytes each).
+    /// The decoder's planes and write counts (13 bytes per pixel), the decoded pixels (12) and
+    /// the `exr` crate's own buffers, generously; and per AOV channel its plane and its values
+    /// (4 bytes each).
     fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
         pass_pixels(frame) * (48 + 8 * frame.spec().aov_channels() as u64)
     }
@@ -89,7 +90,8 @@ pub async fn post_samples(
             reject(frame, 0, e.code());
             ApiError::from(&e)
         })?;
-        Ok((batch, None))
+        let ingested = applied(batch.records.len(), frame.ingest(&batch))?;
+        Ok(((batch.worker, batch.seq), ingested))
     })
     .await
 }
@@ -137,24 +139,34 @@ pub async fn post_pass(
         if let Some(values) = &aovs {
             check_aovs(frame, values)?;
         }
-        let batch = Batch {
-            frame: frame.id().to_owned(),
-            worker: query.worker,
-            seq: query.seq,
-            records: pass.records().collect(),
-        };
-        Ok((batch, aovs))
+        // Splatted row by row straight from the decoded pixels (no records made).
+        let (worker, seq) = (query.worker, query.seq);
+        let result = frame.ingest_pass(worker, seq, &pass.rgb, aovs.as_deref());
+        let ingested = applied(pass.rgb.len(), result)?;
+        Ok(((worker, seq), ingested))
     })
     .await
 }
 
-/// Builds a batch (decoding it on the blocking pool), applies it and acknowledges it; the
-/// working memory reserved for the body is given back once the batch is applied.
+/// The outcome of a frame's ingest of `samples` samples, as the route answers it.
+fn applied(
+    samples: usize,
+    result: Result<crate::frame::Ingested, crate::frame::IngestError>,
+) -> Result<crate::frame::Ingested, ApiError> {
+    result.map_err(|e| {
+        reject_counted(samples as u64, "samples");
+        ApiError::from(e)
+    })
+}
+
+/// Decodes and applies a body on the blocking pool (`apply` returns the batch's
+/// `(worker, seq)` and what the frame did with it) and acknowledges it; the working memory
+/// reserved for the body is given back once the batch is applied.
 async fn ingest(
     app: &AppState,
     frame: Arc<ShardedFrame>,
     reservation: Reservation,
-    make_batch: impl FnOnce(&ShardedFrame) -> Result<(Batch, Option<Vec<f32>>), ApiError>
+    apply: impl FnOnce(&ShardedFrame) -> Result<((u64, u64), crate::frame::Ingested), ApiError>
         + Send
         + 'static,
 ) -> Result<Json<BatchAck>, ApiError> {
@@ -164,14 +176,7 @@ async fn ingest(
     let (batch_id, ingested) = blocking("ingest", move || {
         // The body's and the batch's working memory is held until both are gone.
         let _reservation = reservation;
-        let (batch, aovs) = make_batch(&worker_frame)?;
-        let ingested = worker_frame
-            .ingest_with_aovs(&batch, aovs.as_deref())
-            .map_err(|e| {
-                reject_counted(batch.records.len() as u64, "samples");
-                ApiError::from(e)
-            })?;
-        Ok(((batch.worker, batch.seq), ingested))
+        apply(&worker_frame)
     })
     .await?;
     let (worker, seq) = batch_id;
