@@ -11,7 +11,7 @@
 //! * [`renders`] and [`work`]: shared resolves and the working-memory budget; [`converge`]: need
 //!   maps and each frame's convergence over time, from those shared resolves;
 //! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
-//!   [`viewer`]: pushing frames to tev.
+//!   [`viewer`]: pushing frames to tev; [`memory`]: huge pages for large buffers.
 
 pub mod config;
 pub mod connection;
@@ -23,6 +23,7 @@ pub mod failpoint;
 pub mod frame;
 pub mod http;
 pub mod image;
+pub mod memory;
 pub mod passes;
 pub mod preview;
 pub mod push;

@@ -6,7 +6,9 @@
 //!   traffic they cannot avoid (a loop reading and writing the same cascade slots of the same
 //!   cells in the same order, no arithmetic; plain RGB + count accumulation for reference),
 //!   resolve against one read of the state and its scaling with threads, merge against memcpy,
-//!   and the state size. Default size 1920x1080.
+//!   and the state size. Default size 1920x1080. The cells (and the baselines' buffers) ask for
+//!   transparent huge pages, as the server's frames do; `--pages 4k` leaves them on 4 KiB pages
+//!   to measure what the TLB costs.
 //! * `bench need`: need-guided against uniform sampling at the same total number of samples, on
 //!   the synthetic scene (exact mean) and the demo's path-traced scene (against a reference of
 //!   many more samples): relMSE of the reweighted image for both, and their ratio.
@@ -34,11 +36,16 @@ fn main() -> Result<()> {
         Some("quality") => {
             bail!("the quality benchmark is its own binary: cargo run --release --bin quality")
         }
-        Some("speed") => speed(parse_size(
-            value("--size").as_deref().unwrap_or("1920x1080"),
-        )?),
+        Some("speed") => speed(
+            parse_size(value("--size").as_deref().unwrap_or("1920x1080"))?,
+            match value("--pages").as_deref() {
+                None | Some("huge") => true,
+                Some("4k") => false,
+                Some(other) => bail!("--pages {other:?}: use huge or 4k"),
+            },
+        ),
         Some("need") => need(),
-        _ => bail!("usage: bench need | bench speed [--size WxH]"),
+        _ => bail!("usage: bench need | bench speed [--size WxH] [--pages huge|4k]"),
     }
 }
 
@@ -306,7 +313,26 @@ fn ratio_line(what: &str, ratio: f64, goal: &str, met: bool) -> String {
     )
 }
 
-fn speed(size: (u32, u32)) -> Result<()> {
+/// Asks for huge pages for `buf` if `huge`, saying so when the kernel refuses.
+fn advise<T>(buf: &[T], huge: bool) {
+    if huge {
+        if let Err(e) = splatd_server::memory::advise_huge_pages(buf) {
+            eprintln!(
+                "warning: no huge pages for a buffer of {} bytes: {e}",
+                size_of_val(buf)
+            );
+        }
+    }
+}
+
+/// A zeroed buffer of `len` values, on huge pages if `huge` (asked before anything touches it).
+fn buffer<T: Clone + Default>(len: usize, huge: bool) -> Vec<T> {
+    let buf = vec![T::default(); len];
+    advise(&buf, huge);
+    buf
+}
+
+fn speed(size: (u32, u32), huge: bool) -> Result<()> {
     let (w, h) = size;
     let pixels = w as usize * h as usize;
     // Four samples per pixel: the state is far larger than any cache at either size.
@@ -335,8 +361,10 @@ fn speed(size: (u32, u32)) -> Result<()> {
         random.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
     }
     println!(
-        "machine: {} cores; frame {w}x{h}, {n_records} records (4 per pixel); times are {}",
+        "machine: {} cores; frame {w}x{h}, {n_records} records (4 per pixel); {} pages; times \
+         are {}",
         std::thread::available_parallelism()?.get(),
+        if huge { "huge (2 MiB)" } else { "4 KiB" },
         if thread_cpu_seconds().is_some() {
             "this thread's CPU time (best of 3), resolve on several threads by the wall clock"
         } else {
@@ -349,8 +377,10 @@ fn speed(size: (u32, u32)) -> Result<()> {
     //    printed for reference (it touches 16 bytes per pixel, not two 32-byte cascades).
     let layout6 = CascadeLayout::with_defaults();
     let mut state = FrameState::new(w, h, layout6.clone());
-    let mut baseline = vec![1u64; state.cells().len()];
-    let mut plain = vec![[0.0f32; 4]; pixels];
+    advise(state.cells(), huge);
+    let mut baseline: Vec<u64> = buffer(state.cells().len(), huge);
+    baseline.fill(1);
+    let mut plain: Vec<[f32; 4]> = buffer(pixels, huge);
     let rate = |n: usize, t: f64| n as f64 / t / 1e6;
     let mut report = Vec::new();
     for order in [
@@ -435,6 +465,7 @@ fn speed(size: (u32, u32)) -> Result<()> {
     // 3. Resolve, 8 cascades, vs one pass reading the same memory; and how it scales.
     let layout8 = CascadeLayout::new(8.0, 8, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE)?;
     let mut state8 = FrameState::new(w, h, layout8);
+    advise(state8.cells(), huge);
     state8.splat_records(&random);
     let t_read = best_of(3, || {
         let sum = state8.cells().iter().fold(0u64, |a, &v| a.wrapping_add(v));
@@ -489,7 +520,7 @@ fn speed(size: (u32, u32)) -> Result<()> {
     // 4. Merge of two states vs a memcpy of one.
     let other = state8.clone();
     let mut target = state8.clone();
-    let mut copy = vec![0u64; state8.cells().len()];
+    let mut copy: Vec<u64> = buffer(state8.cells().len(), huge);
     let t_copy = best_of(3, || {
         copy.copy_from_slice(state8.cells());
         black_box(&copy);

@@ -1,0 +1,90 @@
+//! How the server asks the kernel for the memory of its large buffers.
+//!
+//! A frame's cells are hundreds of megabytes touched at random pixels: with 4 KiB pages every
+//! sample of a large frame misses the TLB, and every fresh buffer of a state transfer takes a
+//! page fault per 4 KiB. Transparent huge pages (2 MiB) cut both by 512; on a box where they are
+//! enabled only on request (`/sys/kernel/mm/transparent_hugepage/enabled` = `madvise`, the
+//! usual default) a buffer must ask for them with `madvise(MADV_HUGEPAGE)` *before* it is first
+//! touched, which is what [`advise_huge_pages`] is for.
+
+/// Asks the kernel to back `buf` with transparent huge pages. Call it on a freshly allocated
+/// large buffer before writing to it (`vec![0; n]` of more than the allocator's mmap threshold
+/// is not touched yet): pages faulted in afterwards come 2 MiB at a time where the range covers
+/// whole ones.
+///
+/// Only a hint: the contents never change, and a kernel without transparent huge pages (or with
+/// them off) refuses it, which is returned and costs nothing but speed. Buffers smaller than a
+/// huge page are left alone.
+pub fn advise_huge_pages<T>(buf: &[T]) -> std::io::Result<()> {
+    const HUGE: usize = 2 << 20;
+    let bytes = std::mem::size_of_val(buf);
+    if bytes < HUGE {
+        return Ok(());
+    }
+    #[cfg(target_os = "linux")]
+    {
+        const PAGE: usize = 4096;
+        let start = buf.as_ptr() as usize;
+        let first = start.next_multiple_of(PAGE);
+        let end = (start + bytes) / PAGE * PAGE;
+        // SAFETY: madvise(MADV_HUGEPAGE) only changes how the kernel backs the pages of the
+        // range, never their contents; the range is page-aligned and lies inside `buf`, memory
+        // this process owns for as long as the call lasts.
+        let rc =
+            unsafe { libc::madvise(first as *mut libc::c_void, end - first, libc::MADV_HUGEPAGE) };
+        if rc != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    Ok(())
+}
+
+/// A zeroed `Vec<u64>` of `len` words, backed by huge pages where the kernel grants them
+/// ([`advise_huge_pages`]): for the cells of frames and states.
+pub fn zeroed_cells(len: usize) -> Vec<u64> {
+    let cells = vec![0u64; len];
+    advise_or_log(&cells);
+    cells
+}
+
+/// An empty `Vec<u8>` with room for `capacity` bytes, on huge pages where the kernel grants them
+/// and faulted in already, for a large encoding written under a lock: its writes then take no
+/// page faults.
+pub fn faulted_buffer(capacity: usize) -> Vec<u8> {
+    let mut buf = Vec::<u8>::with_capacity(capacity);
+    let spare = buf.spare_capacity_mut();
+    advise_or_log(spare);
+    // One write per 4 KiB page maps it (the kernel zeroes it, or its whole huge page).
+    for page in spare.chunks_mut(4096) {
+        page[0].write(0);
+    }
+    buf
+}
+
+/// [`advise_huge_pages`], logging (at debug level) a kernel that refuses.
+pub fn advise_or_log<T>(buf: &[T]) {
+    if let Err(e) = advise_huge_pages(buf) {
+        tracing::debug!(bytes = std::mem::size_of_val(buf), "no huge pages: {e}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The advice leaves the contents alone, and a buffer advised before it is written reads
+    /// back what was written (the hint changes the backing, never the values).
+    #[test]
+    fn advice_keeps_contents() {
+        let mut cells = zeroed_cells(3 << 20);
+        assert!(cells.iter().all(|&c| c == 0));
+        for (i, c) in cells.iter_mut().enumerate() {
+            *c = i as u64 * 7;
+        }
+        advise_huge_pages(&cells).expect("THP is available on Linux test machines");
+        assert!(cells.iter().enumerate().all(|(i, &c)| c == i as u64 * 7));
+        // Small and empty buffers are left alone.
+        advise_huge_pages(&[1u8; 100]).unwrap();
+        advise_huge_pages::<u64>(&[]).unwrap();
+    }
+}
