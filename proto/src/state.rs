@@ -345,24 +345,22 @@ impl StateDump {
         out.write_all(&STATE_VERSION.to_le_bytes())?;
         out.write_all(&self.header_bytes())?;
         let pixels = Pixels::new(parts, self.cell_len());
-        let mut block = Vec::with_capacity(8 * 8192);
+        // Converted into a 64 KiB block (a plain copy on a little-endian machine), one write per
+        // block rather than one per cell.
+        let mut block = Block {
+            bytes: vec![0; 8 * PIECE_CELLS],
+            used: 0,
+        };
         for run in pixels.runs() {
-            block.extend_from_slice(&(run.start as u32).to_le_bytes());
-            block.extend_from_slice(&((run.end - run.start) as u32).to_le_bytes());
+            block.put(&[run.start as u32, (run.end - run.start) as u32], out)?;
             for cells in pixels.cells(run) {
-                // Convert in blocks: one write per 64 KiB instead of one per cell.
-                for chunk in cells.chunks(8192) {
-                    if block.len() + 8 * chunk.len() > block.capacity() {
-                        out.write_all(&block)?;
-                        block.clear();
-                    }
-                    block.extend(chunk.iter().flat_map(|c| c.to_le_bytes()));
+                for chunk in cells.chunks(PIECE_CELLS) {
+                    block.put_cells(chunk, out)?;
                 }
             }
         }
-        block.extend_from_slice(&(pixels.count() as u32).to_le_bytes());
-        block.extend_from_slice(&0u32.to_le_bytes());
-        out.write_all(&block)?;
+        block.put(&[pixels.count() as u32, 0], out)?;
+        block.flush(out)?;
         out.write_all(&self.batches_bytes())
     }
 
@@ -437,6 +435,20 @@ impl StateDump {
 
     /// Decodes an untrusted state body whose geometry holds at most `max_cells` cells.
     pub fn decode(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
+        let (mut dump, runs) = StateDump::decode_runs(bytes, max_cells)?;
+        let mut cells = vec![0u64; dump.expected_cells() as usize];
+        runs.expand_into(&mut cells)?;
+        dump.cells = cells;
+        Ok(dump)
+    }
+
+    /// Decodes an untrusted state body like [`StateDump::decode`], except its cells: the dump
+    /// comes back with none, and the runs are returned as they lie in `bytes`, for a receiver
+    /// that checks and adds them piece by piece instead of expanding a whole frame of cells
+    /// first. Everything but the cells' values is checked here (preamble, header, limit, the
+    /// run list's order and bounds, every length against the bytes present, the applied
+    /// batches, nothing after them); [`Runs`] checks the values as it hands them out.
+    pub fn decode_runs(bytes: &[u8], max_cells: u64) -> Result<(StateDump, Runs<'_>), StateError> {
         let body = preamble(bytes, STATE_VERSION)?;
         let (header, header_len): (Header, usize) = decode_header(body, bytes.len())?;
         let mut dump = StateDump::with_header(header)?;
@@ -452,14 +464,14 @@ impl StateDump {
             at: 6 + header_len,
             total: bytes.len(),
         };
-        dump.cells = rest.runs(count, dump.cell_len())?;
+        let runs = rest.runs(count, dump.cell_len())?;
         dump.batches = rest.batches()?;
         if !rest.bytes.is_empty() {
             return Err(StateError::TrailingBytes {
                 count: rest.bytes.len(),
             });
         }
-        Ok(dump)
+        Ok((dump, runs))
     }
 
     /// Decodes an untrusted state body of the previous format version 1 (`4 * K` cells per
@@ -610,10 +622,11 @@ impl<'a> Reader<'a> {
         ))
     }
 
-    /// The runs of a state of `count` cells, `cell_len` per pixel, expanded to all its cells.
-    fn runs(&mut self, count: u64, cell_len: usize) -> Result<Vec<u64>, StateError> {
+    /// The run list of a state of `count` cells, `cell_len` per pixel: its headers checked
+    /// (order, bounds, lengths against the bytes present), its cells left where they are.
+    fn runs(&mut self, count: u64, cell_len: usize) -> Result<Runs<'a>, StateError> {
         let pixels = count / cell_len as u64;
-        let mut cells = vec![0u64; count as usize];
+        let (start, at) = (self.bytes, self.at);
         let mut next = 0u64; // the first pixel a run may start at
         loop {
             let first = self.u32()? as u64;
@@ -624,7 +637,11 @@ impl<'a> Reader<'a> {
                         "the run list ends with pixel {first}, not with the {pixels} pixels held"
                     )));
                 }
-                return Ok(cells);
+                return Ok(Runs {
+                    bytes: &start[..self.at - at],
+                    cell_len,
+                    pixels,
+                });
             }
             if first < next || first + n > pixels {
                 return Err(StateError::Malformed(format!(
@@ -632,20 +649,7 @@ impl<'a> Reader<'a> {
                      (with a gap) in the {pixels} pixels held"
                 )));
             }
-            let bytes = self.take(n * 8 * cell_len as u64)?;
-            let dst = &mut cells[first as usize * cell_len..(first + n) as usize * cell_len];
-            for (d, b) in dst.iter_mut().zip(bytes.chunks_exact(8)) {
-                *d = u64::from_le_bytes(b.try_into().expect("8 bytes"));
-            }
-            if let Some(i) = dst
-                .chunks_exact(cell_len)
-                .position(|p| p.iter().all(|&c| c == 0))
-            {
-                return Err(StateError::Malformed(format!(
-                    "pixel {} is in a run but holds nothing",
-                    first as usize + i
-                )));
-            }
+            self.take(n * 8 * cell_len as u64)?;
             next = first + n + 1;
         }
     }
@@ -691,6 +695,150 @@ impl<'a> Reader<'a> {
             all.push(applied);
         }
         Ok(all)
+    }
+}
+
+/// The cells of a decoded state body, as the runs of pixels holding something, read in place
+/// from the body ([`StateDump::decode_runs`]). Their headers are checked already; the cells'
+/// values are checked as they are handed out: a pixel in a run that holds nothing is refused
+/// (`Malformed`) before any of its piece is.
+#[derive(Debug, Clone, Copy)]
+pub struct Runs<'a> {
+    /// From the first run's header to the end of the list.
+    bytes: &'a [u8],
+    cell_len: usize,
+    pixels: u64,
+}
+
+/// Cells converted at a time by [`Runs::try_for_each`]: 64 KiB, which stays in the cache.
+const PIECE_CELLS: usize = 8192;
+
+impl<'a> Runs<'a> {
+    /// Cells per pixel (`4K + 1`).
+    pub fn cell_len(&self) -> usize {
+        self.cell_len
+    }
+
+    /// Pixels of the rows held, empty ones included.
+    pub fn pixels(&self) -> u64 {
+        self.pixels
+    }
+
+    /// The runs' cells as little-endian bytes, in pieces of whole pixels: `f(first, bytes)`
+    /// with the number of the piece's first pixel. The headers were checked by the decoder.
+    fn pieces<E: From<StateError>>(
+        &self,
+        max_pixels: usize,
+        mut f: impl FnMut(u64, &'a [u8]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let pixel_bytes = 8 * self.cell_len;
+        let mut rest = self.bytes;
+        loop {
+            let (head, tail) = rest.split_at(8);
+            let first = u32::from_le_bytes(head[..4].try_into().expect("4 bytes")) as u64;
+            let n = u32::from_le_bytes(head[4..].try_into().expect("4 bytes")) as usize;
+            if n == 0 {
+                return Ok(());
+            }
+            let (cells, tail) = tail.split_at(n * pixel_bytes);
+            for (i, piece) in cells.chunks(max_pixels * pixel_bytes).enumerate() {
+                let first = first + (i * max_pixels) as u64;
+                // A run's pixels all hold something (the runs are maximal).
+                if let Some(p) = piece
+                    .chunks_exact(pixel_bytes)
+                    .position(|p| p.iter().all(|&b| b == 0))
+                {
+                    return Err(StateError::Malformed(format!(
+                        "pixel {} is in a run but holds nothing",
+                        first + p as u64
+                    ))
+                    .into());
+                }
+                f(first, piece)?;
+            }
+            rest = tail;
+        }
+    }
+
+    /// Hands the runs' cells to `f` in order, in pieces of whole pixels (at most 64 KiB,
+    /// converted into one reused buffer): `f(first, cells)` gets the number of the piece's first
+    /// pixel (row-major from 0 within the rows held) and its `cell_len` cells per pixel. The
+    /// first error, `f`'s or a pixel holding nothing, stops the visit and is returned.
+    pub fn try_for_each<E: From<StateError>>(
+        &self,
+        mut f: impl FnMut(u64, &[u64]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let max_pixels = (PIECE_CELLS / self.cell_len).max(1);
+        let mut buf = vec![0u64; max_pixels * self.cell_len];
+        self.pieces(max_pixels, |first, bytes| {
+            let cells = &mut buf[..bytes.len() / 8];
+            le_cells(bytes, cells);
+            f(first, cells)
+        })
+    }
+
+    /// Writes the runs' cells into `cells`, all the cells of the rows held (empty pixels are
+    /// left as they are: zero in a fresh buffer).
+    ///
+    /// # Panics
+    /// If `cells` is not `pixels * cell_len` long.
+    pub fn expand_into(&self, cells: &mut [u64]) -> Result<(), StateError> {
+        assert_eq!(cells.len() as u64, self.pixels * self.cell_len as u64);
+        let max_pixels = (PIECE_CELLS / self.cell_len).max(1);
+        self.pieces(max_pixels, |first, bytes| {
+            let at = first as usize * self.cell_len;
+            le_cells(bytes, &mut cells[at..at + bytes.len() / 8]);
+            Ok(())
+        })
+    }
+}
+
+/// `bytes` (little-endian `u64`s) into `cells`, which is exactly as long: a plain copy on a
+/// little-endian machine.
+fn le_cells(bytes: &[u8], cells: &mut [u64]) {
+    for (c, b) in cells.iter_mut().zip(bytes.chunks_exact(8)) {
+        *c = u64::from_le_bytes(b.try_into().expect("8 bytes"));
+    }
+}
+
+/// A buffer that the run list is encoded into before it is written.
+struct Block {
+    bytes: Vec<u8>,
+    used: usize,
+}
+
+impl Block {
+    /// Makes room for `n` more bytes (at most the block's size), writing out what it holds.
+    fn room(&mut self, n: usize, out: &mut impl std::io::Write) -> std::io::Result<&mut [u8]> {
+        if self.used + n > self.bytes.len() {
+            self.flush(out)?;
+        }
+        let at = self.used;
+        self.used += n;
+        Ok(&mut self.bytes[at..at + n])
+    }
+
+    /// A run header: two `u32`s.
+    fn put(&mut self, words: &[u32; 2], out: &mut impl std::io::Write) -> std::io::Result<()> {
+        let dst = self.room(8, out)?;
+        dst[..4].copy_from_slice(&words[0].to_le_bytes());
+        dst[4..].copy_from_slice(&words[1].to_le_bytes());
+        Ok(())
+    }
+
+    /// At most [`PIECE_CELLS`] cells, little-endian.
+    fn put_cells(&mut self, cells: &[u64], out: &mut impl std::io::Write) -> std::io::Result<()> {
+        let dst = self.room(8 * cells.len(), out)?;
+        for (d, c) in dst.chunks_exact_mut(8).zip(cells) {
+            d.copy_from_slice(&c.to_le_bytes());
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self, out: &mut impl std::io::Write) -> std::io::Result<()> {
+        out.write_all(&self.bytes[..self.used])?;
+        self.used = 0;
+        Ok(())
     }
 }
 
@@ -889,6 +1037,57 @@ mod tests {
     }
 
     /// A decoder accepts only the canonical encoding: runs apart and full, workers in order.
+    /// The runs handed out piece by piece are the decoded cells, however the pieces fall:
+    /// pixels of a run longer than one piece, runs split across pieces, gaps between runs.
+    #[test]
+    fn runs_in_pieces_are_the_decoded_cells() {
+        let cell = 4 * 2 + 1;
+        let (w, h) = (300u32, 40u32);
+        let pixels = (w * h) as usize;
+        let mut d = StateDump {
+            width: w,
+            height: h,
+            rows_end: h,
+            cells: vec![0; pixels * cell],
+            batches: vec![],
+            ..dump()
+        };
+        // A long run (more than a piece of 8192 cells), then every third pixel, then a tail.
+        for p in (0..2000)
+            .chain((2000..9000).step_by(3))
+            .chain(pixels - 10..pixels)
+        {
+            for (i, c) in d.cells[p * cell..(p + 1) * cell].iter_mut().enumerate() {
+                *c = (p * 31 + i) as u64 + 1;
+            }
+        }
+        let bytes = d.encode();
+        let (header, runs) = StateDump::decode_runs(&bytes, u64::MAX).unwrap();
+        assert!(header.cells.is_empty());
+        assert_eq!((runs.pixels(), runs.cell_len()), (pixels as u64, cell));
+        let mut pieced = vec![0u64; pixels * cell];
+        let mut pieces = 0;
+        runs.try_for_each(|first, cells| {
+            assert_eq!(cells.len() % cell, 0);
+            assert!(cells.len() <= PIECE_CELLS);
+            let at = first as usize * cell;
+            pieced[at..at + cells.len()].copy_from_slice(cells);
+            pieces += 1;
+            Ok::<(), StateError>(())
+        })
+        .unwrap();
+        assert!(pieces > 2000, "the short runs come one by one");
+        assert_eq!(pieced, d.cells);
+        assert_eq!(StateDump::decode(&bytes, u64::MAX).unwrap(), d);
+        // The visit stops at the first error of the visitor and returns it.
+        let mut seen = 0;
+        let stop = runs.try_for_each(|_, _| {
+            seen += 1;
+            Err(StateError::Malformed("stop".into()))
+        });
+        assert_eq!((stop, seen), (Err(StateError::Malformed("stop".into())), 1));
+    }
+
     #[test]
     fn non_canonical_runs_and_batches_are_refused() {
         let cell = 4 * 2 + 1;
@@ -908,13 +1107,22 @@ mod tests {
             StateDump::decode(&touching, u64::MAX),
             Err(StateError::Malformed(m)) if m.contains("previous run")
         ));
-        // An empty pixel inside a run.
+        // An empty pixel inside a run: refused by the decoder, and by the runs before their
+        // visitor sees its piece.
         let mut hollow = bytes.clone();
         hollow[runs_at + 8..][..8].copy_from_slice(&0u64.to_le_bytes());
         assert!(matches!(
             StateDump::decode(&hollow, u64::MAX),
             Err(StateError::Malformed(m)) if m.contains("holds nothing")
         ));
+        let (_, runs) = StateDump::decode_runs(&hollow, u64::MAX).unwrap();
+        let mut visited = 0;
+        let refused = runs.try_for_each(|_, _| {
+            visited += 1;
+            Ok::<(), StateError>(())
+        });
+        assert!(matches!(refused, Err(StateError::Malformed(m)) if m.contains("pixel 0")));
+        assert_eq!(visited, 0);
         let mut swapped = dump();
         swapped.batches.reverse();
         assert!(matches!(

@@ -4,9 +4,13 @@
 //! The dump is the state's fixed-point cells verbatim, so export followed by import is exact, and
 //! importing into a frame that has samples of its own adds the two exactly.
 
-use splatd_proto::{Applied, Origin, StateDump};
+use splatd_proto::{Applied, Origin, Runs, StateDump, StateError};
 
-use splatd_estimator::{CascadeLayout, CellsError, FrameState, ParamError, FRAC_BITS};
+use splatd_estimator::{
+    check_pixels, CascadeLayout, CellsError, FrameState, MergeError, ParamError, FRAC_BITS,
+};
+
+use crate::frame::{Importable, PieceVisitor};
 
 /// An imported state that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -23,6 +27,9 @@ pub enum ImportError {
     /// Its cells do not fit its geometry, or hold what no checked samples could have made.
     #[error(transparent)]
     Cells(#[from] CellsError),
+    /// Its run list is malformed (a pixel in a run holds nothing).
+    #[error(transparent)]
+    State(#[from] StateError),
 }
 
 /// The wire form of a state (a whole frame or a band) holding the samples of `batches`.
@@ -62,7 +69,7 @@ pub fn encoded_len(state: &FrameState, frame: &str) -> u64 {
 /// # Panics
 /// If `bands` is empty.
 pub fn write_bands(
-    bands: &[FrameState],
+    bands: &[&FrameState],
     frame: &str,
     origin: Option<Origin>,
     batches: Vec<Applied>,
@@ -126,6 +133,71 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
     )?)
 }
 
+/// A state body decoded for import without expanding its cells ([`StateDump::decode_runs`]):
+/// its header, and its runs read in place from the body, every pixel of them checked like
+/// [`load`] checks a whole state. Importing it adds the runs straight into the frame's bands
+/// ([`crate::frame::ShardedFrame::import`]), so the only full-size buffer of an import is the
+/// body itself.
+pub struct Decoded<'a> {
+    /// The header (no cells).
+    pub dump: StateDump,
+    layout: CascadeLayout,
+    runs: Runs<'a>,
+    samples: u64,
+}
+
+/// Checks a state decoded without its cells ([`StateDump::decode_runs`]) like [`load`] checks
+/// a whole one: the precision, the cascade parameters and every pixel of every run (one pass
+/// over the runs, a cache-sized piece at a time).
+pub fn load_runs(dump: StateDump, runs: Runs<'_>) -> Result<Decoded<'_>, ImportError> {
+    if dump.frac_bits != FRAC_BITS {
+        return Err(ImportError::FracBits {
+            found: dump.frac_bits,
+        });
+    }
+    let layout = CascadeLayout::new(dump.base, dump.cascades, dump.lowest_scale, dump.luminance)?;
+    let mut samples = 0;
+    runs.try_for_each(|first, cells| {
+        samples += check_pixels(dump.width, dump.rows_start, layout.cascades(), first, cells)?;
+        Ok::<(), ImportError>(())
+    })?;
+    Ok(Decoded {
+        dump,
+        layout,
+        runs,
+        samples,
+    })
+}
+
+impl Importable for Decoded<'_> {
+    fn geometry(&self) -> (u32, u32, &CascadeLayout) {
+        (self.dump.width, self.dump.height, &self.layout)
+    }
+
+    fn first_row(&self) -> u32 {
+        self.dump.rows_start
+    }
+
+    fn samples(&self) -> u64 {
+        self.samples
+    }
+
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+        /// The runs' own refusals were all found by [`load_runs`]; only `f`'s remain.
+        enum Stop {
+            Merge(MergeError),
+        }
+        impl From<StateError> for Stop {
+            fn from(e: StateError) -> Stop {
+                unreachable!("the runs were checked when the state was loaded: {e}")
+            }
+        }
+        self.runs
+            .try_for_each(|first, cells| f(first, cells).map_err(Stop::Merge))
+            .map_err(|Stop::Merge(e)| e)
+    }
+}
+
 /// Fractional bits of state format version 1.
 const V1_FRAC_BITS: u32 = 32;
 
@@ -182,6 +254,7 @@ mod tests {
             }
         }
         let mut streamed = Vec::new();
+        let bands: Vec<&FrameState> = bands.iter().collect();
         write_bands(&bands, "f", None, vec![], &mut streamed).unwrap();
         assert_eq!(streamed, dump(&whole, "f", None, vec![]).encode());
     }

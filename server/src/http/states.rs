@@ -11,7 +11,7 @@ use axum::response::IntoResponse;
 use splatd_proto::api::ImportAck;
 use splatd_proto::{StateDump, STATE_CONTENT_TYPE};
 
-use crate::frame::ShardedFrame;
+use crate::frame::{Importable, ShardedFrame};
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, FrameBody, Json, Upload};
@@ -36,9 +36,10 @@ impl Upload for StateBody {
         cells + (cells / 8).max(MAX_STATE_BATCH_BYTES) + 64 * 1024
     }
 
-    /// The decoded cells and the state loaded from them, each the size of the frame's state.
-    fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
-        2 * frame.spec().memory_bytes()
+    /// Nothing beyond the body.
+    fn decoding_bytes(_: &ShardedFrame, _: u64) -> u64 {
+        // Its runs are checked and added from the body itself, a cache-sized piece at a time.
+        0
     }
 }
 
@@ -47,18 +48,17 @@ pub async fn export(
     State(app): State<AppState>,
     Frame(frame): Frame,
 ) -> Result<impl IntoResponse, ApiError> {
-    // A copy of the state and its encoding.
+    // The encoding: the cells, a header, run headers and the applied batches.
+    let room = frame.spec().memory_bytes() + 64 * 1024;
     let reservation = app
         .renders
         .budget()
-        .reserve(2 * frame.spec().memory_bytes())
+        .reserve(room)
         .await
         .map_err(|busy| ApiError::busy(&busy))?;
     let (bytes, mut reservation) = blocking("export", move || {
-        let cut = frame.cut();
-        let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
-        crate::export::write_bands(&cut.bands, frame.id(), None, cut.seen.applied(), &mut out)
-            .expect("writing into a Vec<u8> is infallible");
+        let mut out = crate::memory::faulted_buffer(room as usize);
+        frame.write_state(&mut out);
         Ok((out, reservation))
     })
     .await?;
@@ -120,13 +120,11 @@ pub async fn import(
     let target = frame.clone();
     let (samples, applied) = blocking("import", move || {
         let _reservation = reservation;
-        let mut dump = StateDump::decode(&bytes, cells)?;
-        let origin = dump.origin.clone();
-        let name = dump.frame.clone();
-        let batches = std::mem::take(&mut dump.batches);
-        let state = crate::export::load(dump)?;
-        let applied = target.import(&name, &state, origin.as_ref(), &batches)?;
-        Ok((state.total_samples(), applied))
+        let (dump, runs) = StateDump::decode_runs(&bytes, cells)?;
+        let state = crate::export::load_runs(dump, runs)?;
+        let dump = &state.dump;
+        let applied = target.import(&dump.frame, &state, dump.origin.as_ref(), &dump.batches)?;
+        Ok((state.samples(), applied))
     })
     .await?;
     // A pusher forgets a delta once it is acknowledged, so make it durable first.
