@@ -1,7 +1,9 @@
 //! How fast a frame state moves between nodes: export (`GET /v1/frames/{id}/state`), transfer
 //! over loopback and import (`POST /v1/frames/{id}/state`) of a 1920x1080 state with 8
 //! cascades (`--width`, `--height`, `--cascades`), against a plain memcpy of the same bytes
-//! measured in the same run; the ratio is printed with its goal (<= 10).
+//! measured in the same run; the ratio is printed with its goal (<= 10). Also the size of a push
+//! delta (encoded as push mode encodes it) of the same frame after 1 % of its pixels took one
+//! more sample, against the full state (goal <= 3 %).
 //!
 //! ```sh
 //! cargo build --release --bins && cargo run --release --bin statebench
@@ -23,6 +25,9 @@ use splatd_scenes::synth::FireflyScene;
 
 /// The goal for export + import against memcpy of the same bytes.
 const GOAL: f64 = 10.0;
+/// The goal for a push delta of a frame in which 1 % of the pixels changed, against the full
+/// state's bytes.
+const DELTA_GOAL: f64 = 0.03;
 
 #[derive(Parser)]
 #[command(about = "State export/transfer/import over loopback, against memcpy")]
@@ -68,6 +73,23 @@ fn memcpy_best(src: &[u8], runs: u32) -> Duration {
     best
 }
 
+/// Bytes of the push delta of `state` after every 100th pixel took one more sample of the
+/// scene: [`FrameState::delta_since`] encoded with an origin, as push mode sends it.
+fn delta_len(state: &FrameState, scene: &FireflyScene, pass: u64) -> usize {
+    let mut later = state.clone();
+    let report = later.splat_all(scene.pass(pass).step_by(100));
+    let delta = later.delta_since(state).expect("a later copy");
+    let origin = splatd_proto::Origin {
+        node: "bench".into(),
+        seq: 1,
+    };
+    let len = splatd_server::export::dump(&delta, None, "bench.src", Some(origin), vec![])
+        .encode()
+        .len();
+    assert_eq!(report.accepted, delta.total_samples());
+    len
+}
+
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
@@ -96,6 +118,7 @@ fn main() -> Result<()> {
         fill.splat_all(scene.pass(pass));
     }
     let fill_bytes = splatd_server::export::dump(&fill, None, "bench.src", None, vec![]).encode();
+    let delta_bytes = delta_len(&fill, &scene, args.spp);
     drop(fill);
 
     let server = start_server()?;
@@ -115,10 +138,11 @@ fn main() -> Result<()> {
             .await
             .context("filling the source frame")?;
         let (mut export, mut import, mut total) = (Duration::MAX, Duration::MAX, Duration::MAX);
-        let mut last = bytes::Bytes::new();
+        // One receive buffer for every run, as a node pulling states repeatedly keeps one.
+        let mut state = Vec::new();
         for run in 0..args.runs.max(1) {
             let t0 = Instant::now();
-            let state = client.export_state("bench.src").await?;
+            client.export_state_into("bench.src", &mut state).await?;
             let t1 = Instant::now();
             // The same bytes, posted to another frame of the same size.
             let mut dump = splatd_proto::StateDump::decode(&state, u64::MAX)?;
@@ -136,9 +160,8 @@ fn main() -> Result<()> {
             export = export.min(t1 - t0);
             import = import.min(t3 - t2);
             total = total.min((t1 - t0) + (t3 - t2));
-            last = state;
         }
-        anyhow::Ok((export, import, total, last))
+        anyhow::Ok((export, import, total, state))
     })?;
     let copy = memcpy_best(&bytes, args.runs);
     let mib = bytes.len() as f64 / (1 << 20) as f64;
@@ -174,6 +197,15 @@ fn main() -> Result<()> {
     println!(
         "\ngoal at {w}x{h}:\n  export + import / memcpy: ratio {ratio:.1} (goal <= {GOAL}) {}",
         if ratio <= GOAL { "met" } else { "MISSED" }
+    );
+    let share = delta_bytes as f64 / bytes.len() as f64;
+    println!(
+        "  push delta, 1 % of pixels changed / full state: {delta_bytes} / {} bytes = {:.2} % \
+         (goal <= {:.0} %) {}",
+        bytes.len(),
+        100.0 * share,
+        100.0 * DELTA_GOAL,
+        if share <= DELTA_GOAL { "met" } else { "MISSED" }
     );
     drop(server);
     Ok(())
