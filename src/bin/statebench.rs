@@ -49,13 +49,25 @@ struct Args {
     runs: u32,
 }
 
-/// `splatd serve` (the one built beside this program) on a free port, with room for large
-/// frames.
-fn start_server() -> Result<ServerProcess> {
+/// `splatd serve` (the one built beside this program) on a free port, with room for two frames
+/// of `state_bytes` and for the working memory of an export and an import of one (its encoding,
+/// its body), which at 3840x2160 is more than the default `--work-memory-mib`.
+fn start_server(state_bytes: u64) -> Result<ServerProcess> {
     let binary = sibling_binary().map_err(anyhow::Error::msg)?;
+    let mib = (state_bytes >> 20) + 1;
+    let frames = (2 * mib + 1024).max(16384).to_string();
+    let work = (2 * mib + 256).max(2048).to_string();
     ServerProcess::launch(&Options {
         log_level: "warn",
-        ..Options::new(binary, &["--max-memory-mib", "16384"])
+        ..Options::new(
+            binary,
+            &[
+                "--max-memory-mib",
+                frames.as_str(),
+                "--work-memory-mib",
+                work.as_str(),
+            ],
+        )
     })
     .map_err(anyhow::Error::msg)
 }
@@ -121,7 +133,7 @@ fn main() -> Result<()> {
     let delta_bytes = delta_len(&fill, &scene, args.spp);
     drop(fill);
 
-    let server = start_server()?;
+    let server = start_server(fill_bytes.len() as u64)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
