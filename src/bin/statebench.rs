@@ -1,7 +1,9 @@
 //! How fast a frame state moves between nodes: export (`GET /v1/frames/{id}/state`), transfer
 //! over loopback and import (`POST /v1/frames/{id}/state`) of a 1920x1080 state with 8
 //! cascades (`--width`, `--height`, `--cascades`), against a plain memcpy of the same bytes
-//! measured in the same run; the ratio is printed with its goal (<= 10). Also the size of a push
+//! measured in the same run; the ratio is printed with its goal (<= 10), beside what one loopback
+//! TCP transfer of the same bytes costs with no server at all (export + import make two; that
+//! floor is about 5x memcpy each on a 2-core VM). Also the size of a push
 //! delta (encoded as push mode encodes it) of the same frame after 1 % of its pixels took one
 //! more sample, against the full state (goal <= 3 %).
 //!
@@ -70,6 +72,32 @@ fn start_server(state_bytes: u64) -> Result<ServerProcess> {
         )
     })
     .map_err(anyhow::Error::msg)
+}
+
+/// Best time of `runs` transfers of `src` over a loopback TCP connection (a fresh one per run,
+/// as each request of the benchmark may use), written whole and read into a buffer already
+/// faulted in: what one direction of a transfer costs with no server work at all.
+fn loopback_best(src: &[u8], runs: u32) -> Result<Duration> {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+    let addr = listener.local_addr()?;
+    let mut dst = vec![1u8; src.len()];
+    let mut best = Duration::MAX;
+    for _ in 0..runs.max(3) {
+        let t = std::thread::scope(|scope| -> Result<Duration> {
+            let sender = scope.spawn(|| -> std::io::Result<()> {
+                std::net::TcpStream::connect(addr)?.write_all(src)
+            });
+            let (mut conn, _) = listener.accept()?;
+            let t = Instant::now();
+            conn.read_exact(&mut dst)?;
+            let elapsed = t.elapsed();
+            sender.join().expect("the sender thread")?;
+            Ok(elapsed)
+        })?;
+        best = best.min(t);
+    }
+    Ok(best)
 }
 
 /// Best time of `runs` memcpys of `src` into a buffer already faulted in.
@@ -176,6 +204,7 @@ fn main() -> Result<()> {
         anyhow::Ok((export, import, total, state))
     })?;
     let copy = memcpy_best(&bytes, args.runs);
+    let wire = loopback_best(&bytes, args.runs)?;
     let mib = bytes.len() as f64 / (1 << 20) as f64;
     println!(
         "state {w}x{h}, {k} cascades: {mib:.1} MiB ({} bytes)",
@@ -204,6 +233,14 @@ fn main() -> Result<()> {
         args.runs.max(3),
         ms(copy),
         mib / copy.as_secs_f64()
+    );
+    println!(
+        "loopback TCP of them best of {}: {:>8.1} ms  {:>7.0} MiB/s ({:.1}x memcpy; export + \
+         import move the state twice)",
+        args.runs.max(3),
+        ms(wire),
+        mib / wire.as_secs_f64(),
+        wire.as_secs_f64() / copy.as_secs_f64()
     );
     let ratio = total.as_secs_f64() / copy.as_secs_f64();
     println!(
