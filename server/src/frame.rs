@@ -758,14 +758,22 @@ impl ShardedFrame {
     }
 
     /// What a receiver checks of a state's header before it expands the state's AOV words
-    /// (which [`ShardedFrame::import`] checks again): the frame's size, and the frame's AOVs or
-    /// none (`aovs` empty). So the AOV words of an accepted state are at most the frame's.
+    /// (which [`ShardedFrame::import`] checks again, in the same order): the frame's id, the
+    /// frame's size, and the frame's AOVs or none (`aovs` empty). So the AOV words of an
+    /// accepted state are at most the frame's.
     pub fn check_state_header(
         &self,
+        frame: &str,
         width: u32,
         height: u32,
         aovs: &[AovSpec],
     ) -> Result<(), ImportRefused> {
+        if frame != self.id() {
+            return Err(ImportRefused::WrongFrame {
+                state: frame.to_owned(),
+                url: self.id().to_owned(),
+            });
+        }
         let r = &self.spec.request;
         if (width, height) != (r.width, r.height) {
             return Err(ImportRefused::Mismatch {
@@ -1429,6 +1437,50 @@ mod tests {
             }
         );
         assert_eq!(small.cut().whole(), before, "nothing of it applied");
+    }
+
+    /// A state's header is checked before its AOV words are expanded, with the refusals that
+    /// `import` gives: another frame's id, another size, AOVs other than the frame's (a state
+    /// without AOVs is fine). Nothing is applied by a check.
+    #[test]
+    fn state_headers_are_checked_before_aov_words_are_expanded() {
+        let albedo = vec![AovSpec::new("albedo", &["R", "G", "B"])];
+        let mut request = CreateFrame::new("f", 8, 4);
+        request.aovs = albedo.clone();
+        let frame = ShardedFrame::new(FrameSpec::new(request).unwrap());
+        assert_eq!(frame.check_state_header("f", 8, 4, &albedo), Ok(()));
+        assert_eq!(frame.check_state_header("f", 8, 4, &[]), Ok(()));
+        assert!(matches!(
+            frame.check_state_header("g", 9, 4, &albedo),
+            Err(ImportRefused::WrongFrame { state, .. }) if state == "g"
+        ));
+        assert_eq!(
+            frame.check_state_header("f", 9, 4, &albedo),
+            Err(ImportRefused::Mismatch {
+                frame: "f".into(),
+                error: MergeError::Size {
+                    ours_w: 8,
+                    ours_h: 4,
+                    theirs_w: 9,
+                    theirs_h: 4
+                }
+            })
+        );
+        let depth = [AovSpec::new("depth", &["Z"])];
+        match frame.check_state_header("f", 8, 4, &depth) {
+            Err(ImportRefused::Aovs { reason, .. }) => {
+                assert!(reason.contains("\"depth\" (Z)"), "{reason}");
+                assert!(reason.contains("\"albedo\" (R, G, B)"), "{reason}");
+            }
+            other => panic!("{other:?}"),
+        }
+        // A frame without AOVs takes no state with AOVs.
+        let plain = ShardedFrame::new(spec(8, 4));
+        assert!(matches!(
+            plain.check_state_header("f", 8, 4, &albedo),
+            Err(ImportRefused::Aovs { .. })
+        ));
+        assert_eq!(frame.info().samples, 0);
     }
 
     /// After `retire` returns, nothing is applied: batches and imports are refused by name.

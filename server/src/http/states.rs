@@ -130,7 +130,7 @@ pub async fn import(
         let _reservation = reservation;
         let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
         // Refused before its AOV words are expanded (at most the frame's, reserved above).
-        target.check_state_header(dump.width, dump.height, &dump.aovs)?;
+        target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
         let state = crate::export::load_runs(dump, runs, aov_runs)?;
         let dump = &state.dump;
         let applied = target.import(
