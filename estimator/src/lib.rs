@@ -45,6 +45,6 @@ pub use resolve_spread::{
     DEFAULT_SPREAD_SUPPORT, SPREAD_RADII,
 };
 pub use state::{
-    cascade_units, cell_len, cell_spp, check_sample, top_sum, CellsError, FrameState, Kernel,
-    MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
+    cascade_units, cell_len, cell_spp, check_pixels, check_sample, top_sum, CellsError, FrameState,
+    Kernel, MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
 };

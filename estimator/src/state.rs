@@ -251,7 +251,7 @@ pub struct ShapeError {
 }
 
 /// Accumulated cascades of a frame, or of a band of its rows.
-#[derive(Clone, PartialEq)]
+#[derive(PartialEq)]
 pub struct FrameState {
     width: u32,
     height: u32,
@@ -262,6 +262,30 @@ pub struct FrameState {
     /// Samples held in all pixels (a function of `cells`, kept so that the common case "no pixel
     /// can be full" is checked without reading any cell).
     samples: u64,
+}
+
+impl Clone for FrameState {
+    fn clone(&self) -> Self {
+        Self {
+            layout: self.layout.clone(),
+            cells: self.cells.clone(),
+            ..*self
+        }
+    }
+
+    /// Reuses this state's cells when they have room: a copy taken again and again (a frame's
+    /// cut) then costs a memcpy, not a fresh allocation faulted in page by page.
+    fn clone_from(&mut self, source: &Self) {
+        self.layout.clone_from(&source.layout);
+        self.cells.clone_from(&source.cells);
+        (self.width, self.height, self.y0, self.rows, self.samples) = (
+            source.width,
+            source.height,
+            source.y0,
+            source.rows,
+            source.samples,
+        );
+    }
 }
 
 impl std::fmt::Debug for FrameState {
@@ -334,6 +358,35 @@ fn add_cell(dst: &mut [u64], src: &[u64]) {
     dst[top + 3] = dst[top + 3].wrapping_add(src[top + 3]);
     debug_assert_eq!(hi >> (3 * HI_BITS), 0, "top cascade sum overflows 85 bits");
     dst[4 * k] = hi;
+}
+
+/// Checks the cells of consecutive whole pixels of a state with `cascades` cascades
+/// (`cell_len(cascades)` words each) against the bounds of the module docs, as
+/// [`FrameState::from_cells`] does, and returns the samples they hold; `first` is the number of
+/// the first pixel, row-major from 0 within the rows from `y0` of a `width`-wide frame, to name
+/// a bad pixel. For a receiver that checks a state piece by piece as it decodes it.
+pub fn check_pixels(
+    width: u32,
+    y0: u32,
+    cascades: usize,
+    first: u64,
+    cells: &[u64],
+) -> Result<u64, CellsError> {
+    let stride = cell_len(cascades);
+    debug_assert_eq!(cells.len() % stride, 0, "whole pixels");
+    let mut samples = 0u64;
+    for (i, cell) in cells.chunks_exact(stride).enumerate() {
+        check_cell(cell).map_err(|reason| {
+            let pixel = first + i as u64;
+            CellsError::Invalid {
+                x: (pixel % width as u64) as u32,
+                y: y0 + (pixel / width as u64) as u32,
+                reason,
+            }
+        })?;
+        samples += cell_spp(cell);
+    }
+    Ok(samples)
 }
 
 /// Why `cell` (of pixel `x`, `y`) cannot hold what checked samples produce, if it cannot.
@@ -439,15 +492,7 @@ impl FrameState {
             }
             .into());
         }
-        let mut samples = 0u64;
-        for (i, cell) in cells.chunks_exact(stride).enumerate() {
-            check_cell(cell).map_err(|reason| CellsError::Invalid {
-                x: (i % width as usize) as u32,
-                y: rows.start + (i / width as usize) as u32,
-                reason,
-            })?;
-            samples += cell_spp(cell);
-        }
+        let samples = check_pixels(width, rows.start, layout.cascades(), 0, &cells)?;
         Ok(Self {
             width,
             height,
@@ -883,21 +928,7 @@ impl FrameState {
     /// Checks that `other` is a state of a frame of the same size and cascade layout (its rows
     /// may differ).
     pub fn check_same_frame(&self, other: &FrameState) -> Result<(), MergeError> {
-        if (self.width, self.height) != (other.width, other.height) {
-            return Err(MergeError::Size {
-                ours_w: self.width,
-                ours_h: self.height,
-                theirs_w: other.width,
-                theirs_h: other.height,
-            });
-        }
-        if self.layout != other.layout {
-            return Err(MergeError::Layout {
-                ours: format!("{:?}", self.layout),
-                theirs: format!("{:?}", other.layout),
-            });
-        }
-        Ok(())
+        self.check_same_geometry(other.width, other.height, &other.layout)
     }
 
     /// Adds another state of the same frame into this one, exactly.
@@ -933,6 +964,104 @@ impl FrameState {
         self.check_room_for(other)?;
         self.add_shared_rows(other);
         Ok(())
+    }
+
+    /// Checks that a state of a `width x height` frame with `layout` (any rows of it) is of the
+    /// same frame as this one: [`FrameState::check_same_frame`] for a state that is not held as
+    /// a `FrameState` (one being decoded).
+    pub fn check_same_geometry(
+        &self,
+        width: u32,
+        height: u32,
+        layout: &CascadeLayout,
+    ) -> Result<(), MergeError> {
+        if (self.width, self.height) != (width, height) {
+            return Err(MergeError::Size {
+                ours_w: self.width,
+                ours_h: self.height,
+                theirs_w: width,
+                theirs_h: height,
+            });
+        }
+        if self.layout != *layout {
+            return Err(MergeError::Layout {
+                ours: format!("{:?}", self.layout),
+                theirs: format!("{layout:?}"),
+            });
+        }
+        Ok(())
+    }
+
+    /// Where `cells`, consecutive whole pixels of another state of this frame starting at its
+    /// pixel `first` (row-major within its rows from `y0`), meet this state's rows: the cells'
+    /// range in this state and in `cells`, or `None` if none of them lie here.
+    fn shared_pixels(
+        &self,
+        y0: u32,
+        first: u64,
+        cells: &[u64],
+    ) -> Option<(Range<usize>, Range<usize>)> {
+        let stride = cell_len(self.layout.cascades());
+        let w = self.width as u64;
+        let start = y0 as u64 * w + first;
+        let end = start + (cells.len() / stride) as u64;
+        let (ours, ours_end) = (self.y0 as u64 * w, (self.y0 + self.rows) as u64 * w);
+        let (a, b) = (start.max(ours), end.min(ours_end));
+        if a >= b {
+            return None;
+        }
+        let cells_of = |from: u64| (a - from) as usize * stride..(b - from) as usize * stride;
+        Some((cells_of(ours), cells_of(start)))
+    }
+
+    /// [`FrameState::check_room_for`] for a piece of another state of this frame (see
+    /// [`FrameState::add_pixels`]): no pixel the two share would hold more than
+    /// [`MAX_PIXEL_SAMPLES`] samples.
+    pub fn check_room_for_pixels(
+        &self,
+        y0: u32,
+        first: u64,
+        cells: &[u64],
+    ) -> Result<(), MergeError> {
+        let Some((dst, src)) = self.shared_pixels(y0, first, cells) else {
+            return Ok(());
+        };
+        let stride = cell_len(self.layout.cascades());
+        let full = self.cells[dst.clone()]
+            .chunks_exact(stride)
+            .zip(cells[src].chunks_exact(stride))
+            .position(|(d, s)| cell_spp(d) + cell_spp(s) > MAX_PIXEL_SAMPLES);
+        match full {
+            None => Ok(()),
+            Some(i) => {
+                let pixel = dst.start / stride + i;
+                Err(MergeError::TooManySamples {
+                    x: (pixel % self.width as usize) as u32,
+                    y: self.y0 + (pixel / self.width as usize) as u32,
+                })
+            }
+        }
+    }
+
+    /// Adds `cells`, consecutive whole pixels of another state of this frame starting at its
+    /// pixel `first` (row-major within its rows from `y0`), to the pixels of them this state
+    /// holds (possibly none), exactly; returns the samples added. For a receiver adding a state
+    /// piece by piece as it decodes it: the caller has checked the pieces
+    /// ([`check_pixels`]), the frame ([`FrameState::check_same_geometry`]) and the room
+    /// ([`FrameState::check_room_for_pixels`]) first, so that nothing changes unless all fits.
+    pub fn add_pixels(&mut self, y0: u32, first: u64, cells: &[u64]) -> u64 {
+        let Some((dst, src)) = self.shared_pixels(y0, first, cells) else {
+            return 0;
+        };
+        let stride = cell_len(self.layout.cascades());
+        let mut added = 0;
+        let dst = self.cells[dst].chunks_exact_mut(stride);
+        for (d, s) in dst.zip(cells[src].chunks_exact(stride)) {
+            added += cell_spp(s);
+            add_cell(d, s);
+        }
+        self.samples += added;
+        added
     }
 
     /// The rows this state shares with `other`, as cell ranges of `self` and of `other`.

@@ -384,6 +384,17 @@ impl Client {
         self.send(Method::GET, &path, None).await.map(|(_, b)| b)
     }
 
+    /// [`Client::export_state`] into `out` (cleared first), read as it arrives: a node that
+    /// pulls states repeatedly reuses one buffer instead of allocating (and faulting in) one as
+    /// large as the frame per pull.
+    pub async fn export_state_into(&self, id: &str, out: &mut Vec<u8>) -> Result<(), ClientError> {
+        validate_frame_id(id)?;
+        let path = format!("/v1/frames/{id}/state");
+        self.send_into(Method::GET, &path, None, None, Some(out))
+            .await
+            .map(|_| ())
+    }
+
     /// `POST /v1/frames/{id}/state`: adds an encoded state to the frame. A state carrying an
     /// [`crate::Origin`] is applied once however often it is resent.
     pub async fn import_state(&self, id: &str, state: Bytes) -> Result<ImportAck, ClientError> {
@@ -429,6 +440,19 @@ impl Client {
         body: Option<(Bytes, &'static str)>,
         header: Option<(&'static str, &str)>,
     ) -> Result<(StatusCode, Bytes), ClientError> {
+        self.send_into(method, path, body, header, None).await
+    }
+
+    /// [`Client::send_with`], reading a successful response's body into `sink` instead (the
+    /// `Bytes` returned are then empty).
+    async fn send_into(
+        &self,
+        method: Method,
+        path: &str,
+        body: Option<(Bytes, &'static str)>,
+        header: Option<(&'static str, &str)>,
+        mut sink: Option<&mut Vec<u8>>,
+    ) -> Result<(StatusCode, Bytes), ClientError> {
         let operation = format!("{method} {path}");
         let url = format!("{}{path}", self.base);
         let attempts = self.retry.max_attempts.max(1);
@@ -471,7 +495,13 @@ impl Client {
                 .and_then(|v| v.to_str().ok())
                 .and_then(|v| v.trim().parse::<u64>().ok())
                 .map(Duration::from_secs);
-            let bytes = match response.bytes().await {
+            let read = match sink.as_deref_mut() {
+                Some(out) if status.is_success() => {
+                    read_into(response, out).await.map(|()| Bytes::new())
+                }
+                _ => response.bytes().await,
+            };
+            let bytes = match read {
                 Ok(b) => b,
                 Err(e) => {
                     last = Some(Transient {
@@ -509,6 +539,18 @@ impl Client {
             last: last.map_or_else(|| "none".to_owned(), |t| t.message),
         })
     }
+}
+
+/// Reads `response`'s body into `out`, cleared first, with room for its declared length.
+async fn read_into(mut response: reqwest::Response, out: &mut Vec<u8>) -> reqwest::Result<()> {
+    out.clear();
+    if let Some(len) = response.content_length() {
+        out.reserve(len as usize);
+    }
+    while let Some(chunk) = response.chunk().await? {
+        out.extend_from_slice(&chunk);
+    }
+    Ok(())
 }
 
 /// `text` as a query value: every byte but the unreserved ones (RFC 3986) as `%XX`, so layer

@@ -66,7 +66,7 @@ pub use api::{
 pub use batch::{records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};
-pub use state::{Applied, Origin, StateDump, StateError, STATE_CONTENT_TYPE};
+pub use state::{Applied, Origin, Runs, StateDump, StateError, STATE_CONTENT_TYPE};
 #[cfg(feature = "client")]
 pub use writer::BatchWriter;
 

@@ -387,24 +387,22 @@ impl StateDump {
         out.write_all(&version.to_le_bytes())?;
         out.write_all(&self.header_bytes())?;
         let pixels = Pixels::new(parts, self.cell_len());
-        let mut block = Vec::with_capacity(8 * 8192);
+        // Converted into a 64 KiB block (a plain copy on a little-endian machine), one write per
+        // block rather than one per cell.
+        let mut block = Block {
+            bytes: vec![0; 8 * PIECE_CELLS],
+            used: 0,
+        };
         for run in pixels.runs() {
-            block.extend_from_slice(&(run.start as u32).to_le_bytes());
-            block.extend_from_slice(&((run.end - run.start) as u32).to_le_bytes());
+            block.put(&[run.start as u32, (run.end - run.start) as u32], out)?;
             for cells in pixels.cells(run) {
-                // Convert in blocks: one write per 64 KiB instead of one per cell.
-                for chunk in cells.chunks(8192) {
-                    if block.len() + 8 * chunk.len() > block.capacity() {
-                        out.write_all(&block)?;
-                        block.clear();
-                    }
-                    block.extend(chunk.iter().flat_map(|c| c.to_le_bytes()));
+                for chunk in cells.chunks(PIECE_CELLS) {
+                    block.put_cells(chunk, out)?;
                 }
             }
         }
-        block.extend_from_slice(&(pixels.count() as u32).to_le_bytes());
-        block.extend_from_slice(&0u32.to_le_bytes());
-        out.write_all(&block)?;
+        block.put(&[pixels.count() as u32, 0], out)?;
+        block.flush(out)?;
         out.write_all(&self.batches_bytes())?;
         if version >= 3 {
             out.write_all(&self.aov_bytes())?;
@@ -526,6 +524,27 @@ impl StateDump {
     /// Reads version 3 and version 2 (a state without AOVs); `max_cells` bounds the cells and
     /// the AOV words together.
     pub fn decode(bytes: &[u8], max_cells: u64) -> Result<StateDump, StateError> {
+        let (mut dump, runs, aov_runs) = StateDump::decode_runs(bytes, max_cells)?;
+        dump.cells = runs.expand()?;
+        if let Some(aov_runs) = aov_runs {
+            dump.aov_cells = aov_runs.expand()?;
+        }
+        Ok(dump)
+    }
+
+    /// Decodes an untrusted state body like [`StateDump::decode`], except its cells and AOV
+    /// words: the dump comes back with neither (its `aovs` are set), and the runs of each are
+    /// returned as they lie in `bytes` (the AOV runs when the state declares an AOV channel),
+    /// for a receiver that checks and adds them piece by piece instead of expanding a whole
+    /// frame of cells first. Everything but the values is checked here (preamble, header,
+    /// limit, the run lists' order and bounds, every length against the bytes present, the
+    /// applied batches, the AOV declarations, nothing after them); [`Runs`] checks the values
+    /// as it hands them out.
+    #[allow(clippy::type_complexity)]
+    pub fn decode_runs(
+        bytes: &[u8],
+        max_cells: u64,
+    ) -> Result<(StateDump, Runs<'_>, Option<Runs<'_>>), StateError> {
         let (body, version) = match preamble(bytes, STATE_VERSION) {
             Err(StateError::UnsupportedVersion { found, .. }) if found == STATE_VERSION_2 => {
                 (preamble(bytes, STATE_VERSION_2)?, STATE_VERSION_2)
@@ -546,8 +565,9 @@ impl StateDump {
             at: 6 + header_len,
             total: bytes.len(),
         };
-        dump.cells = rest.runs(count, dump.cell_len())?;
+        let runs = rest.runs(count, dump.cell_len())?;
         dump.batches = rest.batches()?;
+        let mut aov_runs = None;
         if version >= 3 {
             dump.aovs = rest.aovs()?;
             let channels = dump.aov_channels();
@@ -560,7 +580,7 @@ impl StateDump {
                         max: max_cells,
                     });
                 }
-                dump.aov_cells = rest.runs(words, 1 + 2 * channels)?;
+                aov_runs = Some(rest.runs(words, 1 + 2 * channels)?);
             }
         }
         if !rest.bytes.is_empty() {
@@ -568,7 +588,7 @@ impl StateDump {
                 count: rest.bytes.len(),
             });
         }
-        Ok(dump)
+        Ok((dump, runs, aov_runs))
     }
 
     /// Decodes an untrusted state body of the previous format version 1 (`4 * K` cells per
@@ -721,10 +741,11 @@ impl<'a> Reader<'a> {
         ))
     }
 
-    /// The runs of a state of `count` cells, `cell_len` per pixel, expanded to all its cells.
-    fn runs(&mut self, count: u64, cell_len: usize) -> Result<Vec<u64>, StateError> {
+    /// The run list of a state of `count` cells, `cell_len` per pixel: its headers checked
+    /// (order, bounds, lengths against the bytes present), its cells left where they are.
+    fn runs(&mut self, count: u64, cell_len: usize) -> Result<Runs<'a>, StateError> {
         let pixels = count / cell_len as u64;
-        let mut cells = vec![0u64; count as usize];
+        let (start, at) = (self.bytes, self.at);
         let mut next = 0u64; // the first pixel a run may start at
         loop {
             let first = self.u32()? as u64;
@@ -735,7 +756,11 @@ impl<'a> Reader<'a> {
                         "the run list ends with pixel {first}, not with the {pixels} pixels held"
                     )));
                 }
-                return Ok(cells);
+                return Ok(Runs {
+                    bytes: &start[..self.at - at],
+                    cell_len,
+                    pixels,
+                });
             }
             if first < next || first + n > pixels {
                 return Err(StateError::Malformed(format!(
@@ -743,20 +768,7 @@ impl<'a> Reader<'a> {
                      (with a gap) in the {pixels} pixels held"
                 )));
             }
-            let bytes = self.take(n * 8 * cell_len as u64)?;
-            let dst = &mut cells[first as usize * cell_len..(first + n) as usize * cell_len];
-            for (d, b) in dst.iter_mut().zip(bytes.chunks_exact(8)) {
-                *d = u64::from_le_bytes(b.try_into().expect("8 bytes"));
-            }
-            if let Some(i) = dst
-                .chunks_exact(cell_len)
-                .position(|p| p.iter().all(|&c| c == 0))
-            {
-                return Err(StateError::Malformed(format!(
-                    "pixel {} is in a run but holds nothing",
-                    first as usize + i
-                )));
-            }
+            self.take(n * 8 * cell_len as u64)?;
             next = first + n + 1;
         }
     }
@@ -836,6 +848,157 @@ impl<'a> Reader<'a> {
             all.push(applied);
         }
         Ok(all)
+    }
+}
+
+/// The cells of a decoded state body, as the runs of pixels holding something, read in place
+/// from the body ([`StateDump::decode_runs`]). Their headers are checked already; the cells'
+/// values are checked as they are handed out: a pixel in a run that holds nothing is refused
+/// (`Malformed`) before any of its piece is.
+#[derive(Debug, Clone, Copy)]
+pub struct Runs<'a> {
+    /// From the first run's header to the end of the list.
+    bytes: &'a [u8],
+    cell_len: usize,
+    pixels: u64,
+}
+
+/// Cells converted at a time by [`Runs::try_for_each`]: 64 KiB, which stays in the cache.
+const PIECE_CELLS: usize = 8192;
+
+impl<'a> Runs<'a> {
+    /// Cells per pixel (`4K + 1`).
+    pub fn cell_len(&self) -> usize {
+        self.cell_len
+    }
+
+    /// Pixels of the rows held, empty ones included.
+    pub fn pixels(&self) -> u64 {
+        self.pixels
+    }
+
+    /// The runs' cells as little-endian bytes, in pieces of whole pixels: `f(first, bytes)`
+    /// with the number of the piece's first pixel. The headers were checked by the decoder.
+    fn pieces<E: From<StateError>>(
+        &self,
+        max_pixels: usize,
+        mut f: impl FnMut(u64, &'a [u8]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let pixel_bytes = 8 * self.cell_len;
+        let mut rest = self.bytes;
+        loop {
+            let (head, tail) = rest.split_at(8);
+            let first = u32::from_le_bytes(head[..4].try_into().expect("4 bytes")) as u64;
+            let n = u32::from_le_bytes(head[4..].try_into().expect("4 bytes")) as usize;
+            if n == 0 {
+                return Ok(());
+            }
+            let (cells, tail) = tail.split_at(n * pixel_bytes);
+            for (i, piece) in cells.chunks(max_pixels * pixel_bytes).enumerate() {
+                let first = first + (i * max_pixels) as u64;
+                // A run's pixels all hold something (the runs are maximal).
+                if let Some(p) = piece
+                    .chunks_exact(pixel_bytes)
+                    .position(|p| p.iter().all(|&b| b == 0))
+                {
+                    return Err(StateError::Malformed(format!(
+                        "pixel {} is in a run but holds nothing",
+                        first + p as u64
+                    ))
+                    .into());
+                }
+                f(first, piece)?;
+            }
+            rest = tail;
+        }
+    }
+
+    /// Hands the runs' cells to `f` in order, in pieces of whole pixels (at most 64 KiB,
+    /// converted into one reused buffer): `f(first, cells)` gets the number of the piece's first
+    /// pixel (row-major from 0 within the rows held) and its `cell_len` cells per pixel. The
+    /// first error, `f`'s or a pixel holding nothing, stops the visit and is returned.
+    pub fn try_for_each<E: From<StateError>>(
+        &self,
+        mut f: impl FnMut(u64, &[u64]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        let max_pixels = (PIECE_CELLS / self.cell_len).max(1);
+        let mut buf = vec![0u64; max_pixels * self.cell_len];
+        self.pieces(max_pixels, |first, bytes| {
+            let cells = &mut buf[..bytes.len() / 8];
+            le_cells(bytes, cells);
+            f(first, cells)
+        })
+    }
+
+    /// All the cells of the rows held, in a new buffer (empty pixels zero).
+    pub fn expand(&self) -> Result<Vec<u64>, StateError> {
+        let mut cells = vec![0u64; (self.pixels * self.cell_len as u64) as usize];
+        self.expand_into(&mut cells)?;
+        Ok(cells)
+    }
+
+    /// Writes the runs' cells into `cells`, all the cells of the rows held (empty pixels are
+    /// left as they are: zero in a fresh buffer).
+    ///
+    /// # Panics
+    /// If `cells` is not `pixels * cell_len` long.
+    pub fn expand_into(&self, cells: &mut [u64]) -> Result<(), StateError> {
+        assert_eq!(cells.len() as u64, self.pixels * self.cell_len as u64);
+        let max_pixels = (PIECE_CELLS / self.cell_len).max(1);
+        self.pieces(max_pixels, |first, bytes| {
+            let at = first as usize * self.cell_len;
+            le_cells(bytes, &mut cells[at..at + bytes.len() / 8]);
+            Ok(())
+        })
+    }
+}
+
+/// `bytes` (little-endian `u64`s) into `cells`, which is exactly as long: a plain copy on a
+/// little-endian machine.
+fn le_cells(bytes: &[u8], cells: &mut [u64]) {
+    for (c, b) in cells.iter_mut().zip(bytes.chunks_exact(8)) {
+        *c = u64::from_le_bytes(b.try_into().expect("8 bytes"));
+    }
+}
+
+/// A buffer that the run list is encoded into before it is written.
+struct Block {
+    bytes: Vec<u8>,
+    used: usize,
+}
+
+impl Block {
+    /// Makes room for `n` more bytes (at most the block's size), writing out what it holds.
+    fn room(&mut self, n: usize, out: &mut impl std::io::Write) -> std::io::Result<&mut [u8]> {
+        if self.used + n > self.bytes.len() {
+            self.flush(out)?;
+        }
+        let at = self.used;
+        self.used += n;
+        Ok(&mut self.bytes[at..at + n])
+    }
+
+    /// A run header: two `u32`s.
+    fn put(&mut self, words: &[u32; 2], out: &mut impl std::io::Write) -> std::io::Result<()> {
+        let dst = self.room(8, out)?;
+        dst[..4].copy_from_slice(&words[0].to_le_bytes());
+        dst[4..].copy_from_slice(&words[1].to_le_bytes());
+        Ok(())
+    }
+
+    /// At most [`PIECE_CELLS`] cells, little-endian.
+    fn put_cells(&mut self, cells: &[u64], out: &mut impl std::io::Write) -> std::io::Result<()> {
+        let dst = self.room(8 * cells.len(), out)?;
+        for (d, c) in dst.chunks_exact_mut(8).zip(cells) {
+            d.copy_from_slice(&c.to_le_bytes());
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self, out: &mut impl std::io::Write) -> std::io::Result<()> {
+        out.write_all(&self.bytes[..self.used])?;
+        self.used = 0;
+        Ok(())
     }
 }
 
@@ -1084,6 +1247,57 @@ mod tests {
     }
 
     /// A decoder accepts only the canonical encoding: runs apart and full, workers in order.
+    /// The runs handed out piece by piece are the decoded cells, however the pieces fall:
+    /// pixels of a run longer than one piece, runs split across pieces, gaps between runs.
+    #[test]
+    fn runs_in_pieces_are_the_decoded_cells() {
+        let cell = 4 * 2 + 1;
+        let (w, h) = (300u32, 40u32);
+        let pixels = (w * h) as usize;
+        let mut d = StateDump {
+            width: w,
+            height: h,
+            rows_end: h,
+            cells: vec![0; pixels * cell],
+            batches: vec![],
+            ..dump()
+        };
+        // A long run (more than a piece of 8192 cells), then every third pixel, then a tail.
+        for p in (0..2000)
+            .chain((2000..9000).step_by(3))
+            .chain(pixels - 10..pixels)
+        {
+            for (i, c) in d.cells[p * cell..(p + 1) * cell].iter_mut().enumerate() {
+                *c = (p * 31 + i) as u64 + 1;
+            }
+        }
+        let bytes = d.encode();
+        let (header, runs, aov_runs) = StateDump::decode_runs(&bytes, u64::MAX).unwrap();
+        assert!(header.cells.is_empty() && aov_runs.is_none());
+        assert_eq!((runs.pixels(), runs.cell_len()), (pixels as u64, cell));
+        let mut pieced = vec![0u64; pixels * cell];
+        let mut pieces = 0;
+        runs.try_for_each(|first, cells| {
+            assert_eq!(cells.len() % cell, 0);
+            assert!(cells.len() <= PIECE_CELLS);
+            let at = first as usize * cell;
+            pieced[at..at + cells.len()].copy_from_slice(cells);
+            pieces += 1;
+            Ok::<(), StateError>(())
+        })
+        .unwrap();
+        assert!(pieces > 2000, "the short runs come one by one");
+        assert_eq!(pieced, d.cells);
+        assert_eq!(StateDump::decode(&bytes, u64::MAX).unwrap(), d);
+        // The visit stops at the first error of the visitor and returns it.
+        let mut seen = 0;
+        let stop = runs.try_for_each(|_, _| {
+            seen += 1;
+            Err(StateError::Malformed("stop".into()))
+        });
+        assert_eq!((stop, seen), (Err(StateError::Malformed("stop".into())), 1));
+    }
+
     #[test]
     fn non_canonical_runs_and_batches_are_refused() {
         let cell = 4 * 2 + 1;
@@ -1103,13 +1317,22 @@ mod tests {
             StateDump::decode(&touching, u64::MAX),
             Err(StateError::Malformed(m)) if m.contains("previous run")
         ));
-        // An empty pixel inside a run.
+        // An empty pixel inside a run: refused by the decoder, and by the runs before their
+        // visitor sees its piece.
         let mut hollow = bytes.clone();
         hollow[runs_at + 8..][..8].copy_from_slice(&0u64.to_le_bytes());
         assert!(matches!(
             StateDump::decode(&hollow, u64::MAX),
             Err(StateError::Malformed(m)) if m.contains("holds nothing")
         ));
+        let (_, runs, _) = StateDump::decode_runs(&hollow, u64::MAX).unwrap();
+        let mut visited = 0;
+        let refused = runs.try_for_each(|_, _| {
+            visited += 1;
+            Ok::<(), StateError>(())
+        });
+        assert!(matches!(refused, Err(StateError::Malformed(m)) if m.contains("pixel 0")));
+        assert_eq!(visited, 0);
         let mut swapped = dump();
         swapped.batches.reverse();
         assert!(matches!(

@@ -5,11 +5,14 @@
 //! importing into a frame that has samples of its own adds the two exactly.
 
 use splatd_proto::api::AovSpec;
-use splatd_proto::{Applied, Origin, StateDump};
+use splatd_proto::{Applied, Origin, Runs, StateDump, StateError};
 
 use splatd_estimator::{
-    AovCellsError, AovSums, CascadeLayout, CellsError, FrameState, ParamError, FRAC_BITS,
+    check_pixels, AovCellsError, AovSums, CascadeLayout, CellsError, FrameState, MergeError,
+    ParamError, FRAC_BITS,
 };
+
+use crate::frame::{Importable, PieceVisitor};
 
 /// A frame's AOVs as a state carries them: the declarations and the sums of the rows held.
 pub type Aovs<'a> = Option<(&'a [AovSpec], &'a AovSums)>;
@@ -32,6 +35,9 @@ pub enum ImportError {
     /// Its AOV words do not fit its geometry, or hold what no checked values could have made.
     #[error(transparent)]
     Aovs(#[from] AovCellsError),
+    /// Its run list is malformed (a pixel in a run holds nothing).
+    #[error(transparent)]
+    State(#[from] StateError),
 }
 
 /// The wire form of a state (a whole frame or a band) holding the samples of `batches`.
@@ -69,6 +75,16 @@ fn with_aovs(dump: StateDump, aovs: Aovs<'_>) -> StateDump {
 pub fn take_aovs(dump: &mut StateDump) -> Result<Option<(Vec<AovSpec>, AovSums)>, ImportError> {
     let specs = std::mem::take(&mut dump.aovs);
     let words = std::mem::take(&mut dump.aov_cells);
+    aov_sums(dump, specs, words)
+}
+
+/// The checked AOV sums of a state of `dump`'s rows from its declarations and words: `None`
+/// when they declare no channel.
+fn aov_sums(
+    dump: &StateDump,
+    specs: Vec<AovSpec>,
+    words: Vec<u64>,
+) -> Result<Option<(Vec<AovSpec>, AovSums)>, ImportError> {
     let channels: usize = specs.iter().map(|a| a.channels.len()).sum();
     if channels == 0 {
         return Ok(None);
@@ -102,7 +118,7 @@ pub fn encoded_len(state: &FrameState, aovs: Aovs<'_>, frame: &str) -> u64 {
 /// # Panics
 /// If `bands` is empty.
 pub fn write_bands(
-    bands: &[FrameState],
+    bands: &[&FrameState],
     aovs: Aovs<'_>,
     frame: &str,
     origin: Option<Origin>,
@@ -172,6 +188,91 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
     )?)
 }
 
+/// A state body decoded for import without expanding its cells ([`StateDump::decode_runs`]):
+/// its header, its AOVs, and its runs read in place from the body, every pixel of them checked
+/// like [`load`] checks a whole state. Importing it adds the runs straight into the frame's bands
+/// ([`crate::frame::ShardedFrame::import`]), so the only full-size buffer of an import is the
+/// body itself (and the AOV sums of a state that has AOVs).
+pub struct Decoded<'a> {
+    /// The header (no cells, no AOVs).
+    pub dump: StateDump,
+    /// The state's AOV declarations and checked sums, `None` for a state without AOVs.
+    pub aovs: Option<(Vec<AovSpec>, AovSums)>,
+    layout: CascadeLayout,
+    runs: Runs<'a>,
+    samples: u64,
+}
+
+impl Decoded<'_> {
+    /// The AOVs, as [`crate::frame::ShardedFrame::import`] takes them.
+    pub fn aovs(&self) -> Aovs<'_> {
+        self.aovs
+            .as_ref()
+            .map(|(specs, sums)| (specs.as_slice(), sums))
+    }
+}
+
+/// Checks a state decoded without its cells ([`StateDump::decode_runs`]) like [`load`] and
+/// [`take_aovs`] check a whole one: the precision, the cascade parameters and every pixel of
+/// every run (one pass over the runs, a cache-sized piece at a time), then the AOV words (the
+/// AOV runs, expanded into the sums of the rows held).
+pub fn load_runs<'a>(
+    mut dump: StateDump,
+    runs: Runs<'a>,
+    aov_runs: Option<Runs<'_>>,
+) -> Result<Decoded<'a>, ImportError> {
+    if dump.frac_bits != FRAC_BITS {
+        return Err(ImportError::FracBits {
+            found: dump.frac_bits,
+        });
+    }
+    let layout = CascadeLayout::new(dump.base, dump.cascades, dump.lowest_scale, dump.luminance)?;
+    let mut samples = 0;
+    runs.try_for_each(|first, cells| {
+        samples += check_pixels(dump.width, dump.rows_start, layout.cascades(), first, cells)?;
+        Ok::<(), ImportError>(())
+    })?;
+    let words = aov_runs.map(|r| r.expand()).transpose()?;
+    let specs = std::mem::take(&mut dump.aovs);
+    let aovs = aov_sums(&dump, specs, words.unwrap_or_default())?;
+    Ok(Decoded {
+        dump,
+        aovs,
+        layout,
+        runs,
+        samples,
+    })
+}
+
+impl Importable for Decoded<'_> {
+    fn geometry(&self) -> (u32, u32, &CascadeLayout) {
+        (self.dump.width, self.dump.height, &self.layout)
+    }
+
+    fn first_row(&self) -> u32 {
+        self.dump.rows_start
+    }
+
+    fn samples(&self) -> u64 {
+        self.samples
+    }
+
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+        /// The runs' own refusals were all found by [`load_runs`]; only `f`'s remain.
+        enum Stop {
+            Merge(MergeError),
+        }
+        impl From<StateError> for Stop {
+            fn from(e: StateError) -> Stop {
+                unreachable!("the runs were checked when the state was loaded: {e}")
+            }
+        }
+        self.runs
+            .try_for_each(|first, cells| f(first, cells).map_err(Stop::Merge))
+            .map_err(|Stop::Merge(e)| e)
+    }
+}
+
 /// Fractional bits of state format version 1.
 const V1_FRAC_BITS: u32 = 32;
 
@@ -228,6 +329,7 @@ mod tests {
             }
         }
         let mut streamed = Vec::new();
+        let bands: Vec<&FrameState> = bands.iter().collect();
         write_bands(&bands, None, "f", None, vec![], &mut streamed).unwrap();
         assert_eq!(streamed, dump(&whole, None, "f", None, vec![]).encode());
     }

@@ -26,6 +26,42 @@ const MAX_BANDS: u32 = 32;
 /// Fewest rows in a band, so tiny frames are not split into pointless slivers.
 const MIN_BAND_ROWS: u32 = 8;
 
+/// What [`Importable::pieces`] hands each piece to: the number of the piece's first pixel and
+/// its cells.
+pub type PieceVisitor<'a> = dyn FnMut(u64, &[u64]) -> Result<(), MergeError> + 'a;
+
+/// A state that [`ShardedFrame::import`] adds to a frame: held whole ([`FrameState`]) or as the
+/// runs of a body being decoded ([`crate::export::Decoded`]), whose cells are checked already.
+pub trait Importable {
+    /// Width, height and cascade layout of its frame.
+    fn geometry(&self) -> (u32, u32, &CascadeLayout);
+    /// The first row it holds: its pixels are numbered row-major from 0 there.
+    fn first_row(&self) -> u32;
+    /// The samples it holds.
+    fn samples(&self) -> u64;
+    /// Hands its cells to `f` in order, in pieces of consecutive whole pixels with the number of
+    /// each piece's first pixel; stops at `f`'s first error and returns it.
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError>;
+}
+
+impl Importable for FrameState {
+    fn geometry(&self) -> (u32, u32, &CascadeLayout) {
+        (self.width(), self.height(), self.layout())
+    }
+
+    fn first_row(&self) -> u32 {
+        self.rows().start
+    }
+
+    fn samples(&self) -> u64 {
+        self.total_samples()
+    }
+
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+        f(0, self.cells())
+    }
+}
+
 /// A frame's parameters, checked and turned into the core's types.
 #[derive(Debug, Clone)]
 pub struct FrameSpec {
@@ -387,6 +423,10 @@ impl ShardedFrame {
         let (w, h) = (spec.request.width, spec.request.height);
         let n = (h / MIN_BAND_ROWS).clamp(1, MAX_BANDS);
         let bands = FrameState::bands(w, h, n, &spec.layout);
+        // Fresh cells are not touched yet: ask for huge pages before the first sample does.
+        for band in &bands {
+            crate::memory::advise_or_log(band.cells());
+        }
         Self::from_bands(spec, bands, Seen::default(), CounterValues::default())
     }
 
@@ -762,6 +802,63 @@ impl ShardedFrame {
         lock(&self.bands[0]).check_same_frame(state)
     }
 
+    /// [`ShardedFrame::check_fits`] for any state being imported.
+    fn check_fits_import(&self, state: &impl Importable) -> Result<(), MergeError> {
+        let (width, height, layout) = state.geometry();
+        lock(&self.bands[0]).check_same_geometry(width, height, layout)
+    }
+
+    /// Refuses a state declaring AOVs (`specs`, not empty) other than the frame's
+    /// ([`ImportRefused::Aovs`]).
+    fn check_state_aovs(&self, specs: &[AovSpec]) -> Result<(), ImportRefused> {
+        if specs != self.spec.request.aovs.as_slice() {
+            return Err(ImportRefused::Aovs {
+                frame: self.id().to_owned(),
+                reason: format!(
+                    "the state has AOVs {}, the frame {}",
+                    describe_aovs(specs),
+                    describe_aovs(&self.spec.request.aovs)
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// What a receiver checks of a state's header before it expands the state's AOV words
+    /// (which [`ShardedFrame::import`] checks again, in the same order): the frame's id, the
+    /// frame's size, and the frame's AOVs or none (`aovs` empty). So the AOV words of an
+    /// accepted state are at most the frame's.
+    pub fn check_state_header(
+        &self,
+        frame: &str,
+        width: u32,
+        height: u32,
+        aovs: &[AovSpec],
+    ) -> Result<(), ImportRefused> {
+        if frame != self.id() {
+            return Err(ImportRefused::WrongFrame {
+                state: frame.to_owned(),
+                url: self.id().to_owned(),
+            });
+        }
+        let r = &self.spec.request;
+        if (width, height) != (r.width, r.height) {
+            return Err(ImportRefused::Mismatch {
+                frame: self.id().to_owned(),
+                error: MergeError::Size {
+                    ours_w: r.width,
+                    ours_h: r.height,
+                    theirs_w: width,
+                    theirs_h: height,
+                },
+            });
+        }
+        if aovs.is_empty() {
+            return Ok(());
+        }
+        self.check_state_aovs(aovs)
+    }
+
     /// Adds an exported state (or a pushed delta) holding the samples of `batches` to this
     /// frame. A delta carrying an origin that was applied before is recognised and not applied
     /// again (returns `Ok(false)`); a state holding a batch the frame has applied is refused
@@ -777,7 +874,7 @@ impl ShardedFrame {
     pub fn import(
         &self,
         frame: &str,
-        state: &FrameState,
+        state: &impl Importable,
         aovs: Option<(&[AovSpec], &AovSums)>,
         origin: Option<&Origin>,
         batches: &[Applied],
@@ -792,19 +889,9 @@ impl ShardedFrame {
             frame: self.id().to_owned(),
             error,
         };
-        self.check_fits(state).map_err(mismatch)?;
-        let aov_refused = |reason: String| ImportRefused::Aovs {
-            frame: self.id().to_owned(),
-            reason,
-        };
+        self.check_fits_import(state).map_err(mismatch)?;
         if let Some((specs, _)) = aovs {
-            if specs != self.spec.request.aovs.as_slice() {
-                return Err(aov_refused(format!(
-                    "the state has AOVs {}, the frame {}",
-                    describe_aovs(specs),
-                    describe_aovs(&self.spec.request.aovs)
-                )));
-            }
+            self.check_state_aovs(specs)?;
         }
         let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
         if self.retired.load(Ordering::Acquire) {
@@ -835,23 +922,46 @@ impl ShardedFrame {
                 count: o.count,
             });
         }
-        for band in &bands {
-            band.check_room_for(state).map_err(mismatch)?;
+        // No pixel holds more than a whole state: the cells need reading only near the limit.
+        let y0 = state.first_row();
+        let crowded: Vec<usize> = (0..bands.len())
+            .filter(|&i| {
+                bands[i].total_samples().saturating_add(state.samples()) > MAX_PIXEL_SAMPLES
+            })
+            .collect();
+        if !crowded.is_empty() {
+            state
+                .pieces(&mut |first, cells| {
+                    crowded
+                        .iter()
+                        .try_for_each(|&i| bands[i].check_room_for_pixels(y0, first, cells))
+                })
+                .map_err(mismatch)?;
         }
         if let Some((mine, theirs)) = &aov_sums {
             mine.check_room_for(theirs)
-                .map_err(|e: AovCellsError| aov_refused(e.to_string()))?;
+                .map_err(|e: AovCellsError| ImportRefused::Aovs {
+                    frame: self.id().to_owned(),
+                    reason: e.to_string(),
+                })?;
         }
         if let Some(o) = origin {
             seen.insert_delta(&o.node, o.seq);
         }
         seen.insert_applied(batches);
         drop(seen);
-        for band in &mut bands {
-            // Every band has the frame's size and layout, checked above for band 0, and room.
-            band.merge_overlap(state)
-                .expect("a band has its frame's size and layout, and room for the state");
-        }
+        // Every band has the frame's size and layout (checked above for band 0) and room; one
+        // pass over the state adds each piece to the bands it falls in.
+        let mut added = 0;
+        state
+            .pieces(&mut |first, cells| {
+                for band in bands.iter_mut() {
+                    added += band.add_pixels(y0, first, cells);
+                }
+                Ok(())
+            })
+            .expect("adding checked pieces refuses nothing");
+        debug_assert_eq!(added, state.samples());
         if let Some((mine, theirs)) = aov_sums.as_mut() {
             mine.merge_overlap(theirs)
                 .expect("AOV sums were checked for room above");
@@ -860,7 +970,7 @@ impl ShardedFrame {
         drop(bands);
         self.counters
             .samples
-            .fetch_add(state.total_samples(), Ordering::Relaxed);
+            .fetch_add(state.samples(), Ordering::Relaxed);
         self.counters.imports.fetch_add(1, Ordering::Relaxed);
         self.version.fetch_add(1, Ordering::AcqRel);
         Ok(true)
@@ -918,6 +1028,25 @@ impl ShardedFrame {
             version: self.version(),
             aovs: self.aovs.as_ref().map(|a| lock(a).clone()),
         }
+    }
+
+    /// Appends the frame's state with the batches it holds, in the state wire format, to `out`
+    /// (`GET .../state`): a consistent cut like [`ShardedFrame::cut`], encoded straight from
+    /// the bands instead of from a copy of them. Writers wait for the encoding, which reads the
+    /// bands once like the copy did; give it a buffer with room (already faulted in) so that it
+    /// is no slower.
+    pub fn write_state(&self, out: &mut Vec<u8>) {
+        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
+        let bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
+        let bands: Vec<&FrameState> = bands.iter().map(|b| &**b).collect();
+        // The AOV sums after the bands and before the applied set, as ingest locks them.
+        let aov_sums = self.aovs.as_ref().map(lock);
+        let aovs = aov_sums
+            .as_deref()
+            .map(|sums| (self.spec.request.aovs.as_slice(), sums));
+        let applied = lock(&self.seen).applied();
+        crate::export::write_bands(&bands, aovs, self.id(), None, applied, out)
+            .expect("writing into a Vec<u8> is infallible");
     }
 
     /// What the frame looks like now, for `GET /v1/frames/{id}`.
@@ -1471,6 +1600,110 @@ mod tests {
         let info = by_pass.info();
         // The conflicting id, the bad sample and the full pixel.
         assert_eq!((info.rejected_batches, info.rejected_samples), (3, 3 * 910));
+    }
+
+    /// A state body imported from its runs (checked and added piece by piece, straight from the
+    /// bytes) gives the frame the same cells as the decoded state, with the same refusals.
+    #[test]
+    fn imports_from_runs_match_imports_of_states() {
+        let import_runs = |frame: &ShardedFrame, state: &FrameState| {
+            let bytes = crate::export::dump(state, None, "f", None, vec![]).encode();
+            let (dump, runs, aov_runs) =
+                splatd_proto::StateDump::decode_runs(&bytes, u64::MAX).unwrap();
+            let decoded = crate::export::load_runs(dump, runs, aov_runs).unwrap();
+            assert_eq!(decoded.samples(), state.total_samples());
+            frame.import("f", &decoded, decoded.aovs(), None, &[])
+        };
+        let scene = FireflyScene::new(16, 64, 9);
+        let layout = CascadeLayout::with_defaults();
+        // Rows 4..20 straddle band boundaries; every other pixel of a row is empty, so the
+        // state is many short runs.
+        let mut part = FrameState::band(16, 64, 4..20, layout.clone());
+        for pass in 0..5 {
+            let rows = part.rows();
+            part.splat_all(
+                scene
+                    .pass(pass)
+                    .filter(|s| rows.contains(&s.1) && (s.0 + s.1) % 2 == 0),
+            );
+        }
+        let (states, runs) = (
+            ShardedFrame::new(spec(16, 64)),
+            ShardedFrame::new(spec(16, 64)),
+        );
+        assert!(runs.bands.len() >= 8, "the test needs several bands");
+        for _ in 0..2 {
+            assert!(states.import("f", &part, None, None, &[]).unwrap());
+            assert!(import_runs(&runs, &part).unwrap());
+        }
+        assert_eq!(runs.cut().whole(), states.cut().whole());
+        assert_eq!(runs.info().samples, 2 * part.total_samples());
+
+        // A pixel at 2^32 samples refuses a state adding one more, whole.
+        let small = ShardedFrame::new(spec(4, 40));
+        let mut full = FrameState::new(4, 40, small.spec().layout.clone());
+        full.splat(2, 3, [1.0; 3]).unwrap();
+        for _ in 0..32 {
+            let copy = full.clone();
+            full.merge(&copy).unwrap();
+        }
+        assert!(import_runs(&small, &full).unwrap());
+        let before = small.cut().whole();
+        let mut one = FrameState::new(4, 40, small.spec().layout.clone());
+        one.splat(0, 0, [1.0; 3]).unwrap();
+        one.splat(2, 3, [1.0; 3]).unwrap();
+        assert_eq!(
+            import_runs(&small, &one).unwrap_err(),
+            ImportRefused::Mismatch {
+                frame: "f".into(),
+                error: MergeError::TooManySamples { x: 2, y: 3 }
+            }
+        );
+        assert_eq!(small.cut().whole(), before, "nothing of it applied");
+    }
+
+    /// A state's header is checked before its AOV words are expanded, with the refusals that
+    /// `import` gives: another frame's id, another size, AOVs other than the frame's (a state
+    /// without AOVs is fine). Nothing is applied by a check.
+    #[test]
+    fn state_headers_are_checked_before_aov_words_are_expanded() {
+        let albedo = vec![AovSpec::new("albedo", &["R", "G", "B"])];
+        let mut request = CreateFrame::new("f", 8, 4);
+        request.aovs = albedo.clone();
+        let frame = ShardedFrame::new(FrameSpec::new(request).unwrap());
+        assert_eq!(frame.check_state_header("f", 8, 4, &albedo), Ok(()));
+        assert_eq!(frame.check_state_header("f", 8, 4, &[]), Ok(()));
+        assert!(matches!(
+            frame.check_state_header("g", 9, 4, &albedo),
+            Err(ImportRefused::WrongFrame { state, .. }) if state == "g"
+        ));
+        assert_eq!(
+            frame.check_state_header("f", 9, 4, &albedo),
+            Err(ImportRefused::Mismatch {
+                frame: "f".into(),
+                error: MergeError::Size {
+                    ours_w: 8,
+                    ours_h: 4,
+                    theirs_w: 9,
+                    theirs_h: 4
+                }
+            })
+        );
+        let depth = [AovSpec::new("depth", &["Z"])];
+        match frame.check_state_header("f", 8, 4, &depth) {
+            Err(ImportRefused::Aovs { reason, .. }) => {
+                assert!(reason.contains("\"depth\" (Z)"), "{reason}");
+                assert!(reason.contains("\"albedo\" (R, G, B)"), "{reason}");
+            }
+            other => panic!("{other:?}"),
+        }
+        // A frame without AOVs takes no state with AOVs.
+        let plain = ShardedFrame::new(spec(8, 4));
+        assert!(matches!(
+            plain.check_state_header("f", 8, 4, &albedo),
+            Err(ImportRefused::Aovs { .. })
+        ));
+        assert_eq!(frame.info().samples, 0);
     }
 
     /// After `retire` returns, nothing is applied: batches and imports are refused by name.

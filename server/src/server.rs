@@ -262,14 +262,20 @@ pub fn shutdown_signal() -> impl Future<Output = ()> {
 /// A request's body, its decoded records and an image's state copy are each tens to hundreds of
 /// megabytes, and the working budget bounds how many exist at once; but glibc raises its mmap
 /// threshold after each large free, so later large buffers came from the heap arenas and stayed
-/// resident after use (the load benchmark saw RSS 650 MB above states + budget). A fixed 1 MiB
+/// resident after use (the load benchmark saw RSS 650 MB above states + budget). A fixed
 /// threshold keeps every large buffer mmapped, so freeing it returns it, and RSS follows the
 /// budget.
+///
+/// The threshold is 8 MiB, not lower: a worker's batch of 64 Ki records is 1.3 MB on the wire,
+/// decoded and sorted by band twice more, and at 1 MiB each of those three buffers was a fresh
+/// mapping per batch, faulted in and zeroed page by page and unmapped with a TLB shootdown (the
+/// ingest profile: page faults and clear_page on every batch). Below 8 MiB they are reused from
+/// the arenas, which hold at most a few of them per connection.
 fn return_large_buffers_to_the_system() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets allocator parameters; called before the server allocates much.
     unsafe {
-        libc::mallopt(libc::M_MMAP_THRESHOLD, 1 << 20);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 8 << 20);
     }
 }
 

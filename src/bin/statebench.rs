@@ -1,7 +1,11 @@
 //! How fast a frame state moves between nodes: export (`GET /v1/frames/{id}/state`), transfer
 //! over loopback and import (`POST /v1/frames/{id}/state`) of a 1920x1080 state with 8
 //! cascades (`--width`, `--height`, `--cascades`), against a plain memcpy of the same bytes
-//! measured in the same run; the ratio is printed with its goal (<= 10).
+//! measured in the same run; the ratio is printed with its goal (<= 10), beside what one loopback
+//! TCP transfer of the same bytes costs with no server at all (export + import make two; that
+//! floor is about 5x memcpy each on a 2-core VM). Also the size of a push
+//! delta (encoded as push mode encodes it) of the same frame after 1 % of its pixels took one
+//! more sample, against the full state (goal <= 3 %).
 //!
 //! ```sh
 //! cargo build --release --bins && cargo run --release --bin statebench
@@ -23,6 +27,9 @@ use splatd_scenes::synth::FireflyScene;
 
 /// The goal for export + import against memcpy of the same bytes.
 const GOAL: f64 = 10.0;
+/// The goal for a push delta of a frame in which 1 % of the pixels changed, against the full
+/// state's bytes.
+const DELTA_GOAL: f64 = 0.03;
 
 #[derive(Parser)]
 #[command(about = "State export/transfer/import over loopback, against memcpy")]
@@ -44,15 +51,53 @@ struct Args {
     runs: u32,
 }
 
-/// `splatd serve` (the one built beside this program) on a free port, with room for large
-/// frames.
-fn start_server() -> Result<ServerProcess> {
+/// `splatd serve` (the one built beside this program) on a free port, with room for two frames
+/// of `state_bytes` and for the working memory of an export and an import of one (its encoding,
+/// its body), which at 3840x2160 is more than the default `--work-memory-mib`.
+fn start_server(state_bytes: u64) -> Result<ServerProcess> {
     let binary = sibling_binary().map_err(anyhow::Error::msg)?;
+    let mib = (state_bytes >> 20) + 1;
+    let frames = (2 * mib + 1024).max(16384).to_string();
+    let work = (2 * mib + 256).max(2048).to_string();
     ServerProcess::launch(&Options {
         log_level: "warn",
-        ..Options::new(binary, &["--max-memory-mib", "16384"])
+        ..Options::new(
+            binary,
+            &[
+                "--max-memory-mib",
+                frames.as_str(),
+                "--work-memory-mib",
+                work.as_str(),
+            ],
+        )
     })
     .map_err(anyhow::Error::msg)
+}
+
+/// Best time of `runs` transfers of `src` over a loopback TCP connection (a fresh one per run,
+/// as each request of the benchmark may use), written whole and read into a buffer already
+/// faulted in: what one direction of a transfer costs with no server work at all.
+fn loopback_best(src: &[u8], runs: u32) -> Result<Duration> {
+    use std::io::{Read, Write};
+    let listener = std::net::TcpListener::bind("127.0.0.1:0")?;
+    let addr = listener.local_addr()?;
+    let mut dst = vec![1u8; src.len()];
+    let mut best = Duration::MAX;
+    for _ in 0..runs.max(3) {
+        let t = std::thread::scope(|scope| -> Result<Duration> {
+            let sender = scope.spawn(|| -> std::io::Result<()> {
+                std::net::TcpStream::connect(addr)?.write_all(src)
+            });
+            let (mut conn, _) = listener.accept()?;
+            let t = Instant::now();
+            conn.read_exact(&mut dst)?;
+            let elapsed = t.elapsed();
+            sender.join().expect("the sender thread")?;
+            Ok(elapsed)
+        })?;
+        best = best.min(t);
+    }
+    Ok(best)
 }
 
 /// Best time of `runs` memcpys of `src` into a buffer already faulted in.
@@ -66,6 +111,23 @@ fn memcpy_best(src: &[u8], runs: u32) -> Duration {
         best = best.min(t.elapsed());
     }
     best
+}
+
+/// Bytes of the push delta of `state` after every 100th pixel took one more sample of the
+/// scene: [`FrameState::delta_since`] encoded with an origin, as push mode sends it.
+fn delta_len(state: &FrameState, scene: &FireflyScene, pass: u64) -> usize {
+    let mut later = state.clone();
+    let report = later.splat_all(scene.pass(pass).step_by(100));
+    let delta = later.delta_since(state).expect("a later copy");
+    let origin = splatd_proto::Origin {
+        node: "bench".into(),
+        seq: 1,
+    };
+    let len = splatd_server::export::dump(&delta, None, "bench.src", Some(origin), vec![])
+        .encode()
+        .len();
+    assert_eq!(report.accepted, delta.total_samples());
+    len
 }
 
 fn ms(d: Duration) -> f64 {
@@ -96,9 +158,10 @@ fn main() -> Result<()> {
         fill.splat_all(scene.pass(pass));
     }
     let fill_bytes = splatd_server::export::dump(&fill, None, "bench.src", None, vec![]).encode();
+    let delta_bytes = delta_len(&fill, &scene, args.spp);
     drop(fill);
 
-    let server = start_server()?;
+    let server = start_server(fill_bytes.len() as u64)?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -115,10 +178,11 @@ fn main() -> Result<()> {
             .await
             .context("filling the source frame")?;
         let (mut export, mut import, mut total) = (Duration::MAX, Duration::MAX, Duration::MAX);
-        let mut last = bytes::Bytes::new();
+        // One receive buffer for every run, as a node pulling states repeatedly keeps one.
+        let mut state = Vec::new();
         for run in 0..args.runs.max(1) {
             let t0 = Instant::now();
-            let state = client.export_state("bench.src").await?;
+            client.export_state_into("bench.src", &mut state).await?;
             let t1 = Instant::now();
             // The same bytes, posted to another frame of the same size.
             let mut dump = splatd_proto::StateDump::decode(&state, u64::MAX)?;
@@ -136,11 +200,11 @@ fn main() -> Result<()> {
             export = export.min(t1 - t0);
             import = import.min(t3 - t2);
             total = total.min((t1 - t0) + (t3 - t2));
-            last = state;
         }
-        anyhow::Ok((export, import, total, last))
+        anyhow::Ok((export, import, total, state))
     })?;
     let copy = memcpy_best(&bytes, args.runs);
+    let wire = loopback_best(&bytes, args.runs)?;
     let mib = bytes.len() as f64 / (1 << 20) as f64;
     println!(
         "state {w}x{h}, {k} cascades: {mib:.1} MiB ({} bytes)",
@@ -170,10 +234,27 @@ fn main() -> Result<()> {
         ms(copy),
         mib / copy.as_secs_f64()
     );
+    println!(
+        "loopback TCP of them best of {}: {:>8.1} ms  {:>7.0} MiB/s ({:.1}x memcpy; export + \
+         import move the state twice)",
+        args.runs.max(3),
+        ms(wire),
+        mib / wire.as_secs_f64(),
+        wire.as_secs_f64() / copy.as_secs_f64()
+    );
     let ratio = total.as_secs_f64() / copy.as_secs_f64();
     println!(
         "\ngoal at {w}x{h}:\n  export + import / memcpy: ratio {ratio:.1} (goal <= {GOAL}) {}",
         if ratio <= GOAL { "met" } else { "MISSED" }
+    );
+    let share = delta_bytes as f64 / bytes.len() as f64;
+    println!(
+        "  push delta, 1 % of pixels changed / full state: {delta_bytes} / {} bytes = {:.2} % \
+         (goal <= {:.0} %) {}",
+        bytes.len(),
+        100.0 * share,
+        100.0 * DELTA_GOAL,
+        if share <= DELTA_GOAL { "met" } else { "MISSED" }
     );
     drop(server);
     Ok(())

@@ -240,7 +240,10 @@ impl<E: Into<ApiError>> From<crate::renders::RenderError<E>> for ApiError {
 /// A state that decodes but does not describe a frame this build can hold.
 impl From<ImportError> for ApiError {
     fn from(e: ImportError) -> ApiError {
-        ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string())
+        match e {
+            ImportError::State(e) => ApiError::from(&e),
+            e => ApiError::new(StatusCode::CONFLICT, "state_mismatch", e.to_string()),
+        }
     }
 }
 

@@ -41,7 +41,7 @@ impl<T: DeserializeOwned, S: Send + Sync> FromRequest<S> for Json<T> {
         check_content_type(&parts.headers, "application/json")?;
         let encoding = Encoding::of(&parts.headers)?;
         check_length(&parts.headers, MAX_JSON_BODY)?;
-        let bytes = read_body(body, MAX_JSON_BODY, encoding).await?;
+        let bytes = read_body(body, MAX_JSON_BODY, encoding, None).await?;
         serde_json::from_slice(&bytes)
             .map(Json)
             .map_err(|e| ApiError::bad_request("bad_request", format!("invalid JSON body: {e}")))
@@ -149,7 +149,7 @@ impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
             .reserve(wire + inflated + K::decoding_bytes(&frame, inflated))
             .await
             .map_err(|busy| ApiError::busy(&busy))?;
-        let bytes = read_body(body, limit, encoding)
+        let bytes = read_body(body, limit, encoding, declared)
             .await
             .inspect_err(|_| K::refused(&frame))?;
         Ok(FrameBody {
@@ -254,27 +254,60 @@ impl Encoding {
 
 /// Reads a whole body, refusing more than `limit` bytes with 413, and inflates a compressed one
 /// on the blocking pool (never on the threads that answer other requests), stopping at `limit`
-/// inflated bytes: past it, 413 too.
-async fn read_body(body: Body, limit: usize, encoding: Encoding) -> Result<Bytes, ApiError> {
-    let wire = axum::body::to_bytes(body, limit).await.map_err(|e| {
-        let inner = e.into_inner();
-        let mut source: Option<&(dyn std::error::Error + 'static)> = Some(inner.as_ref());
-        while let Some(err) = source {
-            if err.is::<http_body_util::LengthLimitError>() {
-                return too_large(limit);
-            }
-            source = err.source();
-        }
-        ApiError::bad_request(
-            "unreadable_body",
-            format!("could not read the request body: {inner}"),
-        )
-    })?;
+/// inflated bytes: past it, 413 too. A body whose length was `declared` (and checked against
+/// `limit`) is read into one buffer of that length as it arrives.
+async fn read_body(
+    body: Body,
+    limit: usize,
+    encoding: Encoding,
+    declared: Option<u64>,
+) -> Result<Bytes, ApiError> {
+    let wire = match declared {
+        Some(len) => read_sized(body, limit, len).await?,
+        None => axum::body::to_bytes(body, limit)
+            .await
+            .map_err(|e| body_error(e, limit))?,
+    };
     if encoding == Encoding::Identity {
         return Ok(wire);
     }
     crate::http::blocking::blocking("inflating a body", move || inflate(&wire, encoding, limit))
         .await
+}
+
+/// Reads a body of declared length `len` into one buffer of that length (on huge pages when it
+/// is large), instead of a list of chunks copied into one at the end: a state body is as large
+/// as its frame, and a second copy of it cost as much as the rest of its import.
+async fn read_sized(mut body: Body, limit: usize, len: u64) -> Result<Bytes, ApiError> {
+    use http_body_util::BodyExt;
+    let mut out = Vec::with_capacity(len.min(limit as u64) as usize);
+    crate::memory::advise_or_log(out.spare_capacity_mut());
+    while let Some(frame) = body.frame().await {
+        let frame = frame.map_err(|e| body_error(e, limit))?;
+        if let Ok(data) = frame.into_data() {
+            if out.len() + data.len() > limit {
+                return Err(too_large(limit));
+            }
+            out.extend_from_slice(&data);
+        }
+    }
+    Ok(Bytes::from(out))
+}
+
+/// What a client is told when its body could not be read.
+fn body_error(e: axum::Error, limit: usize) -> ApiError {
+    let inner = e.into_inner();
+    let mut source: Option<&(dyn std::error::Error + 'static)> = Some(inner.as_ref());
+    while let Some(err) = source {
+        if err.is::<http_body_util::LengthLimitError>() {
+            return too_large(limit);
+        }
+        source = err.source();
+    }
+    ApiError::bad_request(
+        "unreadable_body",
+        format!("could not read the request body: {inner}"),
+    )
 }
 
 /// `wire` inflated, at most `limit` bytes of it.

@@ -11,7 +11,7 @@ use axum::response::IntoResponse;
 use splatd_proto::api::ImportAck;
 use splatd_proto::{StateDump, STATE_CONTENT_TYPE};
 
-use crate::frame::ShardedFrame;
+use crate::frame::{Importable, ShardedFrame};
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, FrameBody, Json, Upload};
@@ -36,9 +36,18 @@ impl Upload for StateBody {
         cells + (cells / 8).max(MAX_STATE_BATCH_BYTES) + 64 * 1024
     }
 
-    /// The decoded cells and the state loaded from them, each the size of the frame's state.
+    /// The frame's AOV sums, if it has AOVs: a state's cells are checked and added from the
+    /// body itself, a cache-sized piece at a time, but its AOV words are expanded into sums of
+    /// the rows held (a state of another size, or with other AOVs, is refused before that).
     fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
-        2 * frame.spec().memory_bytes()
+        let spec = frame.spec();
+        match spec.aov_channels() {
+            0 => 0,
+            c => {
+                let pixels = spec.request.width as u64 * spec.request.height as u64;
+                pixels * splatd_estimator::aov_words(c) as u64 * 8
+            }
+        }
     }
 }
 
@@ -47,29 +56,17 @@ pub async fn export(
     State(app): State<AppState>,
     Frame(frame): Frame,
 ) -> Result<impl IntoResponse, ApiError> {
-    // A copy of the state and its encoding.
+    // The encoding: the cells, a header, run headers and the applied batches.
+    let room = frame.spec().memory_bytes() + 64 * 1024;
     let reservation = app
         .renders
         .budget()
-        .reserve(2 * frame.spec().memory_bytes())
+        .reserve(room)
         .await
         .map_err(|busy| ApiError::busy(&busy))?;
     let (bytes, mut reservation) = blocking("export", move || {
-        let cut = frame.cut();
-        let mut out = Vec::with_capacity(frame.spec().memory_bytes() as usize + 4096);
-        let aovs = cut
-            .aovs
-            .as_ref()
-            .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
-        crate::export::write_bands(
-            &cut.bands,
-            aovs,
-            frame.id(),
-            None,
-            cut.seen.applied(),
-            &mut out,
-        )
-        .expect("writing into a Vec<u8> is infallible");
+        let mut out = crate::memory::faulted_buffer(room as usize);
+        frame.write_state(&mut out);
         Ok((out, reservation))
     })
     .await?;
@@ -131,15 +128,19 @@ pub async fn import(
     let target = frame.clone();
     let (samples, applied) = blocking("import", move || {
         let _reservation = reservation;
-        let mut dump = StateDump::decode(&bytes, cells)?;
-        let origin = dump.origin.clone();
-        let name = dump.frame.clone();
-        let batches = std::mem::take(&mut dump.batches);
-        let aovs = crate::export::take_aovs(&mut dump)?;
-        let state = crate::export::load(dump)?;
-        let aovs = aovs.as_ref().map(|(specs, sums)| (specs.as_slice(), sums));
-        let applied = target.import(&name, &state, aovs, origin.as_ref(), &batches)?;
-        Ok((state.total_samples(), applied))
+        let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
+        // Refused before its AOV words are expanded (at most the frame's, reserved above).
+        target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
+        let state = crate::export::load_runs(dump, runs, aov_runs)?;
+        let dump = &state.dump;
+        let applied = target.import(
+            &dump.frame,
+            &state,
+            state.aovs(),
+            dump.origin.as_ref(),
+            &dump.batches,
+        )?;
+        Ok((state.samples(), applied))
     })
     .await?;
     // A pusher forgets a delta once it is acknowledged, so make it durable first.

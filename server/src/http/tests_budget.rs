@@ -215,7 +215,7 @@ async fn compressed_bodies_reserve_their_limit_before_inflating() {
     assert_eq!(app.renders.budget().used(), 0);
 }
 
-/// Imports reserve the body and the decoded state before reading; 413 comes straight from a
+/// Imports reserve their body (all an import holds) before reading it; 413 comes straight from a
 /// Content-Length over the limit.
 #[tokio::test(start_paused = true)]
 async fn imports_wait_for_working_memory_and_long_bodies_are_refused_from_their_length() {
@@ -226,7 +226,9 @@ async fn imports_wait_for_working_memory_and_long_bodies_are_refused_from_their_
     });
     let frame = app.store.get("f").unwrap();
     let mut state = Vec::new();
-    crate::export::write_bands(&frame.cut().bands, None, "f", None, vec![], &mut state).unwrap();
+    let cut = frame.cut();
+    let bands: Vec<&splatd_estimator::FrameState> = cut.bands.iter().collect();
+    crate::export::write_bands(&bands, None, "f", None, vec![], &mut state).unwrap();
     let held = app.renders.budget().reserve(1 << 20).await.unwrap();
     let (status, _, error) = answer(
         &app,
