@@ -6,7 +6,19 @@
 #![allow(clippy::needless_range_loop)]
 
 use proptest::prelude::*;
-use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Variant, REC709_LUMINANCE};
+use splatd_estimator::{
+    CascadeLayout, FrameState, ResolveParams, Variant, FRAC_BITS, REC709_LUMINANCE,
+};
+
+/// One pixel's cascades, with bounds on the estimator's rounding of them.
+struct Cascades {
+    sums: Vec<[f64; 3]>,
+    counts: Vec<f64>,
+    /// Most a channel's sum of each cascade may be off by (the same for every channel).
+    sum_err: Vec<f64>,
+    /// Most each cascade's count may be off by.
+    count_err: Vec<f64>,
+}
 
 /// The reference: samples per pixel, nothing else.
 struct Reference {
@@ -27,10 +39,13 @@ impl Reference {
         self.c0 * self.base.powi(j as i32)
     }
 
-    /// Cascade sums and explicit counts of one pixel, straight from the definitions.
-    fn cascades(&self, p: usize) -> (Vec<[f64; 3]>, Vec<f64>) {
+    /// Cascade sums and explicit counts of one pixel, straight from the definitions, and the
+    /// most the estimator's fixed point may differ from each: every share it stores is rounded
+    /// to `2^-FRAC_BITS` of its cascade's scale (values) or of one sample (counts).
+    fn cascades(&self, p: usize) -> Cascades {
         let mut sums = vec![[0.0; 3]; self.k];
         let mut counts = vec![0.0; self.k];
+        let mut shares = vec![0.0; self.k];
         for &s in &self.samples[p] {
             let l = lum(s);
             let top = self.k - 1;
@@ -39,6 +54,7 @@ impl Reference {
                     sums[j][c] += w * s[c];
                 }
                 counts[j] += count;
+                shares[j] += 1.0;
             };
             if l <= self.c0 {
                 add(0, 1.0, 1.0);
@@ -60,7 +76,15 @@ impl Reference {
                 add(j + 1, 1.0 - w, (1.0 - w) * l / self.scale(j + 1));
             }
         }
-        (sums, counts)
+        let ulp = 0.5f64.powi(FRAC_BITS as i32);
+        Cascades {
+            sum_err: (0..self.k)
+                .map(|j| shares[j] * ulp * self.scale(j))
+                .collect(),
+            count_err: shares.iter().map(|n| n * ulp).collect(),
+            sums,
+            counts,
+        }
     }
 
     fn support(&self, counts: &[f64], j: usize) -> f64 {
@@ -74,8 +98,11 @@ impl Reference {
         n
     }
 
-    /// Reweighted, mean and removed of every pixel.
-    fn resolve(&self, params: &ResolveParams) -> Vec<[[f64; 3]; 3]> {
+    /// Reweighted, mean and removed of every pixel, and for each of them the most the
+    /// estimator's value may differ by: the fixed point's rounding of the cascades (see
+    /// [`Reference::cascades`]) carried through the weights, whose value term grows with the
+    /// luminance of the bands below and whose count term with the supports.
+    fn resolve(&self, params: &ResolveParams) -> Vec<[[f64; 3]; 6]> {
         let (w, h) = (self.width as i64, self.height as i64);
         let all: Vec<_> = (0..self.samples.len()).map(|p| self.cascades(p)).collect();
         let mut out = Vec::new();
@@ -84,36 +111,51 @@ impl Reference {
                 let p = (y * w + x) as usize;
                 let n = self.samples[p].len() as f64;
                 if n == 0.0 {
-                    out.push([[0.0; 3]; 3]);
+                    out.push([[0.0; 3]; 6]);
                     continue;
                 }
-                let (sums, counts) = &all[p];
+                let Cascades {
+                    sums,
+                    counts,
+                    sum_err,
+                    count_err,
+                } = &all[p];
                 let mut f = [0.0; 3];
                 let mut mean = [0.0; 3];
                 let mut removed = [0.0; 3];
+                // Error bounds of f (reweighted), mean and removed.
+                let (mut f_err, mut mean_err, mut removed_err) = (0.0, 0.0, 0.0);
                 let kappa = params.kappa() * n.powf(params.kappa_exponent());
                 let kmin = params.kappa_min();
                 for j in 0..self.k {
                     // Pooled support of the clamped 3x3 neighbourhood, relative to own N.
-                    let (mut pool_n, mut pool_total) = (0.0, 0.0);
+                    let (mut pool_n, mut pool_err, mut pool_total) = (0.0, 0.0, 0.0);
                     for dy in -1..=1 {
                         for dx in -1..=1 {
                             let q =
                                 ((y + dy).clamp(0, h - 1) * w + (x + dx).clamp(0, w - 1)) as usize;
-                            pool_n += self.support(&all[q].1, j);
+                            pool_n += self.support(&all[q].counts, j);
+                            pool_err += self.support(&all[q].count_err, j);
                             pool_total += self.samples[q].len() as f64;
                         }
                     }
                     let pooled = n * pool_n / pool_total;
                     let own = self.support(counts, j);
+                    // How far the count and value terms may be off: the supports' rounding, and
+                    // the rounding of the bands below carried in `f` (luminance weights add to
+                    // 1, so a channel bound is a luminance bound).
+                    let wc_err =
+                        (n * pool_err / pool_total).max(self.support(count_err, j)) / kappa;
+                    let wv_err = f_err / (kappa * self.scale(j));
                     let lf = lum(f);
                     let c = self.scale(j);
-                    let wj = match params.variant() {
-                        Variant::Off => 1.0,
+                    let (wj, w_err) = match params.variant() {
+                        Variant::Off => (1.0, 0.0),
                         Variant::Paper => {
                             let wc = (pooled - kmin) / kappa;
                             let wv = n * (lf / n) / (kappa * c);
-                            f64::min(1.0, f64::max(wc, wv)).max(0.0)
+                            let wj = f64::min(1.0, f64::max(wc, wv)).max(0.0);
+                            (wj, wc_err + wv_err)
                         }
                         Variant::Shader => {
                             let global = (pooled - kmin) / kappa;
@@ -125,7 +167,8 @@ impl Reference {
                             let t = f64::min(1.0, 1.0 / kappa);
                             let factor = (1.0 - t) * (0.4 + 0.6 * self.base) + t;
                             let wv = f64::max(lf / n, 0.05) * n / (kappa * c) * factor;
-                            ((wc + wv) / 2.0).clamp(0.0, 1.0)
+                            let wj = ((wc + wv) / 2.0).clamp(0.0, 1.0);
+                            (wj, (wc_err + wv_err * factor) / 2.0)
                         }
                         // Its second stage moves energy between pixels; resolve_spread's own
                         // tests check it (this reference is per pixel).
@@ -136,11 +179,19 @@ impl Reference {
                         mean[ch] += sums[j][ch];
                         removed[ch] += (1.0 - wj) * sums[j][ch];
                     }
+                    let big = sums[j].iter().fold(0.0f64, |m, v| m.max(v.abs()));
+                    let moved = w_err.min(1.0) * (big + sum_err[j]);
+                    f_err += wj * sum_err[j] + moved;
+                    mean_err += sum_err[j];
+                    removed_err += (1.0 - wj) * sum_err[j] + moved;
                 }
                 out.push([
                     f.map(|v| v / n),
                     mean.map(|v| v / n),
                     removed.map(|v| v / n),
+                    [f_err / n; 3],
+                    [mean_err / n; 3],
+                    [removed_err / n; 3],
                 ]);
             }
         }
@@ -148,12 +199,14 @@ impl Reference {
     }
 }
 
-fn close(a: f32, b: f64, what: &str) -> Result<(), TestCaseError> {
-    // Fixed point keeps 2^-32 of each cascade's scale; the output is f32.
-    let tol = 1e-5 * b.abs().max(1e-3) + 1e-6;
+/// Whether the optimized `a` is the reference's `b` to within `err`, the bound the reference
+/// derives from the fixed point's rounding (twice it, for the arithmetic's own rounding), plus
+/// the `f32` output's rounding and `1e-12` of the pixel's mean `m` (sums in another order).
+fn close(a: f32, b: f64, err: f64, m: f64, what: &str) -> Result<(), TestCaseError> {
+    let tol = 2.0 * err + b.abs() * 0.5f64.powi(22) + 1e-12 * (1.0 + m.abs());
     prop_assert!(
         (a as f64 - b).abs() <= tol,
-        "{what}: optimized {a} vs reference {b}"
+        "{what}: optimized {a} vs reference {b} (allowed {tol:e})"
     );
     Ok(())
 }
@@ -218,9 +271,10 @@ proptest! {
         for p in 0..w * h {
             prop_assert_eq!(ours.spp[p], reference.samples[p].len() as u64);
             for c in 0..3 {
-                close(ours.reweighted[p][c], theirs[p][0][c], "reweighted")?;
-                close(ours.mean[p][c], theirs[p][1][c], "mean")?;
-                close(ours.removed[p][c], theirs[p][2][c], "removed")?;
+                let [f, m, r, f_err, m_err, r_err] = theirs[p];
+                close(ours.reweighted[p][c], f[c], f_err[c], m[c], "reweighted")?;
+                close(ours.mean[p][c], m[c], m_err[c], m[c], "mean")?;
+                close(ours.removed[p][c], r[c], r_err[c], m[c], "removed")?;
             }
         }
     }
