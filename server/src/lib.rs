@@ -107,6 +107,8 @@ pub struct Shared {
     /// The open connections and their cap (used by the accept loop; in-process router calls
     /// bypass it).
     pub connections: Arc<connection::Connections>,
+    /// Decode buffers kept between passes (see [`passes::ScratchPool`]).
+    pub pass_scratch: passes::ScratchPool,
 }
 
 /// Finished renders kept for requests that ask again before the frame changes: enough for a
@@ -150,6 +152,7 @@ impl AppState {
         AppState(Arc::new(Shared {
             renders: renders::Renders::new(RENDERS_KEPT, budget),
             connections: Arc::new(connection::Connections::new(limits.max_connections)),
+            pass_scratch: passes::ScratchPool::new(resolve_threads),
             store: FrameStore::new(limits),
             decode_limits,
             resolve_threads,
