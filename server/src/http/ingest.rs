@@ -66,6 +66,8 @@ impl Upload for Pass {
     fn refused(frame: &ShardedFrame) {
         reject(frame, 0, "body");
     }
+
+    const POOLED: bool = true;
 }
 
 fn pass_pixels(frame: &ShardedFrame) -> u64 {
