@@ -489,7 +489,7 @@ pub fn decode_pass_with_aovs(
 
 /// The buffers one decode fills: its planes, its write counts and the interleaved samples.
 ///
-/// A 1080p pass needs about 37 bytes per pixel of them (75 MB); allocated fresh for every pass,
+/// A 1080p pass needs about 25 bytes per pixel of them (52 MB); allocated fresh for every pass,
 /// they are large enough to be mapped and unmapped by the allocator each time, and the server's
 /// ingest threads spent a third of their time in the page faults of touching them. Decoding into
 /// a [`Scratch`] kept from an earlier pass reuses memory that is already mapped.
