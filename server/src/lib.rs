@@ -107,6 +107,10 @@ pub struct Shared {
     /// The open connections and their cap (used by the accept loop; in-process router calls
     /// bypass it).
     pub connections: Arc<connection::Connections>,
+    /// Decode buffers kept between passes (see [`passes::ScratchPool`]).
+    pub pass_scratch: passes::ScratchPool,
+    /// Buffers kept for large request bodies (see [`http::extract::BodyPool`]).
+    pub body_pool: Arc<http::extract::BodyPool>,
 }
 
 /// Finished renders kept for requests that ask again before the frame changes: enough for a
@@ -150,6 +154,8 @@ impl AppState {
         AppState(Arc::new(Shared {
             renders: renders::Renders::new(RENDERS_KEPT, budget),
             connections: Arc::new(connection::Connections::new(limits.max_connections)),
+            pass_scratch: passes::ScratchPool::new(resolve_threads),
+            body_pool: Arc::new(http::extract::BodyPool::new(resolve_threads)),
             store: FrameStore::new(limits),
             decode_limits,
             resolve_threads,

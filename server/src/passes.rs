@@ -484,6 +484,123 @@ pub fn decode_pass_with_aovs(
     max_pixels: u64,
     aovs: &[AovSpec],
 ) -> Result<Pass, PassError> {
+    decode_pass_reusing(bytes, layer, max_pixels, aovs, &mut Scratch::default())
+}
+
+/// The buffers one decode fills: its planes, its write counts and the interleaved samples.
+///
+/// A 1080p pass needs about 25 bytes per pixel of them (52 MB); allocated fresh for every pass,
+/// they are large enough to be mapped and unmapped by the allocator each time, and the server's
+/// ingest threads spent a third of their time in the page faults of touching them. Decoding into
+/// a [`Scratch`] kept from an earlier pass reuses memory that is already mapped.
+#[derive(Debug, Default)]
+pub struct Scratch {
+    planes: Vec<Vec<f32>>,
+    writes: Vec<Vec<u8>>,
+    rgb: Vec<[f32; 3]>,
+}
+
+impl Scratch {
+    /// Takes back the samples of a pass decoded into this scratch (or any pass), to reuse them.
+    pub fn recycle(&mut self, pass: Pass) {
+        if pass.rgb.capacity() > self.rgb.capacity() {
+            self.rgb = pass.rgb;
+        }
+    }
+
+    /// Bytes held.
+    pub fn bytes(&self) -> usize {
+        let planes: usize = self.planes.iter().map(|p| p.capacity() * 4).sum();
+        let writes: usize = self.writes.iter().map(Vec::capacity).sum();
+        planes + writes + self.rgb.capacity() * 12
+    }
+
+    /// A plane of `n` zeros, from a spare one when there is one.
+    fn plane(&mut self, n: usize) -> Vec<f32> {
+        let mut plane = self.planes.pop().unwrap_or_default();
+        plane.clear();
+        // Exactly: a pass a little larger than the last must not double the buffer.
+        plane.reserve_exact(n);
+        plane.resize(n, 0.0);
+        plane
+    }
+
+    /// `n` write counts at zero, from spare ones when there are.
+    fn counts(&mut self, n: usize) -> Vec<u8> {
+        let mut counts = self.writes.pop().unwrap_or_default();
+        counts.clear();
+        counts.reserve_exact(n);
+        counts.resize(n, 0);
+        counts
+    }
+
+    /// Keeps a decode's planes and counts for the next one.
+    fn keep(&mut self, planes: Planes) {
+        self.planes.extend(planes.planes);
+        self.writes
+            .extend(planes.writes.into_iter().filter(|w| w.capacity() > 0));
+    }
+}
+
+/// A few [`Scratch`]es kept between requests, so that passes decode into memory that is
+/// already mapped. At most `keep` are kept; a request takes one (or a new, empty one when
+/// none is free) and gives it back when its pass is applied.
+///
+/// A scratch in use is covered by its request's working-memory reservation (see the
+/// `passes` route's `decoding_bytes`); the ones kept idle are bounded by `keep` times the
+/// largest pass decoded.
+#[derive(Debug)]
+pub struct ScratchPool {
+    free: std::sync::Mutex<Vec<Scratch>>,
+    keep: usize,
+}
+
+impl ScratchPool {
+    /// A pool that keeps at most `keep` idle scratches.
+    pub fn new(keep: usize) -> ScratchPool {
+        ScratchPool {
+            free: std::sync::Mutex::new(Vec::new()),
+            keep,
+        }
+    }
+
+    /// A free scratch, or a new empty one.
+    pub fn take(&self) -> Scratch {
+        self.lock().pop().unwrap_or_default()
+    }
+
+    /// Gives `scratch` back for a later request (dropped if `keep` are already idle).
+    pub fn give(&self, scratch: Scratch) {
+        let mut free = self.lock();
+        if free.len() < self.keep {
+            free.push(scratch);
+        }
+    }
+
+    /// Bytes held by the idle scratches.
+    pub fn idle_bytes(&self) -> usize {
+        self.lock().iter().map(Scratch::bytes).sum()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Scratch>> {
+        // A scratch holds no invariant a panic could break: a poisoned lock is still usable.
+        self.free.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// [`decode_pass_with_aovs`] into the buffers of `scratch`: the pass's `rgb` is the scratch's
+/// (give it back with [`Scratch::recycle`]), and the decoder's planes stay in the scratch for
+/// the next decode. The result is the same, bit for bit.
+///
+/// # Errors
+/// As [`decode_pass_with_aovs`].
+pub fn decode_pass_reusing(
+    bytes: &[u8],
+    layer: Option<&str>,
+    max_pixels: u64,
+    aovs: &[AovSpec],
+    scratch: &mut Scratch,
+) -> Result<Pass, PassError> {
     if bytes.len() < EXR_MAGIC.len() || bytes[..EXR_MAGIC.len()] != EXR_MAGIC {
         let found: Vec<String> = bytes.iter().take(4).map(|b| format!("{b:02x}")).collect();
         return Err(PassError::NotExr {
@@ -576,7 +693,7 @@ pub fn decode_pass_with_aovs(
 
     let mut wanted: Vec<(usize, usize)> = rgb_channels.iter().map(|&c| (part, c)).collect();
     wanted.extend(aov_channels.iter().flatten().copied());
-    let mut buffer = Planes::new(w, h, reader.headers().len(), &wanted);
+    let mut buffer = Planes::new(w, h, reader.headers().len(), &wanted, scratch);
     // Only the parts read, full resolution: other parts are never decompressed.
     let parts: Vec<bool> = (0..reader.headers().len())
         .map(|p| wanted.iter().any(|&(q, _)| q == p))
@@ -584,34 +701,34 @@ pub fn decode_pass_with_aovs(
     let chunks = reader.filter_chunks(false, |_, _, block| {
         parts.get(block.layer).copied().unwrap_or(false) && block.level == Vec2(0, 0)
     })?;
-    chunks.decompress_parallel(false, |meta, block| {
-        let header = meta
-            .headers
-            .get(block.index.layer)
-            .ok_or_else(|| exr::error::Error::Invalid("a block of no part".into()))?;
-        buffer.insert(header, &block)
-    })?;
-    buffer.check_coverage()?;
-    let mut planes = buffer.planes.into_iter();
-    let (r, g, b) = (
-        planes.next().expect("R"),
-        planes.next().expect("G"),
-        planes.next().expect("B"),
-    );
-    let rgb = r
-        .into_iter()
-        .zip(g)
-        .zip(b)
-        .map(|((r, g), b)| [r, g, b])
-        .collect();
+    let decoded = chunks
+        .decompress_parallel(false, |meta, block| {
+            let header = meta
+                .headers
+                .get(block.index.layer)
+                .ok_or_else(|| exr::error::Error::Invalid("a block of no part".into()))?;
+            buffer.insert(header, &block)
+        })
+        .map_err(PassError::from)
+        .and_then(|()| buffer.check_coverage());
+    if let Err(e) = decoded {
+        scratch.keep(buffer);
+        return Err(e);
+    }
+    let (r, g, b) = (&buffer.planes[0], &buffer.planes[1], &buffer.planes[2]);
+    let mut rgb = std::mem::take(&mut scratch.rgb);
+    rgb.clear();
+    rgb.reserve_exact(w * h);
+    rgb.extend(r.iter().zip(g).zip(b).map(|((&r, &g), &b)| [r, g, b]));
     let aovs = aov_channels.map(|_| {
-        let planes: Vec<Vec<f32>> = planes.collect();
+        let planes = &buffer.planes[3..];
         let mut values = Vec::with_capacity(w * h * planes.len());
         for i in 0..w * h {
             values.extend(planes.iter().map(|p| p[i]));
         }
         values
     });
+    scratch.keep(buffer);
     Ok(Pass {
         width,
         height,
@@ -654,7 +771,14 @@ struct Planes {
 
 impl Planes {
     /// Planes for `wanted` channels `(part, channel index)` of a `width x height` pass.
-    fn new(width: usize, height: usize, parts: usize, wanted: &[(usize, usize)]) -> Planes {
+    /// The buffers are taken from `scratch` when it has them.
+    fn new(
+        width: usize,
+        height: usize,
+        parts: usize,
+        wanted: &[(usize, usize)],
+        scratch: &mut Scratch,
+    ) -> Planes {
         let mut by_part = vec![Vec::new(); parts];
         for (plane, &(part, channel)) in wanted.iter().enumerate() {
             by_part[part].push((channel, plane));
@@ -665,7 +789,7 @@ impl Planes {
                 if w.is_empty() {
                     Vec::new()
                 } else {
-                    vec![0; width * height]
+                    scratch.counts(width * height)
                 }
             })
             .collect();
@@ -673,7 +797,9 @@ impl Planes {
             width,
             height,
             by_part,
-            planes: vec![vec![0.0; width * height]; wanted.len()],
+            planes: (0..wanted.len())
+                .map(|_| scratch.plane(width * height))
+                .collect(),
             writes,
         }
     }
@@ -931,6 +1057,49 @@ mod tests {
             .to_buffered(std::io::Cursor::new(&mut bytes))
             .unwrap();
         bytes
+    }
+
+    #[test]
+    fn a_reused_scratch_decodes_what_a_fresh_one_does_and_keeps_its_memory() {
+        let mut scratch = Scratch::default();
+        let decode = |bytes: &[u8], scratch: &mut Scratch| {
+            decode_pass_reusing(bytes, None, MAX_PASS_PIXELS, &[], scratch)
+        };
+        // A larger pass with other values first, then a refused one (row 1 read twice, row 2
+        // missing: its stale planes and counts must not make it look covered), then passes of
+        // other sizes: each is what a fresh decode makes.
+        let big = exr_with(9, 7, &["A", "B", "G", "R"]);
+        let pass = decode(&big, &mut scratch).unwrap();
+        assert_eq!(pass, decode_pass(&big).unwrap());
+        scratch.recycle(pass);
+        let held = scratch.bytes();
+        assert!(held >= 9 * 7 * (3 * 4 + 1 + 12), "{held} bytes kept");
+
+        let good = uncompressed(5, 16);
+        let table = offset_table(&good, 16);
+        let mut twice = good.clone();
+        set_offset(&mut twice, table, 1, offset(&good, table, 0));
+        let err = decode(&twice, &mut scratch).unwrap_err();
+        assert!(err.to_string().contains("5 of 80 pixels"), "{err}");
+
+        for bytes in [good, exr_with(3, 2, &["B", "G", "R"]), big] {
+            let pass = decode(&bytes, &mut scratch).unwrap();
+            assert_eq!(pass, decode_pass(&bytes).unwrap());
+            scratch.recycle(pass);
+        }
+        // The buffers grew to the largest pass and were reused since, not replaced.
+        assert_eq!(scratch.bytes(), held.max(5 * 16 * (3 * 4 + 1 + 12)));
+
+        let pool = ScratchPool::new(1);
+        pool.give(scratch);
+        pool.give(Scratch::default());
+        assert_eq!(
+            pool.idle_bytes(),
+            held.max(5 * 16 * 25),
+            "one kept, the other dropped"
+        );
+        assert!(pool.take().bytes() > 0);
+        assert_eq!(pool.take().bytes(), 0, "none left: a new, empty one");
     }
 
     #[test]

@@ -100,6 +100,10 @@ pub trait Upload {
     /// Called when the body could not be read (too large, cut off, badly compressed), so the
     /// refusal can be counted where the kind's other refusals are.
     fn refused(_frame: &ShardedFrame) {}
+
+    /// Whether a large body sent as it is, with a `Content-Length`, is read into a buffer of
+    /// the server's [`BodyPool`] rather than a fresh one.
+    const POOLED: bool = false;
 }
 
 /// The body of a `POST` to a frame, of kind `K`.
@@ -120,7 +124,7 @@ pub struct FrameBody<K> {
     /// The frame posted to.
     pub frame: Arc<ShardedFrame>,
     /// The whole body, decompressed.
-    pub bytes: Bytes,
+    pub bytes: BodyBytes,
     /// Working memory held for the body and its decoding; keep it until they are dropped.
     pub reservation: Reservation,
     kind: PhantomData<fn() -> K>,
@@ -149,9 +153,16 @@ impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
             .reserve(wire + inflated + K::decoding_bytes(&frame, inflated))
             .await
             .map_err(|busy| ApiError::busy(&busy))?;
-        let bytes = read_body(body, limit, encoding, declared)
-            .await
-            .inspect_err(|_| K::refused(&frame))?;
+        let bytes = match declared {
+            Some(len) if K::POOLED && encoding == Encoding::Identity && len >= POOLED_MIN => {
+                let pool = app.body_pool.clone();
+                read_pooled(body, limit, pool, len as usize).await
+            }
+            _ => read_body(body, limit, encoding, declared)
+                .await
+                .map(BodyBytes::Shared),
+        }
+        .inspect_err(|_| K::refused(&frame))?;
         Ok(FrameBody {
             frame,
             bytes,
@@ -308,6 +319,122 @@ fn body_error(e: axum::Error, limit: usize) -> ApiError {
         "unreadable_body",
         format!("could not read the request body: {inner}"),
     )
+}
+
+/// Bodies smaller than this are read into fresh buffers: the allocator keeps such sizes
+/// mapped already, and pooling them would gain nothing.
+pub const POOLED_MIN: u64 = 1 << 20;
+
+/// Reads a body declared `len` bytes long (sent as it is) into a buffer of `pool`, refusing
+/// more than `limit` bytes with 413 like [`read_body`].
+async fn read_pooled(
+    mut body: Body,
+    limit: usize,
+    pool: Arc<BodyPool>,
+    len: usize,
+) -> Result<BodyBytes, ApiError> {
+    use http_body_util::BodyExt;
+    // Given back to the pool however the read ends.
+    let mut bytes = BodyBytes::Pooled(pool.take(len), pool);
+    let BodyBytes::Pooled(buffer, _) = &mut bytes else {
+        unreachable!("made pooled just above")
+    };
+    while let Some(frame) = body.frame().await {
+        let frame = frame.map_err(|e| body_error(e, limit))?;
+        if let Ok(data) = frame.into_data() {
+            if buffer.len() + data.len() > limit {
+                return Err(too_large(limit));
+            }
+            buffer.extend_from_slice(&data);
+        }
+    }
+    Ok(bytes)
+}
+
+/// A request body's bytes: shared, or in a buffer of a [`BodyPool`] that goes back to it
+/// when they are dropped.
+#[derive(Debug)]
+pub enum BodyBytes {
+    /// Bytes of their own.
+    Shared(Bytes),
+    /// A pool's buffer and the pool it goes back to.
+    Pooled(Vec<u8>, Arc<BodyPool>),
+}
+
+impl std::ops::Deref for BodyBytes {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        match self {
+            BodyBytes::Shared(bytes) => bytes,
+            BodyBytes::Pooled(buffer, _) => buffer,
+        }
+    }
+}
+
+impl Drop for BodyBytes {
+    fn drop(&mut self) {
+        if let BodyBytes::Pooled(buffer, pool) = self {
+            pool.give(std::mem::take(buffer));
+        }
+    }
+}
+
+/// Buffers for large request bodies, kept between requests.
+///
+/// A 1080p EXR pass is 25 MB: read into a fresh buffer each time, it is mapped, grown (copied)
+/// as its chunks arrive and unmapped per request, and the page faults of touching it again cost
+/// more than reading it. A body read into a kept buffer of its `Content-Length` lands in memory
+/// that is already mapped, with no copy. A buffer in use holds exactly the length that the
+/// request reserved for its body; at most `keep` idle buffers are kept.
+#[derive(Debug)]
+pub struct BodyPool {
+    free: std::sync::Mutex<Vec<Vec<u8>>>,
+    keep: usize,
+}
+
+impl BodyPool {
+    /// A pool that keeps at most `keep` idle buffers.
+    pub fn new(keep: usize) -> BodyPool {
+        BodyPool {
+            free: std::sync::Mutex::new(Vec::new()),
+            keep,
+        }
+    }
+
+    /// An empty buffer with room for exactly `len` bytes: the largest idle one, shrunk or
+    /// grown to `len` (both keep its mapped pages), or a new one.
+    pub fn take(&self, len: usize) -> Vec<u8> {
+        let mut buffer = {
+            let mut free = self.lock();
+            let largest = (0..free.len()).max_by_key(|&i| free[i].capacity());
+            largest.map(|i| free.swap_remove(i)).unwrap_or_default()
+        };
+        buffer.clear();
+        if buffer.capacity() > len {
+            buffer.shrink_to(len);
+        } else {
+            buffer.reserve_exact(len);
+        }
+        buffer
+    }
+
+    /// Keeps `buffer` for a later body (dropped if `keep` are already idle).
+    pub fn give(&self, buffer: Vec<u8>) {
+        let mut free = self.lock();
+        if free.len() < self.keep {
+            free.push(buffer);
+        }
+    }
+
+    /// Bytes held by the idle buffers.
+    pub fn idle_bytes(&self) -> usize {
+        self.lock().iter().map(Vec::capacity).sum()
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Vec<u8>>> {
+        // A buffer holds no invariant a panic could break: a poisoned lock is still usable.
+        self.free.lock().unwrap_or_else(|p| p.into_inner())
+    }
 }
 
 /// `wire` inflated, at most `limit` bytes of it.

@@ -66,6 +66,8 @@ impl Upload for Pass {
     fn refused(frame: &ShardedFrame) {
         reject(frame, 0, "body");
     }
+
+    const POOLED: bool = true;
 }
 
 fn pass_pixels(frame: &ShardedFrame) -> u64 {
@@ -124,16 +126,35 @@ pub async fn post_pass(
     }: FrameBody<Pass>,
 ) -> Result<Json<BatchAck>, ApiError> {
     metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    let pool = app.clone();
     ingest(&app, frame, reservation, move |frame| {
-        let refuse = |e: crate::passes::PassError| {
-            reject(frame, 0, "pass");
-            ApiError::invalid_pass(frame.id(), &e)
-        };
-        let spec = &frame.spec().request;
-        let layer = query.layer.as_deref();
-        let mut pass =
-            crate::passes::decode_pass_with_aovs(&bytes, layer, pass_pixels(frame), &spec.aovs)
-                .map_err(refuse)?;
+        // Decoded into buffers kept from earlier passes (counted in this request's reservation
+        // while in use), given back whatever the outcome.
+        let mut scratch = pool.pass_scratch.take();
+        let result = apply_pass(frame, &query, &bytes, &mut scratch);
+        pool.pass_scratch.give(scratch);
+        result
+    })
+    .await
+}
+
+/// Decodes a pass into `scratch`, checks it and applies it to `frame`.
+fn apply_pass(
+    frame: &ShardedFrame,
+    query: &PassQuery,
+    bytes: &[u8],
+    scratch: &mut crate::passes::Scratch,
+) -> Result<((u64, u64), crate::frame::Ingested), ApiError> {
+    let refuse = |e: crate::passes::PassError| {
+        reject(frame, 0, "pass");
+        ApiError::invalid_pass(frame.id(), &e)
+    };
+    let spec = &frame.spec().request;
+    let layer = query.layer.as_deref();
+    let mut pass =
+        crate::passes::decode_pass_reusing(bytes, layer, pass_pixels(frame), &spec.aovs, scratch)
+            .map_err(refuse)?;
+    let result = (|| {
         pass.check(spec.width, spec.height).map_err(refuse)?;
         let aovs = pass.aovs.take();
         if let Some(values) = &aovs {
@@ -144,8 +165,9 @@ pub async fn post_pass(
         let result = frame.ingest_pass(worker, seq, &pass.rgb, aovs.as_deref());
         let ingested = applied(pass.rgb.len(), result)?;
         Ok(((worker, seq), ingested))
-    })
-    .await
+    })();
+    scratch.recycle(pass);
+    result
 }
 
 /// The outcome of a frame's ingest of `samples` samples, as the route answers it.

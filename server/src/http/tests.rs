@@ -718,3 +718,87 @@ async fn aov_declarations_are_checked_compared_and_counted() {
     );
     assert!(server.store.get("big").is_err());
 }
+
+/// An uncompressed RGB float EXR of `w x h` pixels, pixel `i` = `(i, 2i, 3i) / 1000`.
+fn rgb_exr(w: usize, h: usize) -> Vec<u8> {
+    use exr::prelude::*;
+    let channel = |name: &str, c: f32| {
+        let values = (0..w * h).map(|i| i as f32 * c / 1000.0).collect();
+        AnyChannel::new(name, FlatSamples::F32(values))
+    };
+    let layer = Layer::new(
+        (w, h),
+        LayerAttributes::default(),
+        Encoding::UNCOMPRESSED,
+        AnyChannels::sort(SmallVec::from_vec(vec![
+            channel("R", 1.0),
+            channel("G", 2.0),
+            channel("B", 3.0),
+        ])),
+    );
+    let mut bytes = Vec::new();
+    Image::from_layer(layer)
+        .write()
+        .to_buffered(std::io::Cursor::new(&mut bytes))
+        .unwrap();
+    bytes
+}
+
+/// Large pass bodies are read into buffers the server keeps, exactly their declared length, and
+/// decoded into kept buffers: each pass is applied as before, a refused one changes nothing and
+/// still gives its buffers back, and a second pass reuses them rather than growing the pool.
+#[tokio::test]
+async fn large_pass_bodies_and_decodes_reuse_kept_buffers() {
+    let (w, h) = (320, 320);
+    let server = AppState::new(Limits::default(), None, None);
+    let spec = server.store.check(CreateFrame::new("big", w, h)).unwrap();
+    server.store.create(spec).unwrap();
+    let exr = rgb_exr(w as usize, h as usize);
+    assert!(exr.len() as u64 >= super::extract::POOLED_MIN);
+    let length = exr.len().to_string();
+    let headers = [
+        (header::CONTENT_TYPE, "image/x-exr"),
+        (header::CONTENT_LENGTH, length.as_str()),
+    ];
+    let post = |seq: u64, body: Vec<u8>| {
+        let server = server.clone();
+        let headers = headers.clone();
+        async move {
+            let path = format!("/v1/frames/big/passes?worker=7&seq={seq}");
+            let (status, code, _, _) =
+                exchange(&server, Method::POST, &path, &headers, Body::from(body)).await;
+            (status, code)
+        }
+    };
+    let frame = server.store.get("big").unwrap();
+    let pixels = u64::from(w * h);
+
+    assert_eq!(post(1, exr.clone()).await, (StatusCode::OK, String::new()));
+    assert_eq!(frame.samples(), pixels);
+    assert_eq!(
+        server.body_pool.idle_bytes(),
+        exr.len(),
+        "kept, exactly its length"
+    );
+    let scratch = server.pass_scratch.idle_bytes();
+    // Planes R, G, B (4 bytes a pixel each), write counts (1) and the samples (12).
+    assert_eq!(scratch, pixels as usize * 25);
+
+    // Not an EXR, of the same length: refused, nothing applied, the buffers back in the pool.
+    let mut junk = exr.clone();
+    junk[0] = b'X';
+    let (status, code) = post(2, junk).await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::UNPROCESSABLE_ENTITY, "invalid_pass")
+    );
+    assert_eq!(frame.samples(), pixels);
+    assert_eq!(server.body_pool.idle_bytes(), exr.len());
+
+    // Another pass, and a retry of the first: reused buffers, the same accounting as ever.
+    assert_eq!(post(3, exr.clone()).await, (StatusCode::OK, String::new()));
+    assert_eq!(post(1, exr.clone()).await, (StatusCode::OK, String::new()));
+    assert_eq!(frame.samples(), 2 * pixels);
+    assert_eq!(server.body_pool.idle_bytes(), exr.len());
+    assert_eq!(server.pass_scratch.idle_bytes(), scratch);
+}
