@@ -20,7 +20,7 @@ use std::time::Instant;
 use anyhow::{bail, Context, Result};
 use splatd_estimator::{
     cell_len, resolve_bands, resolve_bands_into, CascadeLayout, FrameState, Kernel, NeedMap,
-    ResolveParams, Resolved, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
+    ResolveParams, Resolved, Variant, DEFAULT_LOWEST_SCALE, REC709_LUMINANCE,
 };
 use splatd_scenes::quality::rel_mse;
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
@@ -482,6 +482,7 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
         counts.push(cores);
     }
     let mut reused = Resolved::default();
+    let mut paper_out = Resolved::default();
     for threads in counts {
         // One thread on this thread's CPU clock, like the read; several by the wall clock (the
         // scaling figure is only meaningful on an otherwise idle machine).
@@ -503,6 +504,19 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
         } else {
             best_wall_of(3, into)
         };
+        // The paper's resolve alone (the default's first stage), into reused buffers too: the
+        // difference to the default is the spread's second stage.
+        let paper_params = params.with_variant(Variant::Paper);
+        let paper = || {
+            resolve_bands_into(&[&state8], &paper_params, threads, &mut paper_out)
+                .expect("whole frame");
+            black_box(&paper_out);
+        };
+        let t_paper = if threads == 1 {
+            best_of(3, paper)
+        } else {
+            best_wall_of(3, paper)
+        };
         if threads == 1 {
             t_one_wall = t_wall;
         }
@@ -517,6 +531,15 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
             t_into / t_read,
             t_one_wall / t_wall,
             t_wall
+        );
+        println!(
+            "  of which {:?} (first stage) {:.3} s into reused buffers ({:.2}x the read), {:?}'s \
+             second stage {:.3} s",
+            Variant::Paper,
+            t_paper,
+            t_paper / t_read,
+            params.variant(),
+            t_into - t_paper
         );
         if threads == 1 {
             let r = t_resolve / t_read;
