@@ -200,6 +200,14 @@ pub struct Resolved {
     pub(crate) scratch: Scratch,
 }
 
+impl Resolved {
+    /// Bytes of working memory kept for the next resolve into these buffers (see
+    /// [`resolve_bands_into`]; 0 for a result of [`resolve_bands`]).
+    pub fn working_bytes(&self) -> u64 {
+        self.scratch.bytes()
+    }
+}
+
 /// Bands given to [`resolve_bands`] that do not tile one frame.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 #[error("bands do not tile a frame: {0}")]
@@ -227,14 +235,18 @@ pub fn resolve_bands(
 ) -> Result<Resolved, TilingError> {
     let mut out = Resolved::default();
     resolve_bands_with(Kernel::detect(), bands, params, threads, &mut out)?;
+    // A result on its own holds no working memory.
+    out.scratch = Scratch::default();
     Ok(out)
 }
 
 /// [`resolve_bands`] into the buffers of an earlier result of the same frame size, which are
 /// overwritten (other sizes get new buffers). Resolving a large frame again and again into the
 /// same buffers saves allocating and faulting in fresh memory every time, which costs more than
-/// the resolve's own reading of the state (`bench speed` measures both). On error `out` is left
-/// as it was.
+/// the resolve's own reading of the state (`bench speed` measures both). With
+/// [`Variant::Spread`], `out` also keeps the second stage's working memory for the next resolve
+/// (a support plane of 4 bytes per pixel and band, and lists of the pixels where energy was
+/// removed: [`Resolved::working_bytes`]). On error `out` is left as it was.
 pub fn resolve_bands_into(
     bands: &[&FrameState],
     params: &ResolveParams,

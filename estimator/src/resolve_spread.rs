@@ -154,11 +154,7 @@ pub(crate) struct Source {
 /// (`f32`, never negative) with the sign bit set where the band is solid.
 #[inline(always)]
 pub(crate) fn support_word(own: f32, solid: bool) -> f32 {
-    if solid {
-        f32::from_bits(own.to_bits() | SIGN)
-    } else {
-        own
-    }
+    f32::from_bits(own.to_bits() | (solid as u32) << 31)
 }
 
 const SIGN: u32 = 1 << 31;
@@ -204,6 +200,30 @@ pub(crate) struct Scratch {
     /// Per part of the paper stage, per column of strips, per band: the sources.
     pub(crate) sources: Vec<Vec<Vec<Vec<Source>>>>,
     bands: Vec<BandEvents>,
+}
+
+impl Scratch {
+    /// Bytes held (capacity, not length).
+    pub(crate) fn bytes(&self) -> u64 {
+        use std::mem::size_of;
+        let lists: usize = self
+            .sources
+            .iter()
+            .flatten()
+            .flatten()
+            .map(Vec::capacity)
+            .sum();
+        let bands: usize = self
+            .bands
+            .iter()
+            .map(|b| {
+                b.offsets.capacity() * size_of::<usize>()
+                    + b.events.capacity() * size_of::<Event>()
+                    + b.found.capacity() * size_of::<(u32, u32, Event)>()
+            })
+            .sum();
+        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + bands) as u64
+    }
 }
 
 impl Clone for Scratch {

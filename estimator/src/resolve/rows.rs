@@ -484,6 +484,14 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 inv_kappa[x] = 1.0 / kap[x];
             }
         }
+        // The spread stage's solid test: a band is solid where its support reaches this (the
+        // same f32 comparison as the plain computation's).
+        let mut solid_from = [0.0f32; STRIP];
+        if BANDS {
+            for x in 0..STRIP {
+                solid_from[x] = (kap[x] + kmin).max(c.solid_share * n[x]) as f32;
+            }
+        }
         let small = n.iter().all(|&n| n <= SMALL_N);
         let mut f = [[0.0f64; STRIP]; 3];
         let mut total = [[0.0f64; STRIP]; 3];
@@ -575,31 +583,34 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
             }
             if BANDS {
+                // Straight-line loops over the strip first (the divisions and the solid test
+                // as vector instructions), then the sources pushed one by one.
                 let own = own(j);
-                for x in 0..at.count {
-                    let mut word = 0.0;
-                    if n[x] != 0.0 {
-                        let keep = 1.0 - weight[x];
-                        let removed = [
-                            (keep * b[0][x] / n[x]) as f32,
-                            (keep * b[1][x] / n[x]) as f32,
-                            (keep * b[2][x] / n[x]) as f32,
-                        ];
-                        let own = own[x] as f32;
-                        if removed != [0.0; 3] {
-                            part.sources[part.column][j].push(Source {
-                                x: (at.x0 + x) as u32,
-                                y: at.y as u32,
-                                removed,
-                                own,
-                            });
-                        }
-                        // Solid: trusted on its own and a large enough share of the samples
-                        // (the same f32 comparison as the plain computation's).
-                        let solid_from = (kap[x] + kmin).max(c.solid_share * n[x]) as f32;
-                        word = support_word(own, own >= solid_from);
+                let mut removed = [[0.0f32; STRIP]; 3];
+                for ch in 0..3 {
+                    for x in 0..STRIP {
+                        // Not used where `n` is 0.
+                        removed[ch][x] = ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
                     }
-                    part.support[j][at.first + x] = word;
+                }
+                let mut words = [0.0f32; STRIP];
+                for x in 0..STRIP {
+                    let own = own[x] as f32;
+                    let word = support_word(own, own >= solid_from[x]);
+                    words[x] = if n[x] != 0.0 { word } else { 0.0 };
+                }
+                part.support[j][at.first..at.first + at.count].copy_from_slice(&words[..at.count]);
+                let sources = &mut part.sources[part.column][j];
+                for x in 0..at.count {
+                    let rgb = [removed[0][x], removed[1][x], removed[2][x]];
+                    if n[x] != 0.0 && rgb != [0.0; 3] {
+                        sources.push(Source {
+                            x: (at.x0 + x) as u32,
+                            y: at.y as u32,
+                            removed: rgb,
+                            own: own[x] as f32,
+                        });
+                    }
                 }
             }
         }
