@@ -161,33 +161,24 @@ const SIGN: u32 = 1 << 31;
 
 /// Where a band's removed energy at one source is given back, as one row of a 2D difference
 /// array it changes: at the window's top row `+v` at `x0` and `-v` at `x1`, at the row below
-/// its bottom the opposite, with `v = removed * share` (rows `>= h` and columns `>= w` are never
-/// read and are not kept).
+/// its bottom the opposite, with `v = removed / pixels of the window` (rows `>= h` and columns
+/// `>= w` are never read and are not kept).
 #[derive(Debug, Clone, Copy)]
 struct Event {
     x0: u32,
     x1: u32,
-    /// `+1` at the window's top row, `-1` at the row below its bottom.
-    sign: f32,
+    /// The window's pixels, negative at the row below its bottom.
+    area: i32,
     removed: [f32; 3],
-    /// `1 / pixels of the window`.
-    share: f64,
 }
 
-impl Event {
-    #[inline(always)]
-    fn v(&self) -> [f64; 3] {
-        self.removed.map(|c| c as f64 * self.share)
-    }
-}
+/// Largest window: 33x33 pixels.
+const MAX_AREA: usize = (2 * SPREAD_RADII[SPREAD_RADII.len() - 1] + 1).pow(2);
 
-/// One band's events bucketed by row (in source order within a row), and the windows found
-/// before they are bucketed.
+/// One band's events per row of the difference array (in source order within a row).
 #[derive(Default)]
 struct BandEvents {
-    offsets: Vec<usize>,
-    events: Vec<Event>,
-    found: Vec<(u32, u32, Event)>,
+    rows: Vec<Vec<Event>>,
 }
 
 /// Working memory of the resolve's spread stage, kept by a [`Resolved`] for the next resolve
@@ -217,9 +208,8 @@ impl Scratch {
             .bands
             .iter()
             .map(|b| {
-                b.offsets.capacity() * size_of::<usize>()
-                    + b.events.capacity() * size_of::<Event>()
-                    + b.found.capacity() * size_of::<(u32, u32, Event)>()
+                b.rows.capacity() * size_of::<Vec<Event>>()
+                    + b.rows.iter().map(Vec::capacity).sum::<usize>() * size_of::<Event>()
             })
             .sum();
         (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + bands) as u64
@@ -467,15 +457,8 @@ fn windows(
     } = params.spread();
     let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= max_radius);
     sat.reset();
-    // Per source with a window, its top row and the event there; counted per row.
-    let BandEvents {
-        offsets,
-        events,
-        found,
-    } = band;
-    found.clear();
-    offsets.clear();
-    offsets.resize(h + 1, 0);
+    band.rows.resize_with(h, Vec::new);
+    band.rows.iter_mut().for_each(Vec::clear);
     for source in merged(sources) {
         let (x, y) = (source.x as usize, source.y as usize);
         sat.build(plane, w, (y + max_radius + 1).min(h));
@@ -504,46 +487,19 @@ fn windows(
             continue;
         };
         // Every pixel of the window (clamped to the frame) gets an equal share.
-        let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
-        offsets[y0] += 1;
-        if y1 < h {
-            offsets[y1] += 1;
-        }
+        let area = ((x1 - x0) * (y1 - y0)) as i32;
         let event = Event {
             x0: x0 as u32,
             x1: x1 as u32,
-            sign: 1.0,
+            area,
             removed: source.removed,
-            share,
         };
-        found.push((y0 as u32, y1 as u32, event));
-    }
-    // Bucketed by row, in source order within each row (a counting sort).
-    let mut at = 0;
-    for o in offsets.iter_mut() {
-        (*o, at) = (at, at + *o);
-    }
-    let mut fill = offsets.clone();
-    // Every slot is written once below.
-    let blank = Event {
-        x0: 0,
-        x1: 0,
-        sign: 0.0,
-        removed: [0.0; 3],
-        share: 0.0,
-    };
-    events.clear();
-    events.resize(at, blank);
-    for &(y0, y1, event) in found.iter() {
-        let (y0, y1) = (y0 as usize, y1 as usize);
-        events[fill[y0]] = event;
-        fill[y0] += 1;
+        band.rows[y0].push(event);
         if y1 < h {
-            events[fill[y1]] = Event {
-                sign: -1.0,
+            band.rows[y1].push(Event {
+                area: -area,
                 ..event
-            };
-            fill[y1] += 1;
+            });
         }
     }
 }
@@ -559,19 +515,26 @@ fn give_back(bands: &[&BandEvents], w: usize, xa: usize, rows: Vec<RowSlices>) {
     let mut diff = vec![[0.0f64; 3]; w];
     let mut col = vec![[0.0f64; 3]; xb - xa];
     let mut col_zero = true;
+    // `1 / area`, as the plain computation divides.
+    let shares: Vec<f64> = (0..=MAX_AREA).map(|a| 1.0 / a as f64).collect();
     for (y, (f, r)) in rows.into_iter().enumerate() {
         // This row of the difference array: every band's events in band and source order
         // (each cell's additions in the order of the dense computation).
         let mut touched = false;
         for band in bands {
-            for e in &band.events[band.offsets[y]..band.offsets[y + 1]] {
+            for e in &band.rows[y] {
                 let (x0, x1) = (e.x0 as usize, e.x1 as usize);
                 if x0 >= xb {
                     continue;
                 }
                 touched = true;
-                let v = e.v();
-                let sign = e.sign as f64;
+                let share = shares[e.area.unsigned_abs() as usize];
+                let v = [
+                    e.removed[0] as f64 * share,
+                    e.removed[1] as f64 * share,
+                    e.removed[2] as f64 * share,
+                ];
+                let sign = e.area.signum() as f64;
                 for c in 0..3 {
                     diff[x0][c] += sign * v[c];
                 }
