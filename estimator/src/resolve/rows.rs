@@ -586,11 +586,18 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 // Straight-line loops over the strip first (the divisions and the solid test
                 // as vector instructions), then the sources pushed one by one.
                 let own = own(j);
+                // Energy is removed only where the weight is below 1 and the band has some.
+                let mut any = false;
+                for x in 0..STRIP {
+                    any |= weight[x] < 1.0 && (b[0][x] != 0.0 || b[1][x] != 0.0 || b[2][x] != 0.0);
+                }
                 let mut removed = [[0.0f32; STRIP]; 3];
-                for ch in 0..3 {
-                    for x in 0..STRIP {
-                        // Not used where `n` is 0.
-                        removed[ch][x] = ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
+                if any {
+                    for ch in 0..3 {
+                        for x in 0..STRIP {
+                            // Not used where `n` is 0.
+                            removed[ch][x] = ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
+                        }
                     }
                 }
                 let mut words = [0.0f32; STRIP];
@@ -601,9 +608,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
                 part.support[j][at.first..at.first + at.count].copy_from_slice(&words[..at.count]);
                 let sources = &mut part.sources[part.column][j];
-                for x in 0..at.count {
+                for x in (0..at.count).filter(|_| any) {
                     let rgb = [removed[0][x], removed[1][x], removed[2][x]];
-                    if n[x] != 0.0 && rgb != [0.0; 3] {
+                    if n[x] != 0.0 && (rgb[0] != 0.0 || rgb[1] != 0.0 || rgb[2] != 0.0) {
                         sources.push(Source {
                             x: (at.x0 + x) as u32,
                             y: at.y as u32,
