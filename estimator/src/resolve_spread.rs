@@ -139,15 +139,14 @@ impl SpreadParams {
     }
 }
 
-/// A pixel where the first (paper) stage removed energy of one band: what the spread stage may
-/// give back, in pixel-value units (RGB), and the band's support there (as `f32`, as stored in
-/// the band's support plane). The paper stage lists them per band in row-major order.
+/// A pixel where the first (paper) stage removed energy of one band, and what the spread stage
+/// may give back, in pixel-value units (RGB; the band's support there is in the band's support
+/// plane). The paper stage lists them per band in row-major order.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub(crate) struct Source {
     pub(crate) x: u32,
     pub(crate) y: u32,
     pub(crate) removed: [f32; 3],
-    pub(crate) own: f32,
 }
 
 /// A band's support at a pixel as the paper stage stores it for the spread stage: the support
@@ -471,7 +470,7 @@ fn windows(
                 // The band is solid in a pixel of the window: energy cut at the edge of a light
                 // (module docs), given back in place right next to it if the band holds
                 // `edge_share` of the pixel's samples, else left removed.
-                let own = source.own as f64;
+                let own = f32::from_bits(plane[y * w + x].to_bits() & !SIGN) as f64;
                 let spp = spp[y * w + x] as f64;
                 if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
                     window = Some((x, x + 1, y, y + 1));

@@ -615,7 +615,6 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                             x: (at.x0 + x) as u32,
                             y: at.y as u32,
                             removed: rgb,
-                            own: own[x] as f32,
                         });
                     }
                 }
