@@ -18,13 +18,15 @@
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
 use super::layout::ParamError;
-use super::resolve_spread::{spread, SpreadParams, BAND_FLOATS};
+use super::resolve_spread::{spread, Scratch, SpreadParams};
 use super::state::{FrameState, Kernel};
 
 #[cfg(test)]
 mod matches_reference;
 #[cfg(test)]
 mod reference;
+#[cfg(test)]
+mod reference_spread;
 mod rows;
 
 use rows::{Consts, Part, Rows};
@@ -193,6 +195,17 @@ pub struct Resolved {
     pub removed: Vec<[f32; 3]>,
     /// Samples per pixel.
     pub spp: Vec<u64>,
+    /// Working memory kept for the next resolve into these buffers (not part of the result:
+    /// equal in every two results, empty in a clone).
+    pub(crate) scratch: Scratch,
+}
+
+impl Resolved {
+    /// Bytes of working memory kept for the next resolve into these buffers (see
+    /// [`resolve_bands_into`]; 0 for a result of [`resolve_bands`]).
+    pub fn working_bytes(&self) -> u64 {
+        self.scratch.bytes()
+    }
 }
 
 /// Bands given to [`resolve_bands`] that do not tile one frame.
@@ -222,14 +235,18 @@ pub fn resolve_bands(
 ) -> Result<Resolved, TilingError> {
     let mut out = Resolved::default();
     resolve_bands_with(Kernel::detect(), bands, params, threads, &mut out)?;
+    // A result on its own holds no working memory.
+    out.scratch = Scratch::default();
     Ok(out)
 }
 
 /// [`resolve_bands`] into the buffers of an earlier result of the same frame size, which are
 /// overwritten (other sizes get new buffers). Resolving a large frame again and again into the
 /// same buffers saves allocating and faulting in fresh memory every time, which costs more than
-/// the resolve's own reading of the state (`bench speed` measures both). On error `out` is left
-/// as it was.
+/// the resolve's own reading of the state (`bench speed` measures both). With
+/// [`Variant::Spread`], `out` also keeps the second stage's working memory for the next resolve
+/// (a support plane of 4 bytes per pixel and band, and lists of the pixels where energy was
+/// removed: [`Resolved::working_bytes`]). On error `out` is left as it was.
 pub fn resolve_bands_into(
     bands: &[&FrameState],
     params: &ResolveParams,
@@ -301,52 +318,60 @@ pub fn resolve_bands_with(
     }
     let k = first.layout().cascades();
     let spreading = params.variant == Variant::Spread;
-    // Band-major, so that the spread stage reads each band's plane contiguously.
-    let mut bands_out: Vec<Vec<f32>> = if spreading {
-        (0..k).map(|_| vec![0.0; pixels * BAND_FLOATS]).collect()
-    } else {
-        Vec::new()
-    };
+    let mut scratch = std::mem::take(&mut out.scratch);
+    // For the spread stage: one plane of support words per band (band-major, so that the
+    // spread stage reads each band's plane contiguously; every word is written by the row
+    // pass), and each part's lists of sources.
+    scratch
+        .support
+        .resize(if spreading { k * pixels } else { 0 }, 0.0);
     let threads = threads.clamp(1, h);
     let chunk = h.div_ceil(threads) * w;
+    let parts = pixels.div_ceil(chunk);
+    scratch.sources.resize_with(parts, Vec::new);
     let layout = first.layout();
     let consts = &Consts::new(layout, params);
     let rows = &rows;
     std::thread::scope(|scope| {
-        let mut band_parts: Vec<_> = bands_out
-            .iter_mut()
-            .map(|b| b.chunks_mut(chunk * BAND_FLOATS))
+        let mut planes: Vec<_> = scratch
+            .support
+            .chunks_mut(pixels)
+            .map(|b| b.chunks_mut(chunk))
             .collect();
-        let parts = out
+        let outputs = out
             .reweighted
             .chunks_mut(chunk)
             .zip(out.mean.chunks_mut(chunk))
             .zip(out.removed.chunks_mut(chunk))
             .zip(out.spp.chunks_mut(chunk))
+            .zip(scratch.sources.iter_mut())
             .enumerate();
-        for (i, (((reweighted, mean), removed), spp)) in parts {
+        for (i, ((((reweighted, mean), removed), spp), sources)) in outputs {
             let part = Part {
                 y0: i * chunk / w,
                 reweighted,
                 mean,
                 removed,
                 spp,
-                bands: band_parts
+                support: planes
                     .iter_mut()
                     .map(|b| b.next().expect("one chunk per part"))
                     .collect(),
+                sources: std::mem::take(sources),
+                column: 0,
             };
-            if i + 1 == threads.min(pixels.div_ceil(chunk)) {
+            if i + 1 == parts {
                 // The last part runs on this thread.
-                Rows::new(kernel, consts, w).run(rows, part);
+                *sources = Rows::new(kernel, consts, w).run(rows, part);
             } else {
-                scope.spawn(move || Rows::new(kernel, consts, w).run(rows, part));
+                scope.spawn(move || *sources = Rows::new(kernel, consts, w).run(rows, part));
             }
         }
     });
     if spreading {
-        spread(layout, &bands_out, params, out);
+        spread(k, &mut scratch, params, out, threads);
     }
+    out.scratch = scratch;
     Ok(())
 }
 

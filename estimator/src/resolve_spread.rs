@@ -26,10 +26,10 @@
 //!   `>= 0`, in every realization, not only in expectation;
 //! * it is consistent: as `N` grows every band of positive probability is fully trusted by the
 //!   paper's weights, `r_j -> 0`, and the estimate converges to the mean like the paper's;
-//! * it reads only the state: bit-identical for any arrival order or merge, and the scatter runs
-//!   in a fixed order on one thread whatever the resolve's thread count.
+//! * it reads only the state: bit-identical for any arrival order or merge, and the same `f64`
+//!   sums in the same order whatever the resolve's thread count (see [`spread`]).
 
-use super::layout::{CascadeLayout, ParamError};
+use super::layout::ParamError;
 use super::resolve::{ResolveParams, Resolved};
 
 /// Window radii tried, smallest first: 3x3 up to 33x33 (those up to
@@ -49,10 +49,10 @@ pub const DEFAULT_SPREAD_MAX_RADIUS: usize = 8;
 /// Settings of the spread stage.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SpreadParams {
-    support: f64,
-    solid_share: f64,
-    max_radius: usize,
-    edge_share: Option<f64>,
+    pub(crate) support: f64,
+    pub(crate) solid_share: f64,
+    pub(crate) max_radius: usize,
+    pub(crate) edge_share: Option<f64>,
 }
 
 impl SpreadParams {
@@ -139,141 +139,445 @@ impl SpreadParams {
     }
 }
 
-/// Per pixel and band, what the first (paper) stage leaves for the spread stage: the removed
-/// energy in pixel-value units (RGB) and the band's support count.
-pub(crate) const BAND_FLOATS: usize = 4;
+/// A pixel where the first (paper) stage removed energy of one band, and what the spread stage
+/// may give back, in pixel-value units (RGB; the band's support there is in the band's support
+/// plane). The paper stage lists them per band in row-major order.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(crate) struct Source {
+    pub(crate) x: u32,
+    pub(crate) y: u32,
+    pub(crate) removed: [f32; 3],
+}
 
-/// Gives removed energy back. `bands` holds, per band and pixel (row-major), `[r, g, b, n_j]`;
-/// `out` holds the paper's images, updated in place.
+/// A band's support at a pixel as the paper stage stores it for the spread stage: the support
+/// (`f32`, never negative) with the sign bit set where the band is solid.
+#[inline(always)]
+pub(crate) fn support_word(own: f32, solid: bool) -> f32 {
+    f32::from_bits(own.to_bits() | (solid as u32) << 31)
+}
+
+const SIGN: u32 = 1 << 31;
+
+/// Where a band's removed energy at one source is given back, as one row of a 2D difference
+/// array it changes: at the window's top row `+v` at `x0` and `-v` at `x1`, at the row below
+/// its bottom the opposite, with `v = removed / pixels of the window` (rows `>= h` and columns
+/// `>= w` are never read and are not kept).
+#[derive(Debug, Clone, Copy)]
+struct Event {
+    x0: u32,
+    x1: u32,
+    /// The window's pixels, negative at the row below its bottom.
+    area: i32,
+    removed: [f32; 3],
+}
+
+/// Largest window: 33x33 pixels.
+const MAX_AREA: usize = (2 * SPREAD_RADII[SPREAD_RADII.len() - 1] + 1).pow(2);
+
+/// One band's events per row of the difference array (in source order within a row).
+#[derive(Default)]
+struct BandEvents {
+    rows: Vec<Vec<Event>>,
+}
+
+/// Working memory of the resolve's spread stage, kept by a [`Resolved`] for the next resolve
+/// into it (its capacity is reused: a large frame's lists are tens of megabytes, which fresh
+/// memory pays for in page faults every time).
+#[derive(Default)]
+pub(crate) struct Scratch {
+    /// One plane of support words per band ([`support_word`]).
+    pub(crate) support: Vec<f32>,
+    /// Per part of the paper stage, per column of strips, per band: the sources.
+    pub(crate) sources: Vec<Vec<Vec<Vec<Source>>>>,
+    bands: Vec<BandEvents>,
+}
+
+impl Scratch {
+    /// Bytes held (capacity, not length).
+    pub(crate) fn bytes(&self) -> u64 {
+        use std::mem::size_of;
+        let lists: usize = self
+            .sources
+            .iter()
+            .flatten()
+            .flatten()
+            .map(Vec::capacity)
+            .sum();
+        let bands: usize = self
+            .bands
+            .iter()
+            .map(|b| {
+                b.rows.capacity() * size_of::<Vec<Event>>()
+                    + b.rows.iter().map(Vec::capacity).sum::<usize>() * size_of::<Event>()
+            })
+            .sum();
+        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + bands) as u64
+    }
+}
+
+impl Clone for Scratch {
+    /// Working memory is not part of a result: a clone starts without.
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl PartialEq for Scratch {
+    /// Working memory is not part of a result.
+    fn eq(&self, _: &Self) -> bool {
+        true
+    }
+}
+
+impl std::fmt::Debug for Scratch {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Scratch").finish_non_exhaustive()
+    }
+}
+
+/// Gives removed energy back. `scratch` holds the paper stage's support words and sources
+/// (lists each in row-major order); `out` holds the paper's images, updated in place. `threads` share the bands' window searches, then the
+/// columns of the give-back.
+///
+/// The numbers are those of the plain dense computation (one summed-area table of the frame per
+/// band, one 2D difference array of the give-back of every band in band and source order, then
+/// its prefix sums; `resolve/reference_spread.rs` keeps it for the tests), bit for bit: the
+/// summed-area table is kept as a ring of the rows the widest window spans, the difference array
+/// as each row's events, applied to one row at a time in the same order, and the prefix sums run
+/// down columns split between threads (each thread's running sum along a row starts from the
+/// row's cells left of its columns).
 pub(crate) fn spread(
-    layout: &CascadeLayout,
-    bands: &[Vec<f32>],
+    k: usize,
+    scratch: &mut Scratch,
     params: &ResolveParams,
     out: &mut Resolved,
+    threads: usize,
+) {
+    let (w, h) = (out.width as usize, out.height as usize);
+    let pixels = w * h;
+    let Scratch {
+        support,
+        sources,
+        bands,
+    } = scratch;
+    debug_assert!(support.len() == k * pixels);
+    // Per band, its lists of sources (parts top to bottom, each part's columns left to right).
+    let lists: Vec<Vec<&[Source]>> = (0..k)
+        .map(|j| {
+            sources
+                .iter()
+                .flatten()
+                .map(|column| &column[j][..])
+                .collect()
+        })
+        .collect();
+    let busy: Vec<bool> = lists
+        .iter()
+        .map(|l| l.iter().any(|list| !list.is_empty()))
+        .collect();
+    let busy_count = busy.iter().filter(|&&b| b).count();
+    if busy_count == 0 {
+        return;
+    }
+    bands.resize_with(k, BandEvents::default);
+    // 1. Each band's windows, bands shared by the threads (taken in turn).
+    let spp = &out.spp;
+    {
+        let queue = std::sync::Mutex::new(
+            bands
+                .iter_mut()
+                .enumerate()
+                .filter(|(j, _)| busy[*j])
+                .map(|(j, band)| (band, &lists[j], &support[j * pixels..(j + 1) * pixels])),
+        );
+        let search = || {
+            let mut ring = SatRing::new(w, params.spread().max_radius());
+            loop {
+                let next = queue.lock().unwrap_or_else(|e| e.into_inner()).next();
+                let Some((band, lists, plane)) = next else {
+                    return;
+                };
+                windows(plane, lists, spp, w, h, params, &mut ring, band);
+            }
+        };
+        std::thread::scope(|scope| {
+            for _ in 1..threads.clamp(1, busy_count) {
+                scope.spawn(search);
+            }
+            search();
+        });
+    }
+    let bands: Vec<&BandEvents> = bands
+        .iter()
+        .zip(&busy)
+        .filter_map(|(band, &busy)| busy.then_some(band))
+        .collect();
+    // 2. The prefix sums of the difference array, a range of columns per thread.
+    let per = w.div_ceil(threads.clamp(1, w));
+    let bands = &bands;
+    std::thread::scope(|scope| {
+        let mut f = out.reweighted.as_mut_slice();
+        let mut r = out.removed.as_mut_slice();
+        // Each thread's columns of every row.
+        let mut parts: Vec<Vec<RowSlices>> = (0..w.div_ceil(per))
+            .map(|_| Vec::with_capacity(h))
+            .collect();
+        for _ in 0..h {
+            let (mut frow, rest) = f.split_at_mut(w);
+            let (mut rrow, rrest) = r.split_at_mut(w);
+            (f, r) = (rest, rrest);
+            for part in parts.iter_mut() {
+                let n = per.min(frow.len());
+                let (fa, fb) = frow.split_at_mut(n);
+                let (ra, rb) = rrow.split_at_mut(n);
+                (frow, rrow) = (fb, rb);
+                part.push((fa, ra));
+            }
+        }
+        let mut parts = parts.into_iter().enumerate();
+        let (_, first) = parts.next().expect("one column range at least");
+        for (t, rows) in parts {
+            scope.spawn(move || give_back(bands, w, t * per, rows));
+        }
+        give_back(bands, w, 0, first);
+    });
+}
+
+/// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
+/// the widest window around the current source row spans: row `i` (the sums over rows `0..i`)
+/// in slot `i & mask` (the ring's length a power of two), column 0 always zero.
+struct SatRing {
+    mask: usize,
+    stride: usize,
+    /// Table rows computed so far (`0 ..= built`).
+    built: usize,
+    n: Vec<f64>,
+    solid: Vec<u64>,
+}
+
+impl SatRing {
+    fn new(w: usize, max_radius: usize) -> Self {
+        let rows = (2 * max_radius + 2).next_power_of_two();
+        Self {
+            mask: rows - 1,
+            stride: w + 1,
+            built: 0,
+            n: vec![0.0; rows * (w + 1)],
+            solid: vec![0; rows * (w + 1)],
+        }
+    }
+
+    fn reset(&mut self) {
+        self.n.fill(0.0);
+        self.solid.fill(0);
+        self.built = 0;
+    }
+
+    /// Computes table rows up to `to` from the band's support plane.
+    fn build(&mut self, plane: &[f32], w: usize, to: usize) {
+        while self.built < to {
+            let y = self.built;
+            let (above, here) = (y & self.mask, (y + 1) & self.mask);
+            let cells = &plane[y * w..(y + 1) * w];
+            let (n_above, n_here) = two_rows(&mut self.n, above, here, self.stride);
+            let (s_above, s_here) = two_rows(&mut self.solid, above, here, self.stride);
+            let mut row = 0.0f64;
+            let mut solid = 0u64;
+            for (x, &word) in cells.iter().enumerate() {
+                row += f32::from_bits(word.to_bits() & !SIGN) as f64;
+                solid += (word.to_bits() >> 31) as u64;
+                n_here[x + 1] = n_above[x + 1] + row;
+                s_here[x + 1] = s_above[x + 1] + solid;
+            }
+            self.built += 1;
+        }
+    }
+
+    /// The box sums over columns `x0..x1` and rows `y0..y1` (table rows in the ring).
+    #[inline(always)]
+    fn boxed(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> (f64, u64) {
+        let (r0, r1) = (
+            (y0 & self.mask) * self.stride,
+            (y1 & self.mask) * self.stride,
+        );
+        let n = self.n[r1 + x1] - self.n[r0 + x1] - self.n[r1 + x0] + self.n[r0 + x0];
+        let solid = self.solid[r1 + x1]
+            .wrapping_sub(self.solid[r0 + x1])
+            .wrapping_sub(self.solid[r1 + x0])
+            .wrapping_add(self.solid[r0 + x0]);
+        (n, solid)
+    }
+}
+
+/// Rows `a` and `b` (different) of a table of rows `stride` long, the first shared.
+fn two_rows<T>(table: &mut [T], a: usize, b: usize, stride: usize) -> (&[T], &mut [T]) {
+    if a < b {
+        let (lo, hi) = table.split_at_mut(b * stride);
+        (&lo[a * stride..(a + 1) * stride], &mut hi[..stride])
+    } else {
+        let (lo, hi) = table.split_at_mut(a * stride);
+        (&hi[..stride], &mut lo[b * stride..(b + 1) * stride])
+    }
+}
+
+/// The sources of several lists, each in row-major order, merged into row-major order.
+fn merged<'l, 's>(lists: &'l [&'s [Source]]) -> impl Iterator<Item = &'s Source> + 'l {
+    let mut heads = vec![0usize; lists.len()];
+    std::iter::from_fn(move || {
+        let (i, _) = lists
+            .iter()
+            .zip(&heads)
+            .enumerate()
+            .filter_map(|(i, (list, &at))| list.get(at).map(|s| (i, (s.y, s.x))))
+            .min_by_key(|&(_, p)| p)?;
+        heads[i] += 1;
+        Some(&lists[i][heads[i] - 1])
+    })
+}
+
+/// One band's windows (the smallest supported one around each source, see the module docs) as
+/// events of a difference array, bucketed by row.
+#[allow(clippy::too_many_arguments)]
+fn windows(
+    plane: &[f32],
+    sources: &[&[Source]],
+    spp: &[u64],
+    w: usize,
+    h: usize,
+    params: &ResolveParams,
+    sat: &mut SatRing,
+    band: &mut BandEvents,
 ) {
     let SpreadParams {
         support,
-        solid_share,
         max_radius,
         edge_share,
+        ..
     } = params.spread();
     let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= max_radius);
-    let (w, h) = (out.width as usize, out.height as usize);
-    let pixels = w * h;
-    debug_assert!(
-        bands.len() == layout.cascades() && bands.iter().all(|b| b.len() == pixels * BAND_FLOATS)
-    );
-    let stride = w + 1;
-    // Per pixel, the support from which a band is solid there (computed once for every band).
-    let solid_from: Vec<f32> = out
-        .spp
-        .iter()
-        .map(|&n| {
-            let n = n as f64;
-            if n == 0.0 {
-                f32::INFINITY
-            } else {
-                (params.kappa_at(n) + params.kappa_min()).max(solid_share * n) as f32
+    sat.reset();
+    band.rows.resize_with(h, Vec::new);
+    band.rows.iter_mut().for_each(Vec::clear);
+    for source in merged(sources) {
+        let (x, y) = (source.x as usize, source.y as usize);
+        sat.build(plane, w, (y + max_radius + 1).min(h));
+        let mut window = None;
+        for (i, r) in radii.clone().enumerate() {
+            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+            let (n, solid) = sat.boxed(x0, x1, y0, y1);
+            if solid > 0 {
+                // The band is solid in a pixel of the window: energy cut at the edge of a light
+                // (module docs), given back in place right next to it if the band holds
+                // `edge_share` of the pixel's samples, else left removed.
+                let own = f32::from_bits(plane[y * w + x].to_bits() & !SIGN) as f64;
+                let spp = spp[y * w + x] as f64;
+                if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
+                    window = Some((x, x + 1, y, y + 1));
+                }
+                break;
             }
-        })
-        .collect();
-    // Summed-area table of one band's `[support, solid pixels]`, and one 2D difference array of
-    // the give-back of every band (box sums are linear, so one set of prefix sums at the end
-    // serves all bands).
-    let mut sat = vec![[0.0f64; 2]; stride * (h + 1)];
-    let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
-    for plane in bands {
-        if plane.chunks_exact(BAND_FLOATS).all(|b| b[..3] == [0.0; 3]) {
+            if n >= support {
+                window = Some((x0, x1, y0, y1));
+                break;
+            }
+        }
+        let Some((x0, x1, y0, y1)) = window else {
             continue;
-        }
-        for y in 0..h {
-            let mut row = [0.0, 0.0];
-            let (above, here) = sat[y * stride..(y + 2) * stride].split_at_mut(stride);
-            let cells = &plane[y * w * BAND_FLOATS..(y + 1) * w * BAND_FLOATS];
-            let solid = &solid_from[y * w..(y + 1) * w];
-            for x in 0..w {
-                let n = cells[x * BAND_FLOATS + 3];
-                row[0] += n as f64;
-                row[1] += if n >= solid[x] { 1.0 } else { 0.0 };
-                here[x + 1] = [above[x + 1][0] + row[0], above[x + 1][1] + row[1]];
-            }
-        }
-        let boxed = |x0: usize, x1: usize, y0: usize, y1: usize| {
-            let [a, b, c, d] = [
-                sat[y1 * stride + x1],
-                sat[y0 * stride + x1],
-                sat[y1 * stride + x0],
-                sat[y0 * stride + x0],
-            ];
-            [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1]]
         };
-        for (p, band) in plane.chunks_exact(BAND_FLOATS).enumerate() {
-            if band[..3] == [0.0; 3] {
-                continue;
-            }
-            let (x, y) = (p % w, p / w);
-            let mut window = None;
-            for (i, r) in radii.clone().enumerate() {
-                let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-                let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-                let [n, solid] = boxed(x0, x1, y0, y1);
-                if solid > 0.5 {
-                    // The band is solid (fully trusted on its own, and a large share of the
-                    // samples) in a pixel of the window: this energy was cut at the edge of a
-                    // light or highlight, and blurring it would smear that edge. Right next to
-                    // the solid pixel it is the pixel's partial cover of the light: given back
-                    // in place (if the band holds `edge_share` of the pixel's samples); farther
-                    // away it stays removed.
-                    let own = band[3] as f64;
-                    let spp = out.spp[p] as f64;
-                    if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
-                        window = Some((x, x + 1, y, y + 1));
-                    }
-                    break;
-                }
-                if n >= support {
-                    window = Some((x0, x1, y0, y1));
-                    break;
-                }
-            }
-            let Some((x0, x1, y0, y1)) = window else {
-                continue;
-            };
-            // Every pixel of the window (clamped to the frame) gets an equal share.
-            let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
-            for c in 0..3 {
-                let v = band[c] as f64 * share;
-                diff[y0 * stride + x0][c] += v;
-                diff[y0 * stride + x1][c] -= v;
-                diff[y1 * stride + x0][c] -= v;
-                diff[y1 * stride + x1][c] += v;
-            }
+        // Every pixel of the window (clamped to the frame) gets an equal share.
+        let area = ((x1 - x0) * (y1 - y0)) as i32;
+        let event = Event {
+            x0: x0 as u32,
+            x1: x1 as u32,
+            area,
+            removed: source.removed,
+        };
+        band.rows[y0].push(event);
+        if y1 < h {
+            band.rows[y1].push(Event {
+                area: -area,
+                ..event
+            });
         }
     }
-    // Prefix sums turn the corners into boxes: along each row, then down each column (kept as
-    // one running sum per column, so the frame is read in memory order).
-    let mut col = vec![[0.0f64; 3]; w];
-    for y in 0..h {
-        let mut run = [0.0; 3];
-        let row = y * w..(y + 1) * w;
-        let pixels = out.reweighted[row.clone()]
-            .iter_mut()
-            .zip(&mut out.removed[row]);
-        for ((x, (f, r)), col) in pixels.enumerate().zip(&mut col) {
-            let d = &diff[y * stride + x];
+}
+
+/// A row's reweighted and removed pixels in some columns.
+type RowSlices<'o> = (&'o mut [[f32; 3]], &'o mut [[f32; 3]]);
+
+/// Adds the given-back energy to the columns `xa ..` of every row (`rows[y]`, the row's
+/// reweighted and removed pixels in those columns): the difference array's prefix sums, along
+/// each row, then down each column.
+fn give_back(bands: &[&BandEvents], w: usize, xa: usize, rows: Vec<RowSlices>) {
+    let xb = xa + rows.first().map_or(0, |r| r.0.len());
+    let mut diff = vec![[0.0f64; 3]; w];
+    let mut col = vec![[0.0f64; 3]; xb - xa];
+    let mut col_zero = true;
+    // `1 / area`, as the plain computation divides.
+    let shares: Vec<f64> = (0..=MAX_AREA).map(|a| 1.0 / a as f64).collect();
+    for (y, (f, r)) in rows.into_iter().enumerate() {
+        // This row of the difference array: every band's events in band and source order
+        // (each cell's additions in the order of the dense computation).
+        let mut touched = false;
+        for band in bands {
+            for e in &band.rows[y] {
+                let (x0, x1) = (e.x0 as usize, e.x1 as usize);
+                if x0 >= xb {
+                    continue;
+                }
+                touched = true;
+                let share = shares[e.area.unsigned_abs() as usize];
+                let v = [
+                    e.removed[0] as f64 * share,
+                    e.removed[1] as f64 * share,
+                    e.removed[2] as f64 * share,
+                ];
+                let sign = e.area.signum() as f64;
+                for c in 0..3 {
+                    diff[x0][c] += sign * v[c];
+                }
+                if x1 < xb {
+                    for c in 0..3 {
+                        diff[x1][c] -= sign * v[c];
+                    }
+                }
+            }
+        }
+        if !touched && col_zero {
+            continue;
+        }
+        // The running sum along the row up to `xa` (cells no event touched hold +0, which
+        // changes no sum).
+        let mut run = [0.0f64; 3];
+        for d in &diff[..xa] {
+            for c in 0..3 {
+                run[c] += d[c];
+            }
+        }
+        col_zero = false;
+        for (i, ((f, r), col)) in f.iter_mut().zip(r.iter_mut()).zip(&mut col).enumerate() {
+            let d = &diff[xa + i];
+            let mut given = [0.0f64; 3];
             for c in 0..3 {
                 run[c] += d[c];
                 col[c] += run[c];
                 // Rounding of the running sums may leave a hair below 0 where nothing was
                 // given; nothing is ever taken.
-                let given = col[c].max(0.0);
-                f[c] = (f[c] as f64 + given) as f32;
-                r[c] = (r[c] as f64 - given) as f32;
+                given[c] = col[c].max(0.0);
             }
+            if given != [0.0; 3] {
+                for c in 0..3 {
+                    f[c] = (f[c] as f64 + given[c]) as f32;
+                    r[c] = (r[c] as f64 - given[c]) as f32;
+                }
+            }
+        }
+        if touched {
+            diff[..xb].fill([0.0; 3]);
         }
     }
 }
-
 #[cfg(test)]
 mod tests {
     use crate::{

@@ -576,12 +576,13 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
         );
         println!(
             "  of which {:?} (first stage) {:.3} s into reused buffers ({:.2}x the read), {:?}'s \
-             second stage {:.3} s",
+             second stage {:.3} s; working memory kept in the reused buffers {:.1} bytes/pixel",
             Variant::Paper,
             t_paper,
             t_paper / t_read,
             params.variant(),
-            t_into - t_paper
+            t_into - t_paper,
+            reused.working_bytes() as f64 / pixels as f64
         );
         if threads == 1 {
             let r = t_resolve / t_read;

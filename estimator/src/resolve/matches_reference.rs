@@ -172,6 +172,7 @@ fn check(state: &FrameState, cut_at: u32) -> Result<(), TestCaseError> {
         mean: vec![[-1.0; 3]; pixels],
         removed: vec![[f32::INFINITY; 3]; pixels],
         spp: vec![u64::MAX; pixels],
+        scratch: Default::default(),
     };
     for p in params() {
         let expected = bits(&reference::resolve_bands(&[state], &p, 1).expect("whole frame"));
@@ -276,4 +277,61 @@ fn a_frame_wider_than_a_column_resolves_to_the_reference_bits() {
     let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
     check(&splatted_state(7, 1061, 3, &layout), 2).expect("same bits");
     check(&random_state(8, 1030, 2, &layout), 1).expect("same bits");
+}
+
+/// Spread settings that give back a lot: low support, every widest window.
+fn spread_params() -> Vec<ResolveParams> {
+    let mut all = Vec::new();
+    for max_radius in [1, 8, 16] {
+        for (support, edge_share) in [(2.0, Some(0.1)), (20.0, None), (64.0, Some(0.0))] {
+            let spread = crate::SpreadParams::new(support, 0.0, max_radius)
+                .and_then(|s| s.with_edge_share(edge_share))
+                .expect("valid");
+            for (kappa, exponent) in [(4.0, 0.0), (3.0, 0.3)] {
+                all.push(
+                    ResolveParams::new(Variant::Spread, kappa, 1.0, exponent)
+                        .expect("valid")
+                        .with_spread(spread),
+                );
+            }
+        }
+    }
+    all
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// Frames taller than the widest window (the summed-area table's ring of rows wraps), with
+    /// the sparse, threaded spread stage against the dense one, at every thread count.
+    #[test]
+    fn the_spread_stage_gives_back_the_reference_bits(
+        seed in any::<u64>(),
+        width in 1u32..90,
+        height in 1u32..50,
+        layout in 0usize..2,
+        random in any::<bool>(),
+    ) {
+        let layout = &layouts()[layout];
+        let state = if random {
+            random_state(seed, width, height, layout)
+        } else {
+            splatted_state(seed, width, height, layout)
+        };
+        // Also into one buffer reused by every resolve (its working memory holds the last
+        // one's lists).
+        let mut reused = Resolved::default();
+        for p in spread_params() {
+            let expected = bits(&reference::resolve_bands(&[&state], &p, 1).expect("frame"));
+            for threads in 1..=4 {
+                let mut out = Resolved::default();
+                resolve_bands_with(Kernel::detect(), &[&state], &p, threads, &mut out)
+                    .expect("frame");
+                prop_assert!(bits(&out) == expected, "{threads} threads, {p:?}");
+                resolve_bands_with(Kernel::detect(), &[&state], &p, 5 - threads, &mut reused)
+                    .expect("frame");
+                prop_assert!(bits(&reused) == expected, "reused, {p:?}");
+            }
+        }
+    }
 }

@@ -3,9 +3,9 @@
 //! every cascade visited in order, support counts pooled through a ring of three rows.
 //! Test-only.
 
+use super::reference_spread::{spread, BAND_FLOATS};
 use super::{ResolveParams, Resolved, TilingError, Variant, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS};
-use crate::resolve_spread::{spread, BAND_FLOATS};
 use crate::state::{cascade_units, cell_len, FrameState};
 
 /// Resolves a frame held as bands that tile it top to bottom (in order, same layout and size).
@@ -54,6 +54,7 @@ pub(super) fn resolve_bands(
         mean: vec![[0.0; 3]; pixels],
         removed: vec![[0.0; 3]; pixels],
         spp: vec![0; pixels],
+        scratch: Default::default(),
     };
     if pixels == 0 {
         return Ok(out);

@@ -35,7 +35,7 @@
 
 use super::{ResolveParams, Variant, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_CASCADES};
-use crate::resolve_spread::BAND_FLOATS;
+use crate::resolve_spread::{support_word, Source};
 use crate::state::{cell_len, Kernel, HI_BITS, HI_MASK};
 
 /// Pixels per group of the support step.
@@ -92,7 +92,14 @@ pub(super) struct Consts {
     kappa_min: f64,
     kappa_exponent: f64,
     base: f64,
+    solid_share: f64,
+    /// `kappa * N^kappa_exponent` for `N < KAP_TABLE` (`N.powf` is most of a row's arithmetic
+    /// otherwise; the table holds the same bits).
+    kap_table: Vec<f64>,
 }
+
+/// Sample counts whose `kappa(N)` is looked up rather than computed.
+const KAP_TABLE: usize = 1024;
 
 impl Consts {
     pub(super) fn new(layout: &CascadeLayout, params: &ResolveParams) -> Self {
@@ -107,7 +114,14 @@ impl Consts {
             kappa_min: params.kappa_min,
             kappa_exponent: params.kappa_exponent,
             base: layout.base(),
+            solid_share: params.spread().solid_share(),
+            kap_table: Vec::new(),
         };
+        if c.kappa_exponent != 0.0 {
+            c.kap_table = (0..KAP_TABLE)
+                .map(|n| c.kappa * (n as f64).powf(c.kappa_exponent))
+                .collect();
+        }
         for j in 0..k {
             c.unit_value[j] = layout.unit_value(j);
             c.inv_scale[j] = layout.inv_scale(j);
@@ -123,8 +137,13 @@ pub(super) struct Part<'o> {
     pub(super) mean: &'o mut [[f32; 3]],
     pub(super) removed: &'o mut [[f32; 3]],
     pub(super) spp: &'o mut [u64],
-    /// Per band, per pixel `[removed r, g, b, support]` for the spread stage, or empty.
-    pub(super) bands: Vec<&'o mut [f32]>,
+    /// For the spread stage, per band: each pixel's support word, or empty.
+    pub(super) support: Vec<&'o mut [f32]>,
+    /// For the spread stage, per column of strips and band: the pixels where energy was
+    /// removed (row-major within the column; lists emptied and filled by [`Rows::run`]).
+    pub(super) sources: Vec<Vec<Vec<Source>>>,
+    /// The column being resolved.
+    pub(super) column: usize,
 }
 
 /// One row's support, strip by strip ([`STRIP`] pixels; the last one padded): for each strip,
@@ -196,12 +215,21 @@ impl<'a> Rows<'a> {
 
     /// Resolves the part's rows of the frame `rows` (every row of the frame, top to bottom), a
     /// column of [`COLUMN_STRIPS`] strips at a time.
-    pub(super) fn run(mut self, rows: &[&[u64]], mut part: Part<'_>) {
+    /// Returns the part's lists of sources (see [`Part::sources`]).
+    pub(super) fn run(mut self, rows: &[&[u64]], mut part: Part<'_>) -> Vec<Vec<Vec<Source>>> {
         let (k, w, h) = (self.c.k, self.width, rows.len());
         let len = cell_len(k);
         let part_rows = part.spp.len() / w;
         let strips = w.div_ceil(STRIP);
+        let bands = part.support.len();
+        part.sources
+            .resize_with(strips.div_ceil(COLUMN_STRIPS), Vec::new);
+        for column in &mut part.sources {
+            column.resize_with(bands, Vec::new);
+            column.iter_mut().for_each(Vec::clear);
+        }
         for c0 in (0..strips).step_by(COLUMN_STRIPS) {
+            part.column = c0 / COLUMN_STRIPS;
             let column = c0..(c0 + COLUMN_STRIPS).min(strips);
             for slot in &mut self.ring {
                 slot.y = usize::MAX;
@@ -222,6 +250,8 @@ impl<'a> Rows<'a> {
                         pooled: [pooled(up), pooled(y), pooled(down)],
                         count: STRIP.min(w - x0),
                         first: (y - part.y0) * w + x0,
+                        x0,
+                        y,
                     };
                     match self.kernel {
                         #[cfg(target_arch = "x86_64")]
@@ -235,6 +265,7 @@ impl<'a> Rows<'a> {
                 }
             }
         }
+        part.sources
     }
 }
 
@@ -383,6 +414,9 @@ struct RowAt<'r> {
     pooled: [&'r [f64]; 3],
     count: usize,
     first: usize,
+    /// The frame's column of the first pixel, and its row.
+    x0: usize,
+    y: usize,
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -393,7 +427,7 @@ unsafe fn row_avx2(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>) {
 
 #[inline(always)]
 fn row_any<const AVX2: bool>(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>) {
-    let bands = !part.bands.is_empty();
+    let bands = !part.support.is_empty();
     match (c.variant, bands) {
         (Variant::Off, false) => row::<OFF, false, AVX2>(c, at, part),
         (Variant::Off, true) => row::<OFF, true, AVX2>(c, at, part),
@@ -438,9 +472,24 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
             pool_scale[x] = if pooled_n > 0.0 { s } else { 0.0 };
         }
         let mut inv_kappa = [1.0 / c.kappa; STRIP];
+        // kappa(N), for the weights and the spread stage's solid test.
+        let mut kap = [c.kappa; STRIP];
         if c.kappa_exponent != 0.0 {
             for x in 0..STRIP {
-                inv_kappa[x] = 1.0 / (c.kappa * n[x].powf(c.kappa_exponent));
+                // `N` is a whole number of samples.
+                kap[x] = match c.kap_table.get(n[x] as usize) {
+                    Some(&k) if n[x] < KAP_TABLE as f64 => k,
+                    _ => c.kappa * n[x].powf(c.kappa_exponent),
+                };
+                inv_kappa[x] = 1.0 / kap[x];
+            }
+        }
+        // The spread stage's solid test: a band is solid where its support reaches this (the
+        // same f32 comparison as the plain computation's).
+        let mut solid_from = [0.0f32; STRIP];
+        if BANDS {
+            for x in 0..STRIP {
+                solid_from[x] = (kap[x] + kmin).max(c.solid_share * n[x]) as f32;
             }
         }
         let small = n.iter().all(|&n| n <= SMALL_N);
@@ -534,15 +583,39 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
             }
             if BANDS {
-                let out = &mut part.bands[j][at.first * BAND_FLOATS..];
+                // Straight-line loops over the strip first (the divisions and the solid test
+                // as vector instructions), then the sources pushed one by one.
                 let own = own(j);
-                for x in 0..at.count {
-                    if n[x] != 0.0 {
-                        for ch in 0..3 {
-                            out[x * BAND_FLOATS + ch] =
-                                ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
+                // Energy is removed only where the weight is below 1 and the band has some.
+                let mut any = false;
+                for x in 0..STRIP {
+                    any |= weight[x] < 1.0 && (b[0][x] != 0.0 || b[1][x] != 0.0 || b[2][x] != 0.0);
+                }
+                let mut removed = [[0.0f32; STRIP]; 3];
+                if any {
+                    for ch in 0..3 {
+                        for x in 0..STRIP {
+                            // Not used where `n` is 0.
+                            removed[ch][x] = ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
                         }
-                        out[x * BAND_FLOATS + 3] = own[x] as f32;
+                    }
+                }
+                let mut words = [0.0f32; STRIP];
+                for x in 0..STRIP {
+                    let own = own[x] as f32;
+                    let word = support_word(own, own >= solid_from[x]);
+                    words[x] = if n[x] != 0.0 { word } else { 0.0 };
+                }
+                part.support[j][at.first..at.first + at.count].copy_from_slice(&words[..at.count]);
+                let sources = &mut part.sources[part.column][j];
+                for x in (0..at.count).filter(|_| any) {
+                    let rgb = [removed[0][x], removed[1][x], removed[2][x]];
+                    if n[x] != 0.0 && (rgb[0] != 0.0 || rgb[1] != 0.0 || rgb[2] != 0.0) {
+                        sources.push(Source {
+                            x: (at.x0 + x) as u32,
+                            y: at.y as u32,
+                            removed: rgb,
+                        });
                     }
                 }
             }

@@ -1,0 +1,143 @@
+//! The spread stage as it was first written (dense per-band planes, one summed-area table of
+//! the whole frame per band, one 2D difference array, all on one thread), kept unchanged as the
+//! reference the sparse, threaded stage (`resolve_spread::spread`) must match bit for bit.
+//! Test-only; the reference resolve (`reference.rs`) runs it after its paper stage.
+
+use crate::layout::CascadeLayout;
+use crate::resolve::{ResolveParams, Resolved};
+use crate::resolve_spread::{SpreadParams, SPREAD_RADII};
+
+/// Per pixel and band, what the first (paper) stage leaves for the spread stage: the removed
+/// energy in pixel-value units (RGB) and the band's support count.
+pub(super) const BAND_FLOATS: usize = 4;
+
+/// Gives removed energy back. `bands` holds, per band and pixel (row-major), `[r, g, b, n_j]`;
+/// `out` holds the paper's images, updated in place.
+pub(super) fn spread(
+    layout: &CascadeLayout,
+    bands: &[Vec<f32>],
+    params: &ResolveParams,
+    out: &mut Resolved,
+) {
+    let SpreadParams {
+        support,
+        solid_share,
+        max_radius,
+        edge_share,
+    } = params.spread();
+    let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= max_radius);
+    let (w, h) = (out.width as usize, out.height as usize);
+    let pixels = w * h;
+    debug_assert!(
+        bands.len() == layout.cascades() && bands.iter().all(|b| b.len() == pixels * BAND_FLOATS)
+    );
+    let stride = w + 1;
+    // Per pixel, the support from which a band is solid there (computed once for every band).
+    let solid_from: Vec<f32> = out
+        .spp
+        .iter()
+        .map(|&n| {
+            let n = n as f64;
+            if n == 0.0 {
+                f32::INFINITY
+            } else {
+                (params.kappa_at(n) + params.kappa_min()).max(solid_share * n) as f32
+            }
+        })
+        .collect();
+    // Summed-area table of one band's `[support, solid pixels]`, and one 2D difference array of
+    // the give-back of every band (box sums are linear, so one set of prefix sums at the end
+    // serves all bands).
+    let mut sat = vec![[0.0f64; 2]; stride * (h + 1)];
+    let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
+    for plane in bands {
+        if plane.chunks_exact(BAND_FLOATS).all(|b| b[..3] == [0.0; 3]) {
+            continue;
+        }
+        for y in 0..h {
+            let mut row = [0.0, 0.0];
+            let (above, here) = sat[y * stride..(y + 2) * stride].split_at_mut(stride);
+            let cells = &plane[y * w * BAND_FLOATS..(y + 1) * w * BAND_FLOATS];
+            let solid = &solid_from[y * w..(y + 1) * w];
+            for x in 0..w {
+                let n = cells[x * BAND_FLOATS + 3];
+                row[0] += n as f64;
+                row[1] += if n >= solid[x] { 1.0 } else { 0.0 };
+                here[x + 1] = [above[x + 1][0] + row[0], above[x + 1][1] + row[1]];
+            }
+        }
+        let boxed = |x0: usize, x1: usize, y0: usize, y1: usize| {
+            let [a, b, c, d] = [
+                sat[y1 * stride + x1],
+                sat[y0 * stride + x1],
+                sat[y1 * stride + x0],
+                sat[y0 * stride + x0],
+            ];
+            [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1]]
+        };
+        for (p, band) in plane.chunks_exact(BAND_FLOATS).enumerate() {
+            if band[..3] == [0.0; 3] {
+                continue;
+            }
+            let (x, y) = (p % w, p / w);
+            let mut window = None;
+            for (i, r) in radii.clone().enumerate() {
+                let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+                let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+                let [n, solid] = boxed(x0, x1, y0, y1);
+                if solid > 0.5 {
+                    // The band is solid (fully trusted on its own, and a large share of the
+                    // samples) in a pixel of the window: this energy was cut at the edge of a
+                    // light or highlight, and blurring it would smear that edge. Right next to
+                    // the solid pixel it is the pixel's partial cover of the light: given back
+                    // in place (if the band holds `edge_share` of the pixel's samples); farther
+                    // away it stays removed.
+                    let own = band[3] as f64;
+                    let spp = out.spp[p] as f64;
+                    if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
+                        window = Some((x, x + 1, y, y + 1));
+                    }
+                    break;
+                }
+                if n >= support {
+                    window = Some((x0, x1, y0, y1));
+                    break;
+                }
+            }
+            let Some((x0, x1, y0, y1)) = window else {
+                continue;
+            };
+            // Every pixel of the window (clamped to the frame) gets an equal share.
+            let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
+            for c in 0..3 {
+                let v = band[c] as f64 * share;
+                diff[y0 * stride + x0][c] += v;
+                diff[y0 * stride + x1][c] -= v;
+                diff[y1 * stride + x0][c] -= v;
+                diff[y1 * stride + x1][c] += v;
+            }
+        }
+    }
+    // Prefix sums turn the corners into boxes: along each row, then down each column (kept as
+    // one running sum per column, so the frame is read in memory order).
+    let mut col = vec![[0.0f64; 3]; w];
+    for y in 0..h {
+        let mut run = [0.0; 3];
+        let row = y * w..(y + 1) * w;
+        let pixels = out.reweighted[row.clone()]
+            .iter_mut()
+            .zip(&mut out.removed[row]);
+        for ((x, (f, r)), col) in pixels.enumerate().zip(&mut col) {
+            let d = &diff[y * stride + x];
+            for c in 0..3 {
+                run[c] += d[c];
+                col[c] += run[c];
+                // Rounding of the running sums may leave a hair below 0 where nothing was
+                // given; nothing is ever taken.
+                let given = col[c].max(0.0);
+                f[c] = (f[c] as f64 + given) as f32;
+                r[c] = (r[c] as f64 - given) as f32;
+            }
+        }
+    }
+}
