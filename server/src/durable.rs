@@ -45,7 +45,7 @@ use splatd_proto::StateDump;
 use splatd_estimator::FrameState;
 
 use super::dedup::Seen;
-use super::frame::{CounterValues, FrameCut, FrameSpec, ShardedFrame};
+use super::frame::{BandCut, CounterValues, FrameSpec, ShardedFrame};
 use super::store::FrameStore;
 
 const SNAPSHOT_MAGIC: [u8; 4] = *b"SPLC";
@@ -368,9 +368,13 @@ impl Durable {
         }
         let this = self.clone();
         let f = frame.clone();
-        let cut = tokio::task::spawn_blocking(move || {
-            let cut = f.cut();
-            this.write_snapshot(&f, &cut).map(|()| cut)
+        // At low priority: on a saturated machine the snapshot takes the cores that ingest
+        // leaves idle (its bands are copied as they were at the cut however long it takes, and
+        // a writer meanwhile copies a band it changes first, so nothing waits for the disk).
+        let cut = crate::renders::on_low_priority_thread("splatd-snapshot", move || {
+            let mut cut = f.cut_by_band();
+            this.write_snapshot(&f, &mut cut)
+                .map(|()| (std::mem::take(&mut cut.seen), cut.version))
         })
         .await
         .map_err(|e| DurableError::Io {
@@ -379,7 +383,7 @@ impl Durable {
             source: io::Error::other(e.to_string()),
         })
         .and_then(|written| written);
-        let cut = match cut {
+        let (seen, version) = match cut {
             Ok(cut) => cut,
             Err(e) => {
                 self.failing_set().insert(frame.id().to_owned());
@@ -388,12 +392,18 @@ impl Durable {
             }
         };
         self.failing_set().remove(frame.id());
-        frame.mark_durable(&cut.seen, cut.version);
+        frame.mark_durable(&seen, version);
         metrics::counter!("splatd_snapshots_total").increment(1);
         Ok(())
     }
 
-    fn write_snapshot(&self, frame: &ShardedFrame, cut: &FrameCut) -> Result<(), DurableError> {
+    /// Writes the snapshot of `cut`, taking (copying) each band just before it is written, so
+    /// that writers never wait for more than one band's copy.
+    fn write_snapshot(
+        &self,
+        frame: &ShardedFrame,
+        cut: &mut BandCut<'_>,
+    ) -> Result<(), DurableError> {
         let dir = self.frame_dir(frame.id());
         let meta = SnapshotMeta {
             frame: frame.id().to_owned(),
@@ -409,8 +419,9 @@ impl Durable {
             w.write_all(&SNAPSHOT_VERSION.to_le_bytes())?;
             w.write_all(&(meta.len() as u64).to_le_bytes())?;
             w.write_all(&meta)?;
-            w.write_all(&(cut.bands.len() as u32).to_le_bytes())?;
-            for band in &cut.bands {
+            w.write_all(&(cut.bands() as u32).to_le_bytes())?;
+            for i in 0..cut.bands() {
+                let band = &cut.take(i);
                 let aov_rows = cut.aovs.as_ref().map(|a| a.rows_copy(band.rows()));
                 let aovs = aov_rows
                     .as_ref()
