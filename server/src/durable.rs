@@ -45,7 +45,7 @@ use splatd_proto::StateDump;
 use splatd_estimator::FrameState;
 
 use super::dedup::Seen;
-use super::frame::{BandCut, CounterValues, FrameSpec, ShardedFrame};
+use super::frame::{CounterValues, FrameCut, FrameSpec, ShardedFrame};
 use super::store::FrameStore;
 
 const SNAPSHOT_MAGIC: [u8; 4] = *b"SPLC";
@@ -368,14 +368,19 @@ impl Durable {
         }
         let this = self.clone();
         let f = frame.clone();
-        // At low priority: on a saturated machine the snapshot takes the cores that ingest
-        // leaves idle (its bands are copied as they were at the cut however long it takes, and
-        // a writer meanwhile copies a band it changes first, so nothing waits for the disk).
-        let cut = crate::renders::on_low_priority_thread("splatd-snapshot", move || {
-            let mut cut = f.cut_by_band();
-            this.write_snapshot(&f, &mut cut)
-                .map(|()| (std::mem::take(&mut cut.seen), cut.version))
-        })
+        let written = async move {
+            // The copy at normal priority, band by band: writers wait for one band's copy at
+            // most, and the copy is over quickly, so few of them have to copy a band themselves.
+            let copier = f.clone();
+            let cut = tokio::task::spawn_blocking(move || copier.cut_by_band().into_cut()).await?;
+            // The encoding and writing at low priority: on a saturated machine they take the
+            // cores that ingest leaves idle, and durability lags instead of ingest slowing.
+            crate::renders::on_low_priority_thread("splatd-snapshot", move || {
+                this.write_snapshot(&f, &cut)
+                    .map(|()| (cut.seen, cut.version))
+            })
+            .await
+        }
         .await
         .map_err(|e| DurableError::Io {
             what: "snapshotting",
@@ -383,7 +388,7 @@ impl Durable {
             source: io::Error::other(e.to_string()),
         })
         .and_then(|written| written);
-        let (seen, version) = match cut {
+        let (seen, version) = match written {
             Ok(cut) => cut,
             Err(e) => {
                 self.failing_set().insert(frame.id().to_owned());
@@ -397,13 +402,7 @@ impl Durable {
         Ok(())
     }
 
-    /// Writes the snapshot of `cut`, taking (copying) each band just before it is written, so
-    /// that writers never wait for more than one band's copy.
-    fn write_snapshot(
-        &self,
-        frame: &ShardedFrame,
-        cut: &mut BandCut<'_>,
-    ) -> Result<(), DurableError> {
+    fn write_snapshot(&self, frame: &ShardedFrame, cut: &FrameCut) -> Result<(), DurableError> {
         let dir = self.frame_dir(frame.id());
         let meta = SnapshotMeta {
             frame: frame.id().to_owned(),
@@ -419,9 +418,8 @@ impl Durable {
             w.write_all(&SNAPSHOT_VERSION.to_le_bytes())?;
             w.write_all(&(meta.len() as u64).to_le_bytes())?;
             w.write_all(&meta)?;
-            w.write_all(&(cut.bands() as u32).to_le_bytes())?;
-            for i in 0..cut.bands() {
-                let band = &cut.take(i);
+            w.write_all(&(cut.bands.len() as u32).to_le_bytes())?;
+            for band in &cut.bands {
                 let aov_rows = cut.aovs.as_ref().map(|a| a.rows_copy(band.rows()));
                 let aovs = aov_rows
                     .as_ref()

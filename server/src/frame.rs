@@ -473,6 +473,18 @@ impl BandCut<'_> {
             Slot::Idle => panic!("band {i} of a cut taken twice"),
         }
     }
+
+    /// Takes every band, top to bottom: the whole cut, ended.
+    pub fn into_cut(mut self) -> FrameCut {
+        let bands = (0..self.bands()).map(|i| self.take(i)).collect();
+        FrameCut {
+            bands,
+            seen: std::mem::take(&mut self.seen),
+            counters: self.counters,
+            version: self.version,
+            aovs: self.aovs.take(),
+        }
+    }
 }
 
 /// A copy of `band` on huge pages where the kernel grants them. A snapshot copies the whole
@@ -1532,9 +1544,9 @@ mod tests {
         drop(half);
         frame.ingest(&batch(1, 4, records(&scene, 4))).unwrap();
         let now = frame.cut();
-        let mut cut = frame.cut_by_band();
-        let bands: Vec<FrameState> = (0..n).map(|i| cut.take(i)).collect();
-        assert_eq!(bands, now.bands);
+        let cut = frame.cut_by_band().into_cut();
+        assert_eq!(cut.bands, now.bands);
+        assert_eq!((cut.seen, cut.version), (now.seen, now.version));
     }
 
     #[test]
