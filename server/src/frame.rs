@@ -469,7 +469,7 @@ impl BandCut<'_> {
         let mut slot = lock(&self.frame.copies.slots[i]);
         match std::mem::replace(&mut *slot, Slot::Idle) {
             Slot::Copied(copy) => copy,
-            Slot::Owed => copy_band(&band),
+            Slot::Owed => band.clone(),
             Slot::Idle => panic!("band {i} of a cut taken twice"),
         }
     }
@@ -485,21 +485,6 @@ impl BandCut<'_> {
             aovs: self.aovs.take(),
         }
     }
-}
-
-/// A copy of `band` on huge pages where the kernel grants them. A snapshot copies the whole
-/// state (1.6 GB at 4K): faulted in 4 KiB at a time, the page faults (zeroing, accounting,
-/// unmapping afterwards) cost the copying threads about as much as the copy itself.
-fn copy_band(band: &FrameState) -> FrameState {
-    let mut copy = FrameState::band(
-        band.width(),
-        band.height(),
-        band.rows(),
-        band.layout().clone(),
-    );
-    crate::memory::advise_or_log(copy.cells());
-    copy.clone_from(band);
-    copy
 }
 
 impl Drop for BandCut<'_> {
@@ -1178,7 +1163,7 @@ impl ShardedFrame {
         }
         let mut slot = lock(&self.copies.slots[i]);
         if matches!(*slot, Slot::Owed) {
-            *slot = Slot::Copied(copy_band(band));
+            *slot = Slot::Copied(band.clone());
         }
     }
 
