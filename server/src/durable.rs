@@ -368,10 +368,19 @@ impl Durable {
         }
         let this = self.clone();
         let f = frame.clone();
-        let cut = tokio::task::spawn_blocking(move || {
-            let cut = f.cut();
-            this.write_snapshot(&f, &cut).map(|()| cut)
-        })
+        let written = async move {
+            // The copy at normal priority, band by band: writers wait for one band's copy at
+            // most, and the copy is over quickly, so few of them have to copy a band themselves.
+            let copier = f.clone();
+            let cut = tokio::task::spawn_blocking(move || copier.cut_by_band().into_cut()).await?;
+            // The encoding and writing at low priority: on a saturated machine they take the
+            // cores that ingest leaves idle, and durability lags instead of ingest slowing.
+            crate::renders::on_low_priority_thread("splatd-snapshot", move || {
+                this.write_snapshot(&f, &cut)
+                    .map(|()| (cut.seen, cut.version))
+            })
+            .await
+        }
         .await
         .map_err(|e| DurableError::Io {
             what: "snapshotting",
@@ -379,7 +388,7 @@ impl Durable {
             source: io::Error::other(e.to_string()),
         })
         .and_then(|written| written);
-        let cut = match cut {
+        let (seen, version) = match written {
             Ok(cut) => cut,
             Err(e) => {
                 self.failing_set().insert(frame.id().to_owned());
@@ -388,7 +397,7 @@ impl Durable {
             }
         };
         self.failing_set().remove(frame.id());
-        frame.mark_durable(&cut.seen, cut.version);
+        frame.mark_durable(&seen, version);
         metrics::counter!("splatd_snapshots_total").increment(1);
         Ok(())
     }

@@ -43,14 +43,24 @@ pub const RENDER_NICE: i32 = 10;
 async fn on_render_thread<T: Send + 'static>(
     work: impl FnOnce() -> T + Send + 'static,
 ) -> Result<T, tokio::task::JoinError> {
+    on_low_priority_thread("splatd-render", work).await
+}
+
+/// Runs `work` on a new thread named `name` at the renders' lower priority ([`RENDER_NICE`]):
+/// background work (renders, snapshots) that must take only the cores ingest leaves idle.
+pub(crate) async fn on_low_priority_thread<T: Send + 'static>(
+    name: &str,
+    work: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, tokio::task::JoinError> {
+    let name = name.to_owned();
     tokio::task::spawn_blocking(move || {
         let thread = std::thread::Builder::new()
-            .name("splatd-render".into())
+            .name(name)
             .spawn(move || {
                 lower_priority();
                 work()
             })
-            .expect("spawning a render thread");
+            .expect("spawning a low-priority thread");
         match thread.join() {
             Ok(result) => result,
             Err(panic) => std::panic::resume_unwind(panic),
