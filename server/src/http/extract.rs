@@ -290,9 +290,15 @@ async fn read_body(
 /// is large), instead of a list of chunks copied into one at the end: a state body is as large
 /// as its frame, and a second copy of it cost as much as the rest of its import.
 async fn read_sized(mut body: Body, limit: usize, len: u64) -> Result<Bytes, ApiError> {
-    use http_body_util::BodyExt;
     let mut out = Vec::with_capacity(len.min(limit as u64) as usize);
     crate::memory::advise_or_log(out.spare_capacity_mut());
+    append_body(&mut body, limit, &mut out).await?;
+    Ok(Bytes::from(out))
+}
+
+/// Appends the rest of `body` to `out`, refusing with 413 once `out` would pass `limit` bytes.
+async fn append_body(body: &mut Body, limit: usize, out: &mut Vec<u8>) -> Result<(), ApiError> {
+    use http_body_util::BodyExt;
     while let Some(frame) = body.frame().await {
         let frame = frame.map_err(|e| body_error(e, limit))?;
         if let Ok(data) = frame.into_data() {
@@ -302,7 +308,7 @@ async fn read_sized(mut body: Body, limit: usize, len: u64) -> Result<Bytes, Api
             out.extend_from_slice(&data);
         }
     }
-    Ok(Bytes::from(out))
+    Ok(())
 }
 
 /// What a client is told when its body could not be read.
@@ -333,21 +339,12 @@ async fn read_pooled(
     pool: Arc<BodyPool>,
     len: usize,
 ) -> Result<BodyBytes, ApiError> {
-    use http_body_util::BodyExt;
     // Given back to the pool however the read ends.
     let mut bytes = BodyBytes::Pooled(pool.take(len), pool);
     let BodyBytes::Pooled(buffer, _) = &mut bytes else {
         unreachable!("made pooled just above")
     };
-    while let Some(frame) = body.frame().await {
-        let frame = frame.map_err(|e| body_error(e, limit))?;
-        if let Ok(data) = frame.into_data() {
-            if buffer.len() + data.len() > limit {
-                return Err(too_large(limit));
-            }
-            buffer.extend_from_slice(&data);
-        }
-    }
+    append_body(&mut body, limit, buffer).await?;
     Ok(bytes)
 }
 

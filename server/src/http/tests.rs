@@ -721,27 +721,7 @@ async fn aov_declarations_are_checked_compared_and_counted() {
 
 /// An uncompressed RGB float EXR of `w x h` pixels, pixel `i` = `(i, 2i, 3i) / 1000`.
 fn rgb_exr(w: usize, h: usize) -> Vec<u8> {
-    use exr::prelude::*;
-    let channel = |name: &str, c: f32| {
-        let values = (0..w * h).map(|i| i as f32 * c / 1000.0).collect();
-        AnyChannel::new(name, FlatSamples::F32(values))
-    };
-    let layer = Layer::new(
-        (w, h),
-        LayerAttributes::default(),
-        Encoding::UNCOMPRESSED,
-        AnyChannels::sort(SmallVec::from_vec(vec![
-            channel("R", 1.0),
-            channel("G", 2.0),
-            channel("B", 3.0),
-        ])),
-    );
-    let mut bytes = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .to_buffered(std::io::Cursor::new(&mut bytes))
-        .unwrap();
-    bytes
+    crate::passes::tests::uncompressed_rgb(w, h, |i| [1.0, 2.0, 3.0].map(|c| i as f32 * c / 1000.0))
 }
 
 /// Large pass bodies are read into buffers the server keeps, exactly their declared length, and
