@@ -14,7 +14,7 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use common::{python_package_venv, runtime, venv_site_packages, Server};
+use common::{python_package_venv, run_setup, runtime, venv_site_packages, Server};
 use splatd_proto::api::ImageQuery;
 use splatd_proto::Client;
 
@@ -26,18 +26,13 @@ const REFERENCE_SPP: usize = 4096;
 #[test]
 fn blender_passes_converge_to_the_antialiased_image() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let setup = Command::new("bash")
-        .arg(root.join("tests/setup/blender.sh"))
-        .output()
-        .expect("running tests/setup/blender.sh");
-    if !setup.status.success() {
-        eprintln!(
-            "skipping the Blender worker test: Blender could not be installed: {}",
-            String::from_utf8_lossy(&setup.stderr).trim()
-        );
-        return;
-    }
-    let blender = String::from_utf8_lossy(&setup.stdout).trim().to_owned();
+    let blender = match run_setup("blender.sh") {
+        Ok(path) => path,
+        Err(e) => {
+            eprintln!("skipping the Blender worker test: Blender could not be installed: {e}");
+            return;
+        }
+    };
 
     let dir = tempfile::tempdir().unwrap();
     let python = python_package_venv(dir.path());

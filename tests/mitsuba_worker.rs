@@ -15,7 +15,7 @@ mod common;
 use std::path::Path;
 use std::process::Command;
 
-use common::{python_package_venv, runtime, venv_site_packages, Server};
+use common::{python_package_venv, run_setup, runtime, venv_site_packages, Server};
 use splatd_estimator::{NeedMap, TileNeed};
 use splatd_proto::api::NeedMap as ApiNeedMap;
 use splatd_proto::Client;
@@ -54,16 +54,8 @@ fn estimator_map(map: &ApiNeedMap) -> NeedMap {
 #[test]
 fn guided_mitsuba_renders_land_where_the_need_map_points() {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let setup = Command::new("bash")
-        .arg(root.join("tests/setup/mitsuba.sh"))
-        .output()
-        .expect("running tests/setup/mitsuba.sh");
-    assert!(
-        setup.status.success(),
-        "tests/setup/mitsuba.sh failed: {}",
-        String::from_utf8_lossy(&setup.stderr)
-    );
-    let python = String::from_utf8_lossy(&setup.stdout).trim().to_owned();
+    let python =
+        run_setup("mitsuba.sh").unwrap_or_else(|e| panic!("tests/setup/mitsuba.sh failed: {e}"));
     let dir = tempfile::tempdir().unwrap();
     // The client package as pip installs it; Mitsuba from python3's own site-packages.
     let venv_python = python_package_venv(dir.path());

@@ -182,6 +182,24 @@ pub fn venv_site_packages(python: &Path) -> String {
     String::from_utf8_lossy(&out.stdout).trim().to_owned()
 }
 
+/// Runs `tests/setup/{script}`, which installs what a test needs (idempotently), and returns
+/// what it printed (trimmed: the scripts print the path of what they installed), or what it
+/// said on standard error when it failed.
+pub fn run_setup(script: &str) -> Result<String, String> {
+    let path = Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/setup")
+        .join(script);
+    let out = Command::new("bash")
+        .arg(&path)
+        .output()
+        .unwrap_or_else(|e| panic!("running {}: {e}", path.display()));
+    if out.status.success() {
+        Ok(String::from_utf8_lossy(&out.stdout).trim().to_owned())
+    } else {
+        Err(String::from_utf8_lossy(&out.stderr).trim().to_owned())
+    }
+}
+
 /// A fresh Python virtual environment in `dir` with the client package installed by pip from a
 /// copy of `proto/python` (so no build files land in the checkout); returns its `python`.
 ///
@@ -189,15 +207,9 @@ pub fn venv_site_packages(python: &Path) -> String {
 /// for numpy, the package's one dependency.
 pub fn python_package_venv(dir: &Path) -> std::path::PathBuf {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let setup = Command::new("bash")
-        .arg(root.join("tests/setup/python_venv.sh"))
-        .output()
-        .expect("running tests/setup/python_venv.sh");
-    assert!(
-        setup.status.success(),
-        "tests/setup/python_venv.sh failed: {}",
-        String::from_utf8_lossy(&setup.stderr)
-    );
+    if let Err(e) = run_setup("python_venv.sh") {
+        panic!("tests/setup/python_venv.sh failed: {e}");
+    }
     let source = dir.join("splatd-client-src");
     let package = source.join("splatd_client");
     std::fs::create_dir_all(&package).unwrap();
