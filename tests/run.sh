@@ -8,8 +8,14 @@
 #   chromium + chromedriver      the live page, driven headless (Debian packages)
 #   Mitsuba 3 + Dr.Jit           the Mitsuba worker's guided-mode test (pip, pinned in
 #                                benches/quality/requirements.txt)
-#   blender, openimageio-tools   the Blender worker's test, oiiotool's view of EXR headers
-#                                (optional: skipped with a message when they cannot be installed)
+#   blender                      the Blender worker's test on Debian's Blender 3.4 (Debian package)
+#   bpy                          the same test on Blender 5.0 as a Python module (pip, pinned in
+#                                tests/requirements-bpy.txt, into a venv of its own under
+#                                ~/.cache/splatd; needs CPython 3.11)
+#   openimageio-tools            oiiotool's view of EXR headers (optional)
+#
+# A Blender that cannot be installed makes its test skip, saying why, except on CI (CI=true),
+# where the test fails: CI must run it.
 #
 # The Debian packages are installed as root (or with sudo) when missing; each script is
 # idempotent and does nothing when its tools are already there.
@@ -35,9 +41,10 @@ python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ig
 bash tests/setup/nginx.sh >/dev/null
 bash tests/setup/python_venv.sh >/dev/null
 bash tests/setup/mitsuba.sh >/dev/null
-# Optional: without them the Blender worker's test skips (saying why) and the provenance test
-# checks the EXR header with OpenEXR's Python package only.
-bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip"
+# Without a Blender the worker's test on it skips, saying why (and fails on CI); without oiiotool
+# the provenance test checks the EXR header with OpenEXR's Python package only.
+bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip (fail on CI)"
+bash tests/setup/bpy.sh >/dev/null || echo "bpy could not be installed; its test will skip (fail on CI)"
 bash tests/setup/oiio.sh >/dev/null || echo "oiiotool could not be installed; not used"
 bash tests/setup/chromium.sh >/dev/null
 

@@ -2,7 +2,8 @@
 # Installs Blender (Debian's blender package) if no blender binary is on PATH, for the Blender
 # worker's test. Idempotent and non-interactive; uses sudo only when not already root.
 # Prints the path of the blender binary on success; exits non-zero saying why otherwise (the
-# test then skips with that message).
+# test then skips with that message, or fails on CI). On Debian 12 that is Blender 3.4; the
+# current Blender is tested as the bpy module (tests/setup/bpy.sh).
 set -euo pipefail
 
 found="$(command -v blender 2>/dev/null || true)"
