@@ -43,9 +43,9 @@ for _ in $(seq 100); do
 done
 [ -n "$addr" ] || { echo "splatd serve printed no address" >&2; exit 1; }
 
-PYTHONPATH="$site" "$blender" -b --factory-startup --python-use-system-env \
-    --python "$root/proto/python/examples/firefly_scene.py" \
+PYTHONPATH="$site" "$blender" -b --factory-startup --python-use-system-env --python-exit-code 1 \
     --python "$root/proto/python/blender_worker.py" -- \
+    --scene-script "$root/proto/python/examples/firefly_scene.py" \
     --url "http://$addr" --frame cycles --passes "$passes" --spp "$spp" --seed 1 \
     --keep-dir "$work/passes" | grep '^pass '
 

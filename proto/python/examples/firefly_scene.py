@@ -1,8 +1,8 @@
 """Builds a small Cycles scene full of fireflies, for the README's before/after picture.
 
-Run by Blender before the worker, which then renders it:
+Run by the worker before it renders (with Blender or the bpy module):
 
-    blender -b --factory-startup --python firefly_scene.py --python ../blender_worker.py -- ...
+    blender -b --factory-startup --python ../blender_worker.py -- --scene-script firefly_scene.py ...
 
 A diffuse room lit by one tiny, very bright lamp, with a mirror sphere and a glass sphere beside
 it. Light from the lamp that bounces off the mirror or through the glass onto the diffuse floor
@@ -18,7 +18,8 @@ import bpy
 
 def material(name, build):
     mat = bpy.data.materials.new(name)
-    mat.use_nodes = True
+    if bpy.app.version < (5, 0, 0):  # always on from Blender 5
+        mat.use_nodes = True
     nodes = mat.node_tree.nodes
     nodes.remove(nodes["Principled BSDF"])
     shader = build(nodes)
@@ -67,7 +68,8 @@ def build(scene):
         bpy.data.objects.remove(obj, do_unlink=True)
     world = scene.world or bpy.data.worlds.new("fireflies")
     scene.world = world
-    world.use_nodes = True
+    if bpy.app.version < (5, 0, 0):
+        world.use_nodes = True
     world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.02
 
     add(bpy.ops.mesh.primitive_plane_add, material("floor", diffuse((0.8, 0.8, 0.8))),
