@@ -12,10 +12,10 @@ CPython version its wheel was built for: 3.11 for Blender 4.x and 5.0)::
 Every pass is a full Cycles render whose pixels are each an independent sample of that pixel's
 box-filtered estimator, which is what splatd's reweighting needs:
 
-* distinct seeds: pass k renders with ``cycles.seed`` derived from (``--seed``, k);
+* distinct seeds: the Cycles seed of a pass is drawn from the worker's id and the pass's number;
 * independent sub-pixel positions: Cycles puts a pass's first sample at the same sub-pixel
   position whatever its seed, so the worker uses a near-point pixel filter (box, 0.01 px) and
-  shifts the camera by a random sub-pixel offset drawn from the pass's seed; over many passes each
+  shifts the camera by a random sub-pixel offset drawn with the seed; over many passes each
   pixel is sampled uniformly over its area (a box filter), not at one fixed point;
 * clamping, denoising and adaptive sampling are off, so nothing is clipped, blurred or stopped
   early; any ``--spp`` per pass (each pass is then the mean of its samples at one position).
@@ -25,15 +25,26 @@ Each pass is written as an OpenEXR (32-bit float, ZIP, linear) and posted with t
 bundled Python, the system's for Debian's Blender, the bpy module's environment; or point
 ``PYTHONPATH`` at an environment that has it and run Blender with ``--python-use-system-env``).
 The frame is created with create-or-get, so a ``write`` token (``--token``
-or ``SPLATD_TOKEN``) is enough, and a frame that exists must have the scene's size and AOVs. A
-pass is posted as ``(worker, seq = pass number)``: rerunning the same passes with the same
-``--worker`` adds nothing twice.
+or ``SPLATD_TOKEN``) is enough, and a frame that exists must have the scene's size and AOVs.
 
 The scene: the ``.blend`` Blender opened, or ``--blend PATH``; ``--scene-script PY`` runs a
 Python file that builds or changes it (after ``--blend``), ``--demo-scene`` replaces it with a
 tiny built-in one (32x24: a diffuse floor and wall, a sphere, and an emitting sphere less than a
 pixel across that lights them). Without any of them the worker refuses to render Blender's
 startup file (which is what Blender falls back to when a ``.blend`` cannot be read).
+
+Several machines: ``--job-index I --job-count N`` (as a farm manager hands out tasks) makes this
+process job I of N: it renders its share of the ``--passes`` budget (N shares as equal as whole
+passes allow) under a worker id of its own, drawn from (``--seed``, I, N) unless ``--worker``
+gives one, and numbers its passes from ``--first-pass`` (0; give the next free number to add
+passes to a frame this job rendered before). A pass's seeds are drawn from (worker id, pass
+number), so two passes are the same samples only when they carry the same ``(worker, seq)``,
+which the server counts once: jobs never overlap, a job run twice adds nothing twice (the
+worker says so when the server answers that a pass was already there), and no way of running
+the worker posts one pass's samples twice under different ids.
+
+``--until-converged`` asks the server after every pass whether the frame has converged (its
+``convergence.converged``, PROTOCOL.md) and stops when it has; ``--passes`` is then the budget.
 
 ``--aovs albedo,normal,depth`` renders those Cycles passes too (diffuse colour, normal, depth)
 and sends them with every pass: the pass is written as a multilayer EXR and the frame is created
@@ -51,6 +62,7 @@ with another size, a refused pass) is an error with a message and a non-zero exi
 """
 
 import argparse
+import hashlib
 import math
 import os
 import random
@@ -131,13 +143,21 @@ def parse_args(argv):
                    help="run this Python file to build or change the scene (after --blend)")
     p.add_argument("--demo-scene", action="store_true",
                    help="replace the scene with a tiny built-in one")
-    p.add_argument("--passes", type=natural, default=16)
-    p.add_argument("--first-pass", type=natural, default=0)
+    p.add_argument("--passes", type=natural, default=16,
+                   help="passes to render, over all jobs (with --until-converged: at most)")
+    p.add_argument("--first-pass", type=natural, default=0,
+                   help="number of this job's first pass (continue an earlier run from there)")
+    p.add_argument("--job-index", type=natural, default=0,
+                   help="this process is job I (from 0) of --job-count")
+    p.add_argument("--job-count", type=positive, default=1,
+                   help="number of jobs (machines, farm tasks) sharing the frame")
+    p.add_argument("--until-converged", action="store_true",
+                   help="stop as soon as the server says the frame has converged")
     p.add_argument("--spp", type=positive, default=1, help="Cycles samples per pass")
     p.add_argument("--seed", type=natural, default=0,
-                   help="seeds of pass k derive from (seed, k)")
+                   help="draws the worker id (with the job index and count)")
     p.add_argument("--worker", type=natural, default=None,
-                   help="worker id below 2^53 (default: derived from --seed, so reruns match)")
+                   help="worker id below 2^53 (default: drawn from --seed and the job)")
     p.add_argument("--resolution", type=positive, nargs=2, metavar=("W", "H"))
     p.add_argument("--keep-dir", help="keep each pass's EXR here (pass_K.exr)")
     p.add_argument("--aovs", type=aov_list, default=[],
@@ -146,6 +166,9 @@ def parse_args(argv):
                    help="render one box-filtered image at SPP samples to --output instead")
     p.add_argument("--output", help="where --reference writes its EXR")
     args = p.parse_args(argv)
+    if args.job_index >= args.job_count:
+        p.error(f"--job-index {args.job_index} is not below --job-count {args.job_count} "
+                "(jobs are numbered from 0)")
     if args.worker is not None and args.worker >= 1 << WORKER_BITS:
         p.error(f"--worker {args.worker} is not below 2^{WORKER_BITS}")
     if args.reference and not args.output:
@@ -173,9 +196,21 @@ def worker_argv(argv):
     return argv[argv.index("--") + 1:]
 
 
-def pass_seeds(seed, k):
-    """Cycles' seed and the camera's sub-pixel shift (in pixels, in [-0.5, 0.5)) of pass k."""
-    rng = random.Random(f"splatd-blender {seed} {k}")
+def job_share(passes, index, count):
+    """How many of `passes` job `index` of `count` renders: the shares differ by at most one."""
+    return passes // count + (1 if index < passes % count else 0)
+
+
+def default_worker(seed, index, count):
+    """The worker id of job `index` of `count` under `seed`: the same on every rerun."""
+    digest = hashlib.sha256(f"splatd-blender worker {seed} {index} {count}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") >> (64 - WORKER_BITS)
+
+
+def pass_seeds(worker, k):
+    """Cycles' seed and the camera's sub-pixel shift (in pixels, in [-0.5, 0.5)) of pass k of
+    `worker`."""
+    rng = random.Random(f"splatd-blender {worker} {k}")
     return rng.randrange(1 << 31), rng.random() - 0.5, rng.random() - 0.5
 
 
@@ -389,6 +424,12 @@ def render(scene, path, layer):
         raise WorkerError(f"Blender wrote no pass to {path}: {e}") from None
 
 
+def converged(client, frame):
+    """The server's verdict on the frame (False while it has none)."""
+    convergence = client.frame_info(frame).get("convergence")
+    return bool(convergence and convergence.get("converged"))
+
+
 def main(argv):
     args = parse_args(worker_argv(argv))
     scene = open_scene(args)
@@ -413,8 +454,10 @@ def main(argv):
         sc.validate_frame_id(frame)
     except sc.WireError as e:
         raise WorkerError(f"the scene's name {scene.name!r} is no frame id ({e}); give --frame")
-    worker = args.worker if args.worker is not None else random.Random(args.seed).getrandbits(WORKER_BITS)
-    passes = range(args.first_pass, args.first_pass + args.passes)
+    worker = args.worker if args.worker is not None else default_worker(
+        args.seed, args.job_index, args.job_count)
+    count = job_share(args.passes, args.job_index, args.job_count)
+    passes = range(args.first_pass, args.first_pass + count)
     beauty, aovs = enable_aovs(scene, args.aovs) if args.aovs else (None, [])
 
     # A near-point pixel filter: each pass samples one position per pixel, moved below.
@@ -426,16 +469,19 @@ def main(argv):
     client = sc.Client(args.url, token=args.token)
     # Before any rendering, so that a frame of another size or other AOVs stops the job at once.
     client.create_or_get(frame, width, height, aovs=aovs or None)
-    share = f"passes {passes.start}..{passes.stop - 1}" if passes else "no passes"
-    print(f"worker {worker}: {share} of frame {frame} "
+    share = f"passes {passes.start}..{passes.stop - 1}" if count else "no passes (a smaller budget)"
+    print(f"worker {worker}: job {args.job_index} of {args.job_count}, {share} of frame {frame} "
           f"({width}x{height}{', AOVs ' + ', '.join(n for n, _ in aovs) if aovs else ''}) "
           f"at {args.url}", flush=True)
     keep = os.path.abspath(args.keep_dir) if args.keep_dir else tempfile.mkdtemp(prefix="splatd-blender-")
     os.makedirs(keep, exist_ok=True)
-    rendered = 0
+    rendered = duplicates = 0
     try:
         for k in passes:
-            seed, dx, dy = pass_seeds(args.seed, k)
+            if args.until_converged and converged(client, frame):
+                print(f"frame {frame} has converged", flush=True)
+                break
+            seed, dx, dy = pass_seeds(worker, k)
             scene.cycles.seed = seed
             camera.data.shift_x = base_x + dx * per_pixel
             # Image rows go down, the camera's y up: a shift of +dy pixels downwards is -dy.
@@ -448,14 +494,25 @@ def main(argv):
                 check_layers(exr, beauty, aovs)
             ack = client.post_pass(frame, worker, k, exr, layer=beauty)
             rendered += 1
+            duplicates += bool(ack["duplicate"])
             print(f"pass {k}: seed {seed}, shift ({dx:+.3f}, {dy:+.3f}) px, {ack['accepted']} "
                   f"samples{' (already there)' if ack['duplicate'] else ''}", flush=True)
+        else:
+            if args.until_converged:
+                print(f"frame {frame}: {count} passes rendered, the budget, and "
+                      f"{'it has converged' if converged(client, frame) else 'it has not converged'}",
+                      flush=True)
     finally:
         camera.data.shift_x, camera.data.shift_y = base_x, base_y
         if not args.keep_dir:
             shutil.rmtree(keep, ignore_errors=True)
     client.sync(frame)
     print(f"worker {worker}: {rendered} passes posted", flush=True)
+    if duplicates:
+        print(f"warning: {duplicates} of {rendered} passes were already in frame {frame} under "
+              f"worker {worker}: an earlier run, or another process with the same --seed, "
+              "--job-index and --job-count, rendered them (counted once); give each machine its "
+              "own --job-index", file=sys.stderr, flush=True)
 
 
 def run():
