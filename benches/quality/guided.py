@@ -185,7 +185,7 @@ def main():
                         return frame, first
 
                     frame, first = fresh("uniform")
-                    poster = mw.Poster(client, frame, 1, renderer, first)
+                    poster = mw.Poster(client.outbox(frame, 1), renderer, first)
                     for _ in range(spp):
                         poster.render()
                         poster.flush()
@@ -195,7 +195,7 @@ def main():
                     client.delete_frame(frame)
                     for i, policy in enumerate(args.policies):
                         frame, first = fresh(f"guided{i}")
-                        summary = mw.run_guided(client, frame, 1, renderer, spp * pixels,
+                        summary = mw.run_guided(client.outbox(frame, 1), renderer, spp * pixels,
                                                 first_pass=first, tile=args.tile,
                                                 log=lambda line: None, **policy)
                         assert client.frame_info(frame)["samples"] == summary["samples"] == spp * pixels

@@ -71,10 +71,11 @@ def image_to_records(image, x0=0, y0=0):
     return xs, ys, rgb, int(bad.sum())
 
 
-def post_image(client, frame, worker, seq, image):
-    """Posts one 1-spp pass as one batch; returns (BatchAck, number of samples zeroed)."""
+def post_image(outbox, seq, image):
+    """Posts one 1-spp pass as one batch through `outbox` (a `splatd_client.Outbox`, which keeps
+    it until it is on disk); returns (BatchAck, number of samples zeroed)."""
     xs, ys, rgb, zeroed = image_to_records(image)
-    return client.post_batch(frame, worker, seq, xs, ys, rgb), zeroed
+    return outbox.post_batch(seq, xs, ys, rgb), zeroed
 
 
 def builtin_scene_dict(mi, res):
@@ -168,8 +169,8 @@ class Poster:
     batch starts at a whole pass, whose number is the batch's sequence number (as in the plain
     mode)."""
 
-    def __init__(self, client, frame, worker, renderer, first_pass, max_records=1 << 20):
-        self.client, self.frame, self.worker, self.renderer = client, frame, worker, renderer
+    def __init__(self, outbox, renderer, first_pass, max_records=1 << 20):
+        self.outbox, self.renderer = outbox, renderer
         self.frame_pixels = renderer.width * renderer.height
         self.first_pass = int(first_pass)
         self.stream = self.first_pass * self.frame_pixels  # where the next render may start
@@ -207,10 +208,10 @@ class Poster:
         if not self._parts:
             return
         xs, ys, rgb = (np.concatenate(c) for c in zip(*self._parts))
-        ack = self.client.post_batch(self.frame, self.worker, self._seq, xs, ys, rgb)
+        ack = self.outbox.post_batch(self._seq, xs, ys, rgb)
         if ack["accepted"] != len(xs) or ack["duplicate"]:
             raise RuntimeError(
-                f"batch {self._seq} of worker {self.worker}: the server acknowledged {ack['accepted']} "
+                f"batch {self._seq} of worker {self.outbox.worker}: the server acknowledged {ack['accepted']} "
                 f"of {len(xs)} samples{' as a duplicate' if ack['duplicate'] else ''}"
             )
         self.posted += len(xs)
@@ -262,7 +263,7 @@ def leftover_windows(need_map, samples):
     return out
 
 
-def run_guided(client, frame, worker, renderer, budget, first_pass=0, warmup=0.25, rounds=6,
+def run_guided(outbox, renderer, budget, first_pass=0, warmup=0.25, rounds=6,
                uniform_share=0.0, base_doubt=0.0, tile=8, log=print):
     """Spends exactly `budget` samples on `frame`, steered by the server's need map.
 
@@ -282,7 +283,8 @@ def run_guided(client, frame, worker, renderer, budget, first_pass=0, warmup=0.2
     budget = int(budget)
     if budget < 0 or rounds < 1 or not 0 <= warmup <= 1 or not 0 <= uniform_share <= 1:
         raise ValueError("need budget >= 0, rounds >= 1, warmup and uniform_share in [0, 1]")
-    poster = Poster(client, frame, worker, renderer, first_pass)
+    client, frame = outbox.client, outbox.frame
+    poster = Poster(outbox, renderer, first_pass)
     warm = int(warmup * budget) // pixels
     for _ in range(warm):
         poster.render()
@@ -383,6 +385,9 @@ def main(argv):
         width, height = renderer.width, renderer.height
     worker = args.worker if args.worker is not None else random.getrandbits(53)
     client = sc.Client(args.url, token=args.token)
+    # Everything posted goes through the outbox, which keeps it until the server has it on disk
+    # and resends it if the server restarts meanwhile.
+    outbox = client.outbox(args.frame, worker)
     try:
         client.create_frame(args.frame, width, height)
     except sc.SplatdError as e:
@@ -392,11 +397,11 @@ def main(argv):
     if args.guided:
         budget = args.samples if args.samples is not None else args.passes * width * height
         summary = run_guided(
-            client, args.frame, worker, renderer, budget, first_pass=args.first_pass,
+            outbox, renderer, budget, first_pass=args.first_pass,
             warmup=args.warmup, rounds=args.rounds, uniform_share=args.uniform_share,
             base_doubt=args.base_doubt, tile=args.tile, log=lambda line: print(f"{line}, {time.time() - start:.1f} s", flush=True),
         )
-        client.sync(args.frame)
+        outbox.sync()
         if summary["zeroed"]:
             print(f"{summary['zeroed']} NaN or negative samples were sent as black", file=sys.stderr)
         print(
@@ -412,7 +417,7 @@ def main(argv):
             image = renderer.render(seq)
         else:
             image = np.array(mi.render(scene, spp=1, seed=seq))
-        ack, zeroed = post_image(client, args.frame, worker, seq, image)
+        ack, zeroed = post_image(outbox, seq, image)
         zeroed_total += zeroed
         info = client.frame_info(args.frame)
         print(
@@ -420,7 +425,7 @@ def main(argv):
             f"frame at {info['spp_mean']:.1f} spp, {time.time() - start:.1f} s",
             flush=True,
         )
-    client.sync(args.frame)
+    outbox.sync()
     if zeroed_total:
         print(f"{zeroed_total} NaN or negative samples were sent as black", file=sys.stderr)
     print(f"done: {args.passes} passes as worker {worker}; image at {args.url}/v1/frames/{args.frame}/image.exr")

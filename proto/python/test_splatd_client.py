@@ -254,6 +254,107 @@ def test_create_or_get_puts_the_parameters_and_pass_layers_are_encoded():
         server.server_close()
 
 
+def _ack(seq, boot, floor, duplicate=False):
+    return {"frame": "f", "worker": 7, "seq": seq, "accepted": 0 if duplicate else 1,
+            "duplicate": duplicate, "boot": boot, "durable_floor": floor}
+
+
+def test_outbox_resends_what_a_restart_lost_and_forgets_what_is_durable():
+    xs, ys, rgb = [0], [0], [[1.0, 2.0, 3.0]]
+    bodies = [sc.encode_batch("f", 7, k, xs, ys, np.array(rgb) * (k + 1)) for k in range(4)]
+    server, base = _serve([
+        (200, _ack(0, 1, 0)), (200, _ack(1, 1, 0)),
+        # Restarted (boot 2) from a snapshot older than batches 0 and 1: both are resent.
+        (200, _ack(2, 2, 0)), (200, _ack(0, 2, 0)), (200, _ack(1, 2, 3)),
+        # The floor passed 0..2: only 3 is kept, and the sync of the same process covers it.
+        (200, _ack(3, 2, 3)), (200, {"frame": "f", "boot": 2, "durable": True}),
+    ])
+    try:
+        outbox = _client(base).outbox("f", 7)
+        for k in range(4):
+            outbox.post_batch(k, xs, ys, np.array(rgb) * (k + 1))
+        assert (outbox.kept, outbox.resent) == (1, 2), (outbox.kept, outbox.resent)
+        assert outbox.sync()["durable"] and outbox.kept == 0
+        sent = [body for _, _, _, body in _Scripted.seen[:-1]]
+        assert sent == [bodies[0], bodies[1], bodies[2], bodies[0], bodies[1], bodies[3]]
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_outbox_resends_only_what_the_new_floor_does_not_cover():
+    xs, ys = [0], [0]
+    server, base = _serve([
+        (200, _ack(0, 1, 0)), (200, _ack(1, 1, 0)),
+        # Restarted from a snapshot that held batch 0 (floor 1 in the new process): 1 is resent.
+        (200, _ack(2, 2, 1)), (200, _ack(1, 2, 3)),
+    ])
+    try:
+        outbox = _client(base).outbox("f", 7)
+        for k in range(3):
+            outbox.post_batch(k, xs, ys, [[float(k), 0.0, 0.0]])
+        assert (outbox.kept, outbox.resent) == (0, 1), (outbox.kept, outbox.resent)
+        assert sc.decode_batch(_Scripted.seen[-1][3]).seq == 1
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_outbox_sync_resends_passes_acknowledged_by_a_process_that_died():
+    server, base = _serve([
+        (200, _ack(11, 1, 0)), (200, _ack(12, 1, 0)),
+        # The server restarted between the last pass and the sync: both passes are resent and
+        # the sync asked again, of the process that now has them.
+        (200, {"frame": "f", "boot": 2, "durable": True}),
+        (200, _ack(11, 2, 0)), (200, _ack(12, 2, 0, duplicate=True)),
+        (200, {"frame": "f", "boot": 2, "durable": True}),
+    ])
+    try:
+        outbox = _client(base).outbox("f", 7)
+        outbox.post_pass(11, b"pass 11", layer="ViewLayer.Combined")
+        outbox.post_pass(12, b"pass 12")
+        assert outbox.sync()["boot"] == 2
+        assert (outbox.kept, outbox.resent) == (0, 2)
+        paths = [(path, body) for _, path, _, body in _Scripted.seen]
+        assert paths[3] == ("/v1/frames/f/passes?worker=7&seq=11&layer=ViewLayer.Combined", b"pass 11"), paths
+        assert paths[4] == ("/v1/frames/f/passes?worker=7&seq=12", b"pass 12"), paths
+        assert [p for p, _ in paths].count("/v1/frames/f/sync") == 2, paths
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_outbox_keeps_nothing_for_a_server_without_durability():
+    ack = {"frame": "f", "worker": 7, "seq": 0, "accepted": 1, "duplicate": False, "boot": 1}
+    server, base = _serve([(200, ack), (200, {"frame": "f", "boot": 1, "durable": False})])
+    try:
+        outbox = _client(base).outbox("f", 7)
+        outbox.post_pass(0, b"pass")
+        assert outbox.kept == 0
+        assert outbox.sync()["durable"] is False
+        assert len(_Scripted.seen) == 2
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+def test_outbox_refuses_a_kept_number_with_other_content():
+    server, base = _serve([(200, _ack(5, 1, 0))])
+    try:
+        outbox = _client(base).outbox("f", 7)
+        outbox.post_pass(5, b"a")
+        try:
+            outbox.post_pass(5, b"b")
+        except ValueError as e:
+            assert "seq 5" in str(e), e
+        else:
+            raise AssertionError("a seq reused with other content was sent")
+        assert len(_Scripted.seen) == 1
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
 def _need_map(need, width=10, height=4, tile=4):
     tx, ty = -(-width // tile), -(-height // tile)
     return {"frame": "f", "width": width, "height": height, "tile": tile, "tiles_x": tx,

@@ -49,14 +49,15 @@ def main(url, out):
         assert e.status == 409 and e.error == "frame_exists", (e.status, e.error)
         assert f"size {W}x{H} here, {W + 1}x{H} requested" in e.message, e.message
     rng = np.random.default_rng(5)
+    outbox = client.outbox("py", 3)
     passes = []
     for seq in range(PASSES):
         image = rng.lognormal(-1.0, 1.0, size=(H, W, 3)).astype(np.float32)
         image[rng.random((H, W)) < 0.02] *= 500.0
         passes.append(image)
-        ack, zeroed = mitsuba_worker.post_image(client, "py", 3, seq, image)
+        ack, zeroed = mitsuba_worker.post_image(outbox, seq, image)
         assert ack["accepted"] == W * H and not ack["duplicate"] and zeroed == 0, ack
-    again, _ = mitsuba_worker.post_image(client, "py", 3, 0, passes[0])
+    again, _ = mitsuba_worker.post_image(outbox, 0, passes[0])
     assert again["duplicate"] and again["accepted"] == 0, again
     # NaN and negative renderer output is zeroed (and counted) by the worker helper...
     dirty = passes[1].copy()

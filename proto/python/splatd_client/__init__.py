@@ -353,8 +353,17 @@ class Client:
         validate_frame_id(frame)
         return self._request("POST", f"/v1/frames/{frame}/samples", bytes(body), BATCH_CONTENT_TYPE)
 
+    def outbox(self, frame: str, worker: int, **options: Any) -> "Outbox":
+        """An :class:`Outbox` posting as ``worker`` to ``frame``: what a worker should post
+        through, so that nothing it was told is applied is lost when the server restarts."""
+        return Outbox(self, frame, worker, **options)
+
     def sync(self, frame: str) -> Dict[str, Any]:
-        """``POST /v1/frames/{id}/sync``: returns (a SyncAck) once the frame is on disk."""
+        """``POST /v1/frames/{id}/sync``: returns (a SyncAck) once the frame is on disk.
+
+        On its own this covers only what the *current* server process applied: a batch
+        acknowledged by a process that was killed since is not covered. Workers post through an
+        :class:`Outbox`, whose ``sync`` resends what a restart lost."""
         validate_frame_id(frame)
         return self._request("POST", f"/v1/frames/{frame}/sync")
 
@@ -366,11 +375,7 @@ class Client:
         ``layer`` names the layer holding the beauty (``"ViewLayer.Combined"``); without it the
         server finds it (see proto/PROTOCOL.md, "Passes").
         """
-        validate_frame_id(frame)
-        path = f"/v1/frames/{frame}/passes?worker={_check_u64('worker', worker)}&seq={_check_u64('seq', seq)}"
-        if layer is not None:
-            path += "&layer=" + urllib.parse.quote(layer, safe="")
-        return self._request("POST", path, bytes(exr), "image/x-exr")
+        return self._request("POST", _pass_path(frame, worker, seq, layer), bytes(exr), "image/x-exr")
 
     def image(self, frame: str, **query: Any) -> bytes:
         """``GET /v1/frames/{id}/image.exr`` with optional query parameters; returns the EXR bytes."""
@@ -446,6 +451,132 @@ class Client:
             except ValueError as e:
                 raise SplatdError(status, "unexpected_response", f"{operation}: body is not JSON ({e})") from None
         raise SplatdError(None, "gave_up", f"{operation} failed after {self.max_attempts} attempts; last failure: {last}")
+
+
+class Outbox:
+    """The worker's side of the durability contract, for batches and passes alike
+    (``proto/PROTOCOL.md``, "Exactly-once and durability").
+
+    A ``200`` from a durable server means *applied*, not *on disk*: a server killed before its
+    next snapshot comes back without what it applied since. So the outbox keeps every body it
+    posted until the server reports it durable (the acknowledgement's ``durable_floor`` passes
+    its sequence number, or a ``sync`` of the same server process answers ``durable``), and when
+    an answer carries another ``boot`` than the one it was acknowledged under, it resends it,
+    byte for byte: what the snapshot held comes back ``duplicate``, the rest is applied. What
+    :meth:`sync` returns for is on disk, exactly once, across any number of restarts.
+
+    Memory: kept bodies are bounded by ``max_kept_bytes``; past it the outbox syncs (which lets
+    it forget everything). A server without ``--data-dir`` promises nothing beyond *applied*, and
+    the outbox keeps nothing for it. Sequence numbers are the caller's: number a new worker id's
+    batches from 0 so that ``durable_floor`` can advance (passes numbered otherwise are simply kept
+    until the next sync).
+
+    Example::
+
+        outbox = client.outbox("shot010", worker)
+        for k, exr in enumerate(passes):
+            outbox.post_pass(k, exr)
+        outbox.sync()  # every pass posted above is now on disk
+    """
+
+    #: How many server restarts one call rides out before it gives up.
+    MAX_RESTARTS = 16
+
+    def __init__(self, client: "Client", frame: str, worker: int, *, max_kept_bytes: int = 256 << 20):
+        validate_frame_id(frame)
+        self.client = client
+        self.frame = frame
+        self.worker = _check_u64("worker", worker)
+        self.max_kept_bytes = int(max_kept_bytes)
+        #: Bodies resent because the server restarted.
+        self.resent = 0
+        # seq -> [path, body, content type, boot it was last acknowledged under]
+        self._kept: Dict[int, List[Any]] = {}
+        self._kept_bytes = 0
+        self._boot: Optional[int] = None
+
+    @property
+    def kept(self) -> int:
+        """Bodies acknowledged as applied but not yet known to be on disk."""
+        return len(self._kept)
+
+    def post_batch(self, seq: int, xs: Any, ys: Any, rgb: Any) -> Dict[str, Any]:
+        """Posts one batch (see :meth:`Client.post_batch`); returns its BatchAck."""
+        body = encode_batch(self.frame, self.worker, seq, xs, ys, rgb)
+        return self._post(seq, f"/v1/frames/{self.frame}/samples", body, BATCH_CONTENT_TYPE)
+
+    def post_pass(self, seq: int, exr: bytes, layer: Optional[str] = None) -> Dict[str, Any]:
+        """Posts one rendered pass (see :meth:`Client.post_pass`); returns its BatchAck."""
+        return self._post(seq, _pass_path(self.frame, self.worker, seq, layer), bytes(exr), "image/x-exr")
+
+    def sync(self) -> Dict[str, Any]:
+        """Returns (the SyncAck) once everything this outbox had acknowledged is on disk,
+        resending what a restart lost; then forgets it all."""
+        for _ in range(self.MAX_RESTARTS):
+            ack = self.client.sync(self.frame)
+            if not ack["durable"]:
+                self._forget(lambda seq: True)
+                return ack
+            stale = [seq for seq, kept in self._kept.items() if kept[3] != ack["boot"]]
+            if not stale:
+                self._boot = ack["boot"]
+                self._forget(lambda seq: True)
+                return ack
+            self._boot = ack["boot"]
+            self._resend(stale)
+        raise SplatdError(None, "restarting", f"{self.frame}: the server kept restarting while syncing")
+
+    def _post(self, seq: int, path: str, body: bytes, content_type: str) -> Dict[str, Any]:
+        seq = _check_u64("seq", seq)
+        if seq in self._kept and self._kept[seq][1] != body:
+            raise ValueError(f"seq {seq} of worker {self.worker} was already posted with other content")
+        ack = self.client._request("POST", path, body, content_type)
+        if ack.get("durable_floor") is not None:
+            if seq not in self._kept:
+                self._kept_bytes += len(body)
+            self._kept[seq] = [path, body, content_type, ack["boot"]]
+        self._heard(ack)
+        if self._kept_bytes > self.max_kept_bytes:
+            self.sync()
+        return ack
+
+    def _heard(self, ack: Dict[str, Any]) -> None:
+        """Forgets what ``ack`` reports durable; resends the rest if the server restarted."""
+        for _ in range(self.MAX_RESTARTS):
+            floor = ack.get("durable_floor")
+            if floor is not None:
+                self._forget(lambda seq: seq < floor)
+            restarted = self._boot is not None and ack["boot"] != self._boot
+            self._boot = ack["boot"]
+            if not restarted:
+                return
+            ack = self._resend([seq for seq, kept in self._kept.items() if kept[3] != ack["boot"]]) or ack
+        raise SplatdError(None, "restarting", f"{self.frame}: the server kept restarting")
+
+    def _resend(self, seqs: List[int]) -> Optional[Dict[str, Any]]:
+        """Resends kept bodies, lowest number first; returns the last answer, or the first one
+        from yet another server process (which the caller then handles as a restart)."""
+        again = None
+        for seq in sorted(seqs):
+            path, body, content_type, _ = self._kept[seq]
+            again = self.client._request("POST", path, body, content_type)
+            self.resent += 1
+            self._kept[seq][3] = again["boot"]
+            if again["boot"] != self._boot:
+                break
+        return again
+
+    def _forget(self, durable: Any) -> None:
+        for seq in [s for s in self._kept if durable(s)]:
+            self._kept_bytes -= len(self._kept.pop(seq)[1])
+
+
+def _pass_path(frame: str, worker: int, seq: int, layer: Optional[str]) -> str:
+    validate_frame_id(frame)
+    path = f"/v1/frames/{frame}/passes?worker={_check_u64('worker', worker)}&seq={_check_u64('seq', seq)}"
+    if layer is not None:
+        path += "&layer=" + urllib.parse.quote(layer, safe="")
+    return path
 
 
 def tile_windows(need_map: Dict[str, Any]) -> List[Tuple[int, int, int, int]]:
