@@ -23,8 +23,9 @@ box-filtered estimator, which is what splatd's reweighting needs:
 Each pass is written as an OpenEXR (32-bit float, ZIP, linear) and posted with the
 ``splatd_client`` package (``pip install ./proto/python`` into the Python Blender runs: Blender's
 bundled Python, the system's for Debian's Blender, the bpy module's environment; or point
-``PYTHONPATH`` at an environment that has it and run Blender with ``--python-use-system-env``).
-The frame is created with create-or-get, so a ``write`` token (``--token``
+``PYTHONPATH`` at an environment that has it and run Blender with ``--python-use-system-env``)
+through its ``Outbox``, which keeps every pass until the server has it on disk and resends what a
+server restart lost. The frame is created with create-or-get, so a ``write`` token (``--token``
 or ``SPLATD_TOKEN``) is enough, and a frame that exists must have the scene's size and AOVs.
 
 The scene: the ``.blend`` Blender opened, or ``--blend PATH``; ``--scene-script PY`` runs a
@@ -469,6 +470,7 @@ def main(argv):
     client = sc.Client(args.url, token=args.token)
     # Before any rendering, so that a frame of another size or other AOVs stops the job at once.
     client.create_or_get(frame, width, height, aovs=aovs or None)
+    outbox = client.outbox(frame, worker)
     share = f"passes {passes.start}..{passes.stop - 1}" if count else "no passes (a smaller budget)"
     print(f"worker {worker}: job {args.job_index} of {args.job_count}, {share} of frame {frame} "
           f"({width}x{height}{', AOVs ' + ', '.join(n for n, _ in aovs) if aovs else ''}) "
@@ -492,7 +494,7 @@ def main(argv):
                 os.remove(path)
             if rendered == 0 and aovs:
                 check_layers(exr, beauty, aovs)
-            ack = client.post_pass(frame, worker, k, exr, layer=beauty)
+            ack = outbox.post_pass(k, exr, layer=beauty)
             rendered += 1
             duplicates += bool(ack["duplicate"])
             print(f"pass {k}: seed {seed}, shift ({dx:+.3f}, {dy:+.3f}) px, {ack['accepted']} "
@@ -506,8 +508,11 @@ def main(argv):
         camera.data.shift_x, camera.data.shift_y = base_x, base_y
         if not args.keep_dir:
             shutil.rmtree(keep, ignore_errors=True)
-    client.sync(frame)
-    print(f"worker {worker}: {rendered} passes posted", flush=True)
+    durable = outbox.sync()["durable"]
+    resent = outbox.resent
+    where = "on the server's disk" if durable else "applied (the server keeps frames in memory only)"
+    print(f"worker {worker}: {rendered} passes posted, {where}"
+          f"{f'; {resent} resent after a server restart' if resent else ''}", flush=True)
     if duplicates:
         print(f"warning: {duplicates} of {rendered} passes were already in frame {frame} under "
               f"worker {worker}: an earlier run, or another process with the same --seed, "
