@@ -57,9 +57,9 @@ pub mod batchfile;
 #[cfg(feature = "client")]
 pub mod client;
 pub mod ids;
-pub mod state;
 #[cfg(feature = "client")]
 pub mod outbox;
+pub mod state;
 #[cfg(feature = "client")]
 pub mod writer;
 
@@ -70,9 +70,9 @@ pub use api::{
 pub use batch::{records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};
-pub use state::{Applied, Origin, Runs, StateDump, StateError, STATE_CONTENT_TYPE};
 #[cfg(feature = "client")]
 pub use outbox::Outbox;
+pub use state::{Applied, Origin, Runs, StateDump, StateError, STATE_CONTENT_TYPE};
 #[cfg(feature = "client")]
 pub use writer::BatchWriter;
 

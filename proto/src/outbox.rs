@@ -80,7 +80,11 @@ pub struct Outbox {
 
 impl Outbox {
     /// An outbox posting as `worker` to `frame`.
-    pub fn new(client: Client, frame: impl Into<String>, worker: u64) -> Result<Outbox, ClientError> {
+    pub fn new(
+        client: Client,
+        frame: impl Into<String>,
+        worker: u64,
+    ) -> Result<Outbox, ClientError> {
         let frame = frame.into();
         validate_frame_id(&frame)?;
         Ok(Outbox {
