@@ -170,7 +170,10 @@ fn main() -> Result<()> {
         .context("invalid --log-level")?;
     tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
+        .with_writer(|| LogSink)
+        // Colour codes only for a person at a terminal, not in a log file or a pipe.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .log_internal_errors(false)
         .init();
     match cli.command {
         Command::Demo(a) => crate::demo::run(&crate::demo::DemoOptions {
@@ -191,6 +194,27 @@ fn main() -> Result<()> {
     }
 }
 
+/// Where log lines go: stderr, but a line that cannot be written (stderr a closed pipe, a full
+/// disk, a file past `ulimit -f`) is dropped and counted (`splatd_log_lines_dropped_total`),
+/// never an error. tracing-subscriber reports a failed write with `eprintln!`, which panics when
+/// stderr is broken: the request, snapshot or shutdown that logged would die with it, and did
+/// (creates and deletes applied but never answered, the snapshot task gone for good).
+struct LogSink;
+
+impl std::io::Write for LogSink {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        if std::io::stderr().write_all(buf).is_err() {
+            metrics::counter!("splatd_log_lines_dropped_total").increment(1);
+        }
+        Ok(buf.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        let _ = std::io::stderr().flush();
+        Ok(())
+    }
+}
+
 fn run_server(config: splatd_server::Config) -> Result<()> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -200,8 +224,14 @@ fn run_server(config: splatd_server::Config) -> Result<()> {
         let server = Server::bind(config).await?;
         // Handlers first: a SIGTERM right after the address is announced must stop us gently.
         let shutdown = shutdown_signal();
-        // Scripts and tests wait for this line to learn the port.
-        println!("splatd listening on http://{}", server.local_addr());
+        // Scripts and tests wait for this line to learn the port. Nobody reading stdout is no
+        // reason not to serve (println! would panic on a closed stdout).
+        {
+            use std::io::Write;
+            let mut out = std::io::stdout().lock();
+            let _ = writeln!(out, "splatd listening on http://{}", server.local_addr());
+            let _ = out.flush();
+        }
         server.run(shutdown).await
     })
 }
@@ -255,19 +285,16 @@ fn post(args: PostArgs) -> Result<()> {
             )
             .expect("valid template"),
         );
+        // The outbox keeps every pass (as its path) until the server has it on disk, and
+        // resends what a server restart lost.
+        let mut outbox = splatd_proto::Outbox::new(client.clone(), &args.frame, worker)?;
         let (mut samples, mut duplicates) = (0u64, 0u64);
         for path in &args.passes {
             let bytes =
                 std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
             let seq = pass_seq(&bytes);
-            let ack = client
-                .post_pass_layer(
-                    &args.frame,
-                    worker,
-                    seq,
-                    args.layer.as_deref(),
-                    bytes.into(),
-                )
+            let ack = outbox
+                .post_pass_file(seq, args.layer.as_deref(), path.clone(), bytes.into())
                 .await
                 .with_context(|| format!("posting {}", path.display()))?;
             samples += ack.accepted;
@@ -276,11 +303,18 @@ fn post(args: PostArgs) -> Result<()> {
             bar.inc(1);
         }
         bar.finish();
-        // On a server with a data directory, exit only once the passes are on disk.
-        client
-            .sync(&args.frame)
+        // On a server with a data directory, exit only once the passes are on disk, resending
+        // those acknowledged by a server process that is gone.
+        let synced = outbox
+            .sync()
             .await
             .context("waiting for the passes to be on disk")?;
+        if outbox.resent() > 0 {
+            println!(
+                "the server restarted while posting: {} pass(es) sent again",
+                outbox.resent()
+            );
+        }
         // A worker's token may have `write` only: then the frame's totals are not its to read.
         let total = match client.frame_info(&args.frame).await {
             Ok(info) => format!("; it now has {:.1} spp on average", info.spp_mean),
@@ -288,7 +322,7 @@ fn post(args: PostArgs) -> Result<()> {
             Err(e) => return Err(e).context("reading the frame's totals"),
         };
         println!(
-            "posted {} passes ({samples} samples{}) to frame {:?} as worker {worker}{total}",
+            "posted {} passes ({samples} samples{}) to frame {:?} as worker {worker}{total}; {}",
             args.passes.len(),
             if duplicates > 0 {
                 format!(", {duplicates} already there")
@@ -296,6 +330,11 @@ fn post(args: PostArgs) -> Result<()> {
                 String::new()
             },
             args.frame,
+            if synced.durable {
+                "all on disk"
+            } else {
+                "the server keeps frames in memory only"
+            },
         );
         Ok(())
     })

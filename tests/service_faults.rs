@@ -1,13 +1,14 @@
-//! Disk faults against a real `splatd serve` process: the faults are real (a file-size limit set
-//! on the running process with `prlimit`, files damaged on disk between two starts), and so is
-//! every answer checked here.
+//! Faults against a real `splatd serve` process: the faults are real (a file-size limit set on
+//! the running process with `prlimit`, files damaged on disk between two starts, a log nobody
+//! can write, a server killed under the tools that post passes), and so is every answer checked
+//! here.
 
 mod common;
 
-use std::path::Path;
-use std::process::Command;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
 
-use common::{Server, ServerProcess};
+use common::{Forwarder, Log, Options, Server, ServerProcess};
 use serde_json::Value;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
@@ -57,12 +58,24 @@ fn get(server: &ServerProcess, path: &str) -> Value {
 /// A write past `ulimit -f` used to kill the server (SIGXFSZ, no log line). Now the snapshot
 /// fails like a full disk: sync answers 507 naming the problem, `/healthz` reports the frame,
 /// no partial file is left, frames that fit are still made durable, and the server goes on.
+///
+/// The server's own log is a file already past the limit, so every log line fails too (EFBIG):
+/// that must change no answer. (It did: tracing-subscriber reported the failed write with
+/// `eprintln!`, which panics when stderr fails, so the request that logged got no answer; the
+/// test failed whenever the suite's output went to a file, which the server inherited.)
 #[test]
 fn a_file_size_limit_is_a_write_error_not_a_crash() {
     let dir = tempfile::tempdir().unwrap();
     let args = common::durable_args(dir.path());
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
-    let server = Server::start(&args);
+    let log = dir.path().join("server.log");
+    std::fs::write(&log, "x".repeat(100 << 10)).unwrap();
+    let server = ServerProcess::launch(&Options {
+        log: Log::File(&log),
+        log_level: "debug",
+        ..Options::new(env!("CARGO_BIN_EXE_splatd"), &args)
+    })
+    .unwrap();
     create(&server, "big", 64, 64); // 64 * 64 * 192 bytes of cascades, far over the limit
     create(&server, "small", 2, 2);
     post(&server, "big", 64, 64);
@@ -72,6 +85,7 @@ fn a_file_size_limit_is_a_write_error_not_a_crash() {
         .status()
         .expect("prlimit (util-linux)");
     assert!(limited.success());
+    let logged = std::fs::metadata(&log).unwrap().len();
 
     let (status, body) = sync(&server, "big");
     assert_eq!(status, 507, "{body}");
@@ -95,7 +109,352 @@ fn a_file_size_limit_is_a_write_error_not_a_crash() {
         .unwrap();
     assert_eq!(r.status(), 204);
     assert_eq!(get(&server, "/healthz")["status"], "ok");
+    every_kind_of_answer(&server, "small");
+    // A change since the last snapshot is written at shutdown, log or no log.
+    post_seq(&server, "small", 2, 2, 7);
     assert_eq!(server.terminate(), Some(0), "a clean exit after the faults");
+    assert_eq!(
+        std::fs::metadata(&log).unwrap().len(),
+        logged,
+        "no log line fit"
+    );
+    let server = Server::start(&args);
+    assert_eq!(get(&server, "/v1/frames/small")["samples"], 8);
+}
+
+/// Creates, refusals and errors of every kind, each with its status and JSON body, on a
+/// server whose log cannot be written; `frame` exists and is 2x2.
+fn every_kind_of_answer(server: &ServerProcess, frame: &str) {
+    create(server, "made", 2, 2);
+    let again = http()
+        .put(format!("{}/v1/frames/made", server.url))
+        .json(&serde_json::json!({"width": 3, "height": 2}))
+        .send()
+        .unwrap();
+    assert_eq!(again.status(), 409);
+    assert_eq!(again.json::<Value>().unwrap()["error"], "frame_exists");
+    let missing = http()
+        .get(format!("{}/v1/frames/nowhere", server.url))
+        .send()
+        .unwrap();
+    assert_eq!(missing.status(), 404);
+    let outside = Batch::new(frame, 9, 0, vec![Record::new(5, 0, [1.0; 3])]).unwrap();
+    let r = http()
+        .post(format!("{}/v1/frames/{frame}/samples", server.url))
+        .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
+        .body(outside.encode())
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 422);
+    assert_eq!(r.json::<Value>().unwrap()["error"], "pixel_out_of_range");
+    let gone = http()
+        .delete(format!("{}/v1/frames/made", server.url))
+        .send()
+        .unwrap();
+    assert_eq!(gone.status(), 204);
+    let r = http()
+        .get(format!("{}/v1/frames/made", server.url))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 404);
+}
+
+/// Posts one batch of `w * h` records as `(worker 1, seq)`.
+fn post_seq(server: &ServerProcess, id: &str, w: u32, h: u32, seq: u64) -> Value {
+    let records = (0..w * h)
+        .map(|i| Record::new(i % w, i / w, [1.0, 2.0, 3.0]))
+        .collect();
+    let batch = Batch::new(id, 1, seq, records).unwrap();
+    let r = http()
+        .post(format!("{}/v1/frames/{id}/samples", server.url))
+        .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
+        .body(batch.encode())
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    r.json().unwrap()
+}
+
+/// A server whose stderr is a closed pipe (its log collector died) answers every kind of
+/// request as usual, keeps snapshotting after a snapshot failed, and writes its final snapshot
+/// at SIGTERM. Before: a failed log write panicked whatever logged (tracing-subscriber's
+/// fallback `eprintln!`), so creates and deletes happened but were never answered, the
+/// periodic snapshot task died with the first snapshot failure it logged, and SIGTERM exited
+/// 101 without the final snapshot.
+#[test]
+fn a_log_that_cannot_be_written_changes_no_answer_and_no_snapshot() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().display().to_string();
+    let tokens = "admin admin-token-0123456789\nwrite write-token-0123456789";
+    let args = ["--data-dir", &data, "--snapshot-interval-ms", "20"];
+    let server = ServerProcess::launch(&Options {
+        log: Log::Closed,
+        log_level: "debug",
+        // The first snapshot fails, and is logged as an error.
+        env: &[
+            ("SPLATD_TOKENS", tokens),
+            ("SPLATD_FAILPOINTS", "snapshot.bin:before_write=error@1"),
+        ],
+        ..Options::new(env!("CARGO_BIN_EXE_splatd"), &args)
+    })
+    .unwrap();
+    let admin = |r: reqwest::blocking::RequestBuilder| r.bearer_auth("admin-token-0123456789");
+    let writer = |r: reqwest::blocking::RequestBuilder| r.bearer_auth("write-token-0123456789");
+    let url = |path: &str| format!("{}{path}", server.url);
+
+    let r = admin(http().post(url("/v1/frames")))
+        .json(&CreateFrame::new("f", 2, 2))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let r = writer(http().post(url("/v1/frames")))
+        .json(&CreateFrame::new("g", 2, 2))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 403);
+    assert_eq!(r.json::<Value>().unwrap()["error"], "forbidden");
+    let r = http().get(url("/v1/frames")).send().unwrap();
+    assert_eq!(r.status(), 401);
+    let r = writer(http().delete(url("/v1/frames/f"))).send().unwrap();
+    assert_eq!(r.status(), 403);
+
+    // Batches keep coming; the durable floor must pass them without a sync, although the
+    // first snapshot failed (bounded: 500 posts, 20 ms apart, are 25 snapshot intervals).
+    let post = |seq: u64| -> Value {
+        let records = (0..4)
+            .map(|i| Record::new(i % 2, i / 2, [1.0; 3]))
+            .collect();
+        let batch = Batch::new("f", 1, seq, records).unwrap();
+        let r = writer(http().post(url("/v1/frames/f/samples")))
+            .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
+            .body(batch.encode())
+            .send()
+            .unwrap();
+        assert_eq!(r.status(), 200);
+        r.json().unwrap()
+    };
+    let mut seq = 0;
+    let mut floor = 0;
+    while floor < 2 && seq < 500 {
+        floor = post(seq)["durable_floor"].as_u64().unwrap();
+        seq += 1;
+        std::thread::sleep(std::time::Duration::from_millis(20));
+    }
+    assert!(
+        floor >= 2,
+        "the durable floor stayed {floor} over {seq} posts: snapshots stopped"
+    );
+    let r = writer(http().post(url("/v1/frames/f/sync")))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    assert_eq!(r.json::<Value>().unwrap()["durable"], true);
+    let health = get(&server, "/healthz");
+    assert_eq!(health["status"], "ok", "{health}");
+    // Applied, not yet durable: the final snapshot at SIGTERM must carry it.
+    let last = post(seq);
+    assert_eq!(last["accepted"], 4);
+    let r = admin(http().post(url("/v1/frames")))
+        .json(&CreateFrame::new("doomed", 2, 2))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let r = admin(http().delete(url("/v1/frames/doomed")))
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 204);
+    assert_eq!(server.terminate(), Some(0), "SIGTERM with a broken log");
+
+    let server = Server::start_with_env(&args, &[("SPLATD_TOKENS", tokens)]);
+    let info: Value = admin(http().get(format!("{}/v1/frames/f", server.url)))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(info["samples"], 4 * (seq + 1), "{info}");
+    let list: Value = admin(http().get(format!("{}/v1/frames", server.url)))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(list["frames"].as_array().unwrap().len(), 1, "{list}");
+}
+
+const PASS_W: u32 = 16;
+const PASS_H: u32 = 8;
+const RESTART_PASSES: usize = 40;
+/// The pass whose arrival kills the first server (its 21st): 20 acknowledged, none on disk.
+const KILLED_AT: usize = 21;
+
+/// 40 pass files written by OpenEXR's own package (half floats, fireflies), and the mean the
+/// frame must have once each counted once, from their raw values rounded to half.
+fn restart_passes(dir: &Path) -> (Vec<PathBuf>, Vec<[f64; 3]>) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/write_passes.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(dir)
+        .args([
+            "--width",
+            &PASS_W.to_string(),
+            "--height",
+            &PASS_H.to_string(),
+        ])
+        .args(["--passes", &RESTART_PASSES.to_string(), "--seed", "3"])
+        .output()
+        .expect("running python3 (tests/run.sh installs numpy and OpenEXR)");
+    assert!(
+        out.status.success(),
+        "write_passes.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let pixels = (PASS_W * PASS_H) as usize;
+    let mut mean = vec![[0f64; 3]; pixels];
+    let files = (0..RESTART_PASSES)
+        .map(|i| {
+            let exr = dir.join(format!("pass{i}.half.exr"));
+            let raw = std::fs::read(exr.with_extension("f32")).unwrap();
+            for (p, c) in raw.chunks_exact(12).enumerate() {
+                for (k, m) in mean[p].iter_mut().enumerate() {
+                    let v = f32::from_le_bytes(c[4 * k..4 * k + 4].try_into().unwrap());
+                    *m += f64::from(exr::prelude::f16::from_f32(v).to_f32());
+                }
+            }
+            exr
+        })
+        .collect();
+    for m in mean.iter_mut().flatten() {
+        *m /= RESTART_PASSES as f64;
+    }
+    (files, mean)
+}
+
+/// A durable server that dies on the `KILLED_AT`-th pass, before any snapshot (they are an
+/// hour apart), behind a forwarder whose URL the tool keeps.
+fn server_that_dies(data: &Path) -> (ServerProcess, Forwarder) {
+    let args = common::durable_args(data);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let abort = format!("batch:before_apply=abort@{KILLED_AT}");
+    let server = Server::start_with_env(&args, &[("SPLATD_FAILPOINTS", abort.as_str())]);
+    let forwarder = Forwarder::start(&server.addr);
+    (server, forwarder)
+}
+
+/// Waits for the first server to die at its failpoint, starts it again on the same data, and
+/// points the forwarder at it: the tool's retries reach the new process.
+fn restart_after_the_kill(
+    first: ServerProcess,
+    forwarder: &Forwarder,
+    data: &Path,
+) -> ServerProcess {
+    assert_eq!(first.wait_exit(), None, "the failpoint aborted the server");
+    let args = common::durable_args(data);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let server = Server::start(&args);
+    forwarder.point_at(Some(&server.addr));
+    server
+}
+
+/// The frame holds every pass exactly once: 40 samples in every pixel and the passes' mean,
+/// read back from the served EXR by OpenEXR's package; and it survives one more kill.
+fn check_every_pass_once(server: ServerProcess, data: &Path, frame: &str, mean: &[[f64; 3]]) {
+    let info = get(&server, &format!("/v1/frames/{frame}"));
+    let pixels = u64::from(PASS_W * PASS_H);
+    assert_eq!(info["samples"], RESTART_PASSES as u64 * pixels, "{info}");
+    server.kill();
+    let args = common::durable_args(data);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let server = Server::start(&args);
+    let exr = data.join("served.exr");
+    let bytes = http()
+        .get(format!("{}/v1/frames/{frame}/image.exr", server.url))
+        .send()
+        .unwrap()
+        .bytes()
+        .unwrap();
+    std::fs::write(&exr, &bytes).unwrap();
+    let (_, _, channels) = common::read_exr_with_python(&exr);
+    let channel = |name: &str| &channels.iter().find(|(n, _)| n == name).unwrap().1;
+    assert!(channel("spp.Y").iter().all(|&n| n == RESTART_PASSES as f64));
+    for (k, name) in ["mean.R", "mean.G", "mean.B"].into_iter().enumerate() {
+        for (p, (&got, want)) in channel(name).iter().zip(mean).enumerate() {
+            let want = want[k];
+            assert!(
+                (got - want).abs() <= 1e-5 * want.abs().max(1.0),
+                "{name} at pixel {p}: served {got}, the passes' mean {want}"
+            );
+        }
+    }
+}
+
+/// `splatd post` of 40 passes to a durable server killed (on its 21st pass) and restarted on
+/// the same URL: it resends the 20 passes the dead process had acknowledged, and reports
+/// success only once all 40 are on disk. Before: it exited 0 saying "posted 40 passes" and the
+/// frame held 20.
+#[test]
+fn splatd_post_loses_no_pass_across_a_server_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, mean) = restart_passes(&dir.path().join("passes"));
+    let data = dir.path().join("data");
+    let (first, forwarder) = server_that_dies(&data);
+    let out = std::fs::File::create(dir.path().join("post.out")).unwrap();
+    let mut post = Command::new(env!("CARGO_BIN_EXE_splatd"))
+        .args([
+            "post",
+            "--url",
+            &forwarder.url,
+            "--frame",
+            "shot",
+            "--create",
+        ])
+        .args(&files)
+        .stdout(out.try_clone().unwrap())
+        .stderr(out)
+        .spawn()
+        .unwrap();
+    let server = restart_after_the_kill(first, &forwarder, &data);
+    let status = post.wait().unwrap();
+    let said = std::fs::read_to_string(dir.path().join("post.out")).unwrap();
+    assert!(status.success(), "splatd post failed:\n{said}");
+    assert!(
+        said.contains(&format!("{} pass(es) sent again", KILLED_AT - 1)),
+        "{said}"
+    );
+    assert!(said.contains("all on disk"), "{said}");
+    check_every_pass_once(server, &data, "shot", &mean);
+}
+
+/// The Python client's `Outbox.post_pass` ... `sync` loop (what the Blender worker runs) under
+/// the same kill and restart: every acknowledged pass is in the frame once when `sync` returns.
+/// Before, with `Client.post_pass` and `Client.sync`: `sync` answered `durable: true` with 20 of
+/// 40 passes on disk.
+#[test]
+fn the_python_outbox_loses_no_pass_across_a_server_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, mean) = restart_passes(&dir.path().join("passes"));
+    let data = dir.path().join("data");
+    let (first, forwarder) = server_that_dies(&data);
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/post_through_restart.py");
+    let python = Command::new("python3")
+        .arg(script)
+        .args([forwarder.url.as_str(), "py", "77"])
+        .args(&files)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let server = restart_after_the_kill(first, &forwarder, &data);
+    let out = python.wait_with_output().unwrap();
+    assert!(
+        out.status.success(),
+        "the Python outbox failed:\n{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(report["acknowledged"], RESTART_PASSES, "{report}");
+    assert_eq!(report["resent"], KILLED_AT - 1, "{report}");
+    assert_eq!(report["sync"]["durable"], true, "{report}");
+    check_every_pass_once(server, &data, "py", &mean);
 }
 
 /// A frame whose files are damaged or missing is set aside at start, listed by the API and

@@ -4,12 +4,36 @@
 //! A server is started on port 0 and reports the port it bound on its first stdout line
 //! (`splatd listening on http://ADDR`), so no port is ever guessed. Every wait is bounded by
 //! [`PATIENCE`], which only guards against hanging forever.
+//!
+//! Each server writes its log to a file of its own ([`Log::Own`], the default), never to the
+//! test's stderr: what the test's output is (a terminal, a pipe, a file under `ulimit -f`) then
+//! cannot change what the server does, and when a test fails while it holds the server, the
+//! log's last lines are printed with the failure so that a CI run can be diagnosed.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
+
+/// Lines of a server's log printed when a test fails while holding the server.
+const LOG_TAIL_LINES: usize = 60;
+
+/// Where a server's log (its stderr) goes.
+#[derive(Debug, Clone, Copy)]
+pub enum Log<'a> {
+    /// A file of its own under the system's temporary folder (`splatd-logs/`), named after the
+    /// program and the server; [`ServerProcess::log_path`] says which.
+    Own,
+    /// This file, appended to (created if missing).
+    File(&'a Path),
+    /// The stderr of the program that starts it.
+    Inherit,
+    /// A pipe whose reading end is closed: every log line the server writes fails (`EPIPE`), as
+    /// when an operator's log collector has died.
+    Closed,
+}
 
 /// How long any wait may last before it is taken for a hang. Generous, for loaded machines.
 pub const PATIENCE: Duration = Duration::from_secs(120);
@@ -25,21 +49,21 @@ pub struct Options<'a> {
     pub args: &'a [&'a str],
     /// Extra environment variables.
     pub env: &'a [(&'a str, &'a str)],
-    /// Where the server's log (stderr) goes; inherited when `None`.
-    pub log: Option<&'a Path>,
+    /// Where the server's log (stderr) goes.
+    pub log: Log<'a>,
     /// `RUST_LOG` of the server.
     pub log_level: &'a str,
 }
 
 impl<'a> Options<'a> {
-    /// `binary serve --addr 127.0.0.1:0 args`, logging errors to the inherited stderr.
+    /// `binary serve --addr 127.0.0.1:0 args`, logging errors to a file of its own.
     pub fn new(binary: impl Into<PathBuf>, args: &'a [&'a str]) -> Options<'a> {
         Options {
             binary: binary.into(),
             addr: "127.0.0.1:0",
             args,
             env: &[],
-            log: None,
+            log: Log::Own,
             log_level: "error",
         }
     }
@@ -60,9 +84,11 @@ pub fn sibling_binary() -> Result<PathBuf, String> {
     }
 }
 
-/// A `splatd serve` process, stopped (SIGTERM, then SIGKILL) when dropped.
+/// A `splatd serve` process, stopped (SIGTERM, then SIGKILL) when dropped; dropped while its
+/// thread panics (a failed assertion), it prints its log's tail first.
 pub struct ServerProcess {
     child: Option<Child>,
+    log: Option<PathBuf>,
     /// `http://127.0.0.1:PORT`
     pub url: String,
     /// `127.0.0.1:PORT`
@@ -73,11 +99,21 @@ impl ServerProcess {
     /// Starts a server and waits for its address.
     pub fn launch(options: &Options<'_>) -> Result<ServerProcess, String> {
         let mut cmd = Command::new(&options.binary);
-        let stderr = match options.log {
-            Some(path) => Stdio::from(
-                std::fs::File::create(path).map_err(|e| format!("{}: {e}", path.display()))?,
+        let log = match options.log {
+            Log::Own => Some(own_log_path()?),
+            Log::File(path) => Some(path.to_owned()),
+            Log::Inherit | Log::Closed => None,
+        };
+        let stderr = match (&log, options.log) {
+            (Some(path), _) => Stdio::from(
+                std::fs::OpenOptions::new()
+                    .create(true)
+                    .append(true)
+                    .open(path)
+                    .map_err(|e| format!("{}: {e}", path.display()))?,
             ),
-            None => Stdio::inherit(),
+            (None, Log::Closed) => Stdio::piped(),
+            (None, _) => Stdio::inherit(),
         };
         cmd.args(["serve", "--addr", options.addr])
             .args(options.args)
@@ -90,6 +126,13 @@ impl ServerProcess {
         let mut child = cmd
             .spawn()
             .map_err(|e| format!("starting {}: {e}", options.binary.display()))?;
+        // Log::Closed: the reading end goes now, before the server writes its first line.
+        drop(child.stderr.take());
+        let tail = |log: &Option<PathBuf>| {
+            log.as_deref()
+                .map(|p| format!("\n{}", log_tail(p, LOG_TAIL_LINES)))
+                .unwrap_or_default()
+        };
         let stdout = child.stdout.take().expect("piped stdout");
         let (tx, rx) = mpsc::channel();
         std::thread::spawn(move || {
@@ -106,19 +149,38 @@ impl ServerProcess {
                 let _ = child.kill();
                 let _ = child.wait();
                 return Err(format!(
-                    "splatd exited or did not report its address within {PATIENCE:?}"
+                    "splatd exited or did not report its address within {PATIENCE:?}{}",
+                    tail(&log)
                 ));
             }
         };
         let Some(url) = line.strip_prefix("splatd listening on ") else {
             let _ = child.kill();
-            return Err(format!("unexpected first line from splatd: {line:?}"));
+            let _ = child.wait();
+            return Err(format!(
+                "unexpected first line from splatd: {line:?}{}",
+                tail(&log)
+            ));
         };
         Ok(ServerProcess {
             child: Some(child),
+            log,
             url: url.to_owned(),
             addr: url.trim_start_matches("http://").to_owned(),
         })
+    }
+
+    /// The file the server logs to, unless it logs to an inherited or closed stderr.
+    pub fn log_path(&self) -> Option<&Path> {
+        self.log.as_deref()
+    }
+
+    /// The last `lines` lines of the server's log, for a failure message.
+    pub fn log_tail(&self, lines: usize) -> String {
+        match &self.log {
+            Some(path) => log_tail(path, lines),
+            None => "(the server's log is not in a file)".to_owned(),
+        }
     }
 
     /// The process id.
@@ -163,6 +225,11 @@ impl ServerProcess {
 
 impl Drop for ServerProcess {
     fn drop(&mut self) {
+        if std::thread::panicking() {
+            if let Some(path) = &self.log {
+                eprintln!("{}", log_tail(path, LOG_TAIL_LINES));
+            }
+        }
         if let Some(mut child) = self.child.take() {
             signal(child.id(), "TERM");
             if wait_bounded(&mut child, Duration::from_secs(5)).is_none() {
@@ -191,4 +258,36 @@ fn wait_bounded(child: &mut Child, limit: Duration) -> Option<i32> {
     let _ = child.kill();
     let _ = child.wait();
     None
+}
+
+/// A fresh log file name for a server of this program: `TMP/splatd-logs/PROGRAM-PID-N.log`.
+fn own_log_path() -> Result<PathBuf, String> {
+    static NEXT: AtomicUsize = AtomicUsize::new(0);
+    let dir = std::env::temp_dir().join("splatd-logs");
+    std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    let program = std::env::current_exe()
+        .ok()
+        .and_then(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
+        .unwrap_or_else(|| "splatd".into());
+    let n = NEXT.fetch_add(1, Ordering::Relaxed);
+    Ok(dir.join(format!("{program}-{}-{n}.log", std::process::id())))
+}
+
+/// The last `lines` lines of the log at `path`, under a heading that names the file.
+pub fn log_tail(path: &Path, lines: usize) -> String {
+    match std::fs::read(path) {
+        Ok(bytes) => {
+            let text = String::from_utf8_lossy(&bytes);
+            let all: Vec<&str> = text.lines().collect();
+            let from = all.len().saturating_sub(lines);
+            format!(
+                "--- last {} of {} lines of the server's log {} ---\n{}\n--- end of log ---",
+                all.len() - from,
+                all.len(),
+                path.display(),
+                all[from..].join("\n")
+            )
+        }
+        Err(e) => format!("(the server's log {} cannot be read: {e})", path.display()),
+    }
 }

@@ -574,6 +574,11 @@ pub struct BatchAck {
     /// frames only in memory.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub durable_floor: Option<u64>,
+    /// Durable servers only, and only when true: the frame's last snapshot failed (a full disk,
+    /// say), so `durable_floor` is not advancing; this batch is applied but will not be durable
+    /// until the snapshots succeed again (`/healthz` names the frames).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub snapshots_failing: bool,
 }
 
 /// Response of `POST /v1/frames/{id}/sync`.
@@ -816,6 +821,7 @@ mod tests {
             duplicate: false,
             boot: 9,
             durable_floor: None,
+            snapshots_failing: false,
         };
         let v = serde_json::to_value(&ack).expect("serialises");
         assert_eq!(

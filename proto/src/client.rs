@@ -66,6 +66,10 @@ pub enum ClientError {
         /// when the response did not carry one.
         body: ErrorBody,
     },
+    /// The server restarted again and again while what it had lost was being resent
+    /// (16 restarts within one call); what is kept stays kept for the next call.
+    #[error("the server kept restarting while frame {0}'s kept batches and passes were resent")]
+    Restarting(String),
     /// Every attempt failed transiently.
     #[error("{operation} failed after {attempts} attempts; last failure: {last}")]
     GaveUp {
@@ -283,7 +287,9 @@ impl Client {
 
     /// `POST /v1/frames/{frame}/samples`: sends one batch.
     ///
-    /// The batch is encoded once and the same bytes are resent on retries.
+    /// The batch is encoded once and the same bytes are resent on retries. One request: it
+    /// keeps nothing for after a server restart; workers post through an
+    /// [`Outbox`](crate::Outbox) (or a [`BatchWriter`]), which does.
     pub async fn post_batch(&self, batch: &Batch) -> Result<BatchAck, ClientError> {
         batch.validate()?;
         self.post_encoded(&batch.frame, Bytes::from(batch.encode()))

@@ -18,8 +18,10 @@
 //! With the default `client` feature the crate also has an async HTTP
 //! client for workers (reqwest + tokio): [`Client`] (module `client`) sends
 //! requests and retries transient failures with the same bytes, and
-//! [`BatchWriter`] (module `writer`) numbers batches and keeps them until
-//! the server has them on disk, so every sample counts exactly once.
+//! [`Outbox`] (module `outbox`) keeps every batch and pass a worker posted
+//! until the server has it on disk, resending it after a restart, and
+//! [`BatchWriter`] (module `writer`) numbers records into batches and posts
+//! them through an outbox, so every sample counts exactly once.
 //! `default-features = false` leaves only serde, bincode and thiserror.
 //!
 //! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
@@ -55,6 +57,8 @@ pub mod batchfile;
 #[cfg(feature = "client")]
 pub mod client;
 pub mod ids;
+#[cfg(feature = "client")]
+pub mod outbox;
 pub mod state;
 #[cfg(feature = "client")]
 pub mod writer;
@@ -66,6 +70,8 @@ pub use api::{
 pub use batch::{records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};
+#[cfg(feature = "client")]
+pub use outbox::Outbox;
 pub use state::{Applied, Origin, Runs, StateDump, StateError, STATE_CONTENT_TYPE};
 #[cfg(feature = "client")]
 pub use writer::BatchWriter;

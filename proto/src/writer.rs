@@ -3,16 +3,16 @@
 //!
 //! A writer turns a stream of records into numbered batches and keeps a batch
 //! that could not be delivered, so that the next call resends it under its
-//! original sequence number. Against a durable server it also keeps every
-//! acknowledged batch until the server's `durable_floor` passes it, and
-//! resends the kept batches when the server's `boot` id changes. Requests and
-//! their retries are [`Client`]'s job.
+//! original sequence number. It posts through an [`Outbox`], which keeps every
+//! acknowledged batch until the server has it on disk and resends it when the
+//! server restarted. Requests and their retries are [`Client`]'s job.
 
 use bytes::Bytes;
 
 use crate::api::BatchAck;
-use crate::batch::{validate_frame_id, Batch, Record, DEFAULT_MAX_RECORDS};
+use crate::batch::{Batch, Record, DEFAULT_MAX_RECORDS};
 use crate::client::{Client, ClientError};
+use crate::outbox::Outbox;
 
 /// A batch that has a sequence number and its final bytes but is not yet
 /// acknowledged.
@@ -42,19 +42,11 @@ struct Pending {
 /// advances over contiguous sequence numbers only.
 #[derive(Debug)]
 pub struct BatchWriter {
-    client: Client,
-    frame: String,
-    worker: u64,
+    outbox: Outbox,
     next_seq: u64,
     batch_size: usize,
     buffer: Vec<Record>,
     pending: Option<Pending>,
-    /// Applied but not yet durable, oldest first.
-    unconfirmed: std::collections::VecDeque<Pending>,
-    /// The server process last heard from.
-    boot: Option<u64>,
-    /// Batches resent because the server restarted.
-    resent: u64,
 }
 
 impl BatchWriter {
@@ -68,24 +60,18 @@ impl BatchWriter {
         first_seq: u64,
         batch_size: usize,
     ) -> Result<BatchWriter, ClientError> {
-        let frame = frame.into();
-        validate_frame_id(&frame)?;
+        let outbox = Outbox::new(client, frame, worker)?;
         if !(1..=DEFAULT_MAX_RECORDS).contains(&batch_size) {
             return Err(ClientError::InvalidArgument(format!(
                 "batch size {batch_size} is outside 1..={DEFAULT_MAX_RECORDS}"
             )));
         }
         Ok(BatchWriter {
-            client,
-            frame,
-            worker,
+            outbox,
             next_seq: first_seq,
             batch_size,
             buffer: Vec::with_capacity(batch_size),
             pending: None,
-            unconfirmed: std::collections::VecDeque::new(),
-            boot: None,
-            resent: 0,
         })
     }
 
@@ -175,8 +161,8 @@ impl BatchWriter {
         );
         let n = self.buffer.len().min(self.batch_size);
         let batch = Batch {
-            frame: self.frame.clone(),
-            worker: self.worker,
+            frame: self.outbox.frame().to_owned(),
+            worker: self.outbox.worker(),
             seq: self.next_seq,
             records: self.buffer.drain(..n).collect(),
         };
@@ -196,45 +182,11 @@ impl BatchWriter {
             return Ok(None);
         };
         let ack = self
-            .client
-            .post_encoded(&self.frame, pending.body.clone())
+            .outbox
+            .post_batch(pending.seq, pending.body.clone())
             .await?;
-        let sent = self.pending.take().expect("checked above");
-        if ack.durable_floor.is_some() {
-            self.unconfirmed.push_back(sent);
-        }
-        self.on_ack(&ack).await?;
+        self.pending = None;
         Ok(Some(ack))
-    }
-
-    /// Forgets batches the server reports durable; resends the rest if it restarted.
-    async fn on_ack(&mut self, ack: &BatchAck) -> Result<(), ClientError> {
-        let mut ack = ack.clone();
-        // Bounded: each round is caused by one more restart of the server.
-        for _ in 0..16 {
-            if let Some(floor) = ack.durable_floor {
-                while self.unconfirmed.front().is_some_and(|p| p.seq < floor) {
-                    self.unconfirmed.pop_front();
-                }
-            }
-            let restarted = self.boot.is_some_and(|b| b != ack.boot);
-            self.boot = Some(ack.boot);
-            if !restarted {
-                return Ok(());
-            }
-            // Resend everything kept, oldest first; duplicates are answered as such.
-            let kept: Vec<Bytes> = self.unconfirmed.iter().map(|p| p.body.clone()).collect();
-            for body in kept {
-                let again = self.client.post_encoded(&self.frame, body).await?;
-                self.resent += 1;
-                if again.boot != ack.boot {
-                    ack = again;
-                    break;
-                }
-                ack = again;
-            }
-        }
-        Ok(())
     }
 
     /// Flushes, then waits until the server has every batch of this writer on
@@ -242,41 +194,17 @@ impl BatchWriter {
     /// Against a server without durability this is `flush`.
     pub async fn sync(&mut self) -> Result<(), ClientError> {
         self.flush().await?;
-        for _ in 0..16 {
-            let ack = self.client.sync(&self.frame).await?;
-            if !ack.durable {
-                self.unconfirmed.clear();
-                return Ok(());
-            }
-            if self.boot.is_none_or(|b| b == ack.boot) {
-                self.boot = Some(ack.boot);
-                self.unconfirmed.clear();
-                return Ok(());
-            }
-            // Restarted since our last acknowledgement: resend what it may have lost.
-            let fake = BatchAck {
-                frame: self.frame.clone(),
-                worker: self.worker,
-                seq: 0,
-                accepted: 0,
-                duplicate: true,
-                boot: ack.boot,
-                durable_floor: None,
-            };
-            self.on_ack(&fake).await?;
-        }
-        Err(ClientError::InvalidArgument(
-            "the server kept restarting while syncing".into(),
-        ))
+        self.outbox.sync().await?;
+        Ok(())
     }
 
     /// Batches acknowledged as applied but not yet reported durable.
     pub fn unconfirmed(&self) -> usize {
-        self.unconfirmed.len()
+        self.outbox.kept()
     }
 
     /// Batches resent because the server restarted.
     pub fn resent(&self) -> u64 {
-        self.resent
+        self.outbox.resent()
     }
 }

@@ -227,6 +227,20 @@ impl Durable {
         self.failing_set().iter().cloned().collect()
     }
 
+    /// Whether the last snapshot of `frame` failed: what it acknowledges now is applied but not
+    /// becoming durable, which every acknowledgement of the frame then says.
+    pub fn is_failing(&self, frame: &str) -> bool {
+        self.failing_set().contains(frame)
+    }
+
+    /// Records a failed snapshot of `frame`: counted, reported by `/healthz` and the metrics.
+    fn note_failure(&self, frame: &str) {
+        let mut failing = self.failing_set();
+        failing.insert(frame.to_owned());
+        metrics::gauge!("splatd_frames_snapshot_failing").set(failing.len() as f64);
+        metrics::counter!("splatd_snapshot_failures_total").increment(1);
+    }
+
     fn failing_set(&self) -> std::sync::MutexGuard<'_, std::collections::BTreeSet<String>> {
         self.failing.lock().unwrap_or_else(|e| e.into_inner())
     }
@@ -391,12 +405,15 @@ impl Durable {
         let (seen, version) = match written {
             Ok(cut) => cut,
             Err(e) => {
-                self.failing_set().insert(frame.id().to_owned());
-                metrics::counter!("splatd_snapshot_failures_total").increment(1);
+                self.note_failure(frame.id());
                 return Err(e);
             }
         };
-        self.failing_set().remove(frame.id());
+        {
+            let mut failing = self.failing_set();
+            failing.remove(frame.id());
+            metrics::gauge!("splatd_frames_snapshot_failing").set(failing.len() as f64);
+        }
         frame.mark_durable(&seen, version);
         metrics::counter!("splatd_snapshots_total").increment(1);
         Ok(())
@@ -464,9 +481,25 @@ impl Durable {
             }
             let started = std::time::Instant::now();
             for frame in app.store.list() {
-                if let Err(e) = self.snapshot(&frame).await {
-                    tracing::error!(frame = frame.id(), error = %e, "snapshot failed");
-                }
+                // Each snapshot is a task of its own, so that nothing going wrong in one (an
+                // error, or a panic) can end this loop: durability must not stop for good
+                // because one write failed; the next round tries again.
+                let this = self.clone();
+                let id = frame.id().to_owned();
+                let done = tokio::spawn(async move { this.snapshot(&frame).await }).await;
+                let failure = match done {
+                    Ok(Ok(())) => continue,
+                    Ok(Err(e)) => e.to_string(),
+                    Err(e) => {
+                        self.note_failure(&id);
+                        format!("the snapshot task failed: {e}")
+                    }
+                };
+                tracing::error!(
+                    frame = id,
+                    error = failure,
+                    "snapshot failed; retried next round"
+                );
             }
             wait = self.interval.max(started.elapsed() * 4);
         }

@@ -12,7 +12,8 @@
 //! With `@n` the action happens on the `n`-th hit only (counting from 1), otherwise on every hit.
 //! Points: `snapshot.bin:before_rename` (a snapshot is written to `snapshot.tmp` and synced, not
 //! yet renamed over the previous one), `snapshot.bin:before_write` and the same for
-//! `frame.json`. Unset (in production), a hit costs one check of an initialized `OnceLock`.
+//! `frame.json`; `batch:before_apply` (a batch or pass is about to be applied; only `abort`
+//! has an effect there: the server dies between two acknowledgements). Unset (in production), a hit costs one check of an initialized `OnceLock`.
 
 use std::collections::HashMap;
 use std::io;
@@ -101,7 +102,8 @@ fn act(name: &str, point: &Point) -> io::Result<()> {
     }
     match point.action {
         Action::Abort => {
-            eprintln!("failpoint {name}: aborting (hit {n})");
+            use std::io::Write;
+            let _ = writeln!(std::io::stderr(), "failpoint {name}: aborting (hit {n})");
             std::process::abort();
         }
         Action::Error => Err(io::Error::other(format!(

@@ -816,6 +816,8 @@ impl ShardedFrame {
         parts: Parts<'_>,
         aovs: Option<&[f32]>,
     ) -> Result<Ingested, IngestError> {
+        // Tests kill the server here, between two acknowledgements (only `abort` applies).
+        let _ = crate::failpoint::hit("batch:before_apply");
         let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
         if self.retired.load(Ordering::Acquire) {
             return Err(IngestError::Deleted {

@@ -136,11 +136,22 @@ impl Server {
             let _ = task.await;
         }
         if let Some(durable) = &app.durable {
+            // Every frame gets its chance, whatever happened to the one before it (a full disk
+            // refuses the big frame and may still take the small one).
+            let mut failed = Vec::new();
             for frame in app.store.list() {
-                durable
-                    .snapshot(&frame)
-                    .await
-                    .with_context(|| format!("final snapshot of frame {}", frame.id()))?;
+                if let Err(e) = durable.snapshot(&frame).await {
+                    tracing::error!(frame = frame.id(), error = %e, "final snapshot failed");
+                    failed.push(format!("{}: {e}", frame.id()));
+                }
+            }
+            if !failed.is_empty() {
+                anyhow::bail!(
+                    "the final snapshot of {} frame(s) failed; what they acknowledged since \
+                     their last snapshot is lost: {}",
+                    failed.len(),
+                    failed.join("; ")
+                );
             }
         }
         tracing::info!("stopped");

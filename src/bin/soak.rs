@@ -1,8 +1,10 @@
 //! A randomized fault soak of a durable `splatd serve` (not part of CI): many workers stream
 //! batches while the server is SIGKILLed and restarted at random moments, some lives of it
-//! cannot write snapshots (a full disk, injected with `SPLATD_FAILPOINTS`), a careless worker
-//! reuses batch ids for other samples, a frame is deleted and created again, and a frame's state
-//! is imported into another frame, then imported again.
+//! cannot write snapshots (a full disk, injected with `SPLATD_FAILPOINTS`), some cannot write a
+//! log line (stderr a closed pipe, logging at debug), one worker is the Python client's
+//! `Outbox` (`tests/py/soak_worker.py`), a careless worker reuses batch ids for other samples, a
+//! frame is deleted and created again, and a frame's state is imported into another frame, then
+//! imported again.
 //!
 //! ```sh
 //! cargo build --release --bins && cargo run --release --bin soak -- --seconds 120
@@ -22,7 +24,7 @@ use anyhow::{bail, Context, Result};
 use bytes::Bytes;
 use clap::Parser;
 use splatd_estimator::{CascadeLayout, FrameState};
-use splatd_harness::{sibling_binary, Options, ServerProcess};
+use splatd_harness::{sibling_binary, Log, Options, ServerProcess};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, BatchWriter, Client, ClientError, Record, RetryPolicy, StateDump};
 use splatd_scenes::synth::SplitMix64;
@@ -68,18 +70,17 @@ impl Target {
             addr: "127.0.0.1:0".into(),
             process: Mutex::new(None),
         };
-        let first = target.launch(false)?;
+        let first = target.launch(Life::default())?;
         target.addr = first.addr.clone();
         *target.process.lock().unwrap() = Some(first);
         Ok(target)
     }
 
-    /// A server on `self.addr` over the data directory; with `full_disk`, every snapshot write
-    /// fails as on a full disk.
-    fn launch(&self, full_disk: bool) -> Result<ServerProcess> {
+    /// A server on `self.addr` over the data directory, living `life`.
+    fn launch(&self, life: Life) -> Result<ServerProcess> {
         let dir = self.dir.display().to_string();
         let args = ["--data-dir", &dir, "--snapshot-interval-ms", "150"];
-        let env: &[(&str, &str)] = if full_disk {
+        let env: &[(&str, &str)] = if life.full_disk {
             &[("SPLATD_FAILPOINTS", "snapshot.bin:before_write=full")]
         } else {
             &[]
@@ -88,10 +89,16 @@ impl Target {
         // moment on a loaded machine, so a few tries.
         let mut last = String::new();
         for _ in 0..50 {
+            let (log, log_level) = if life.closed_log {
+                (Log::Closed, "debug")
+            } else {
+                (Log::Own, "off")
+            };
             match ServerProcess::launch(&Options {
                 addr: &self.addr,
                 env,
-                log_level: "off",
+                log,
+                log_level,
                 ..Options::new(&self.binary, &args)
             }) {
                 Ok(p) => return Ok(p),
@@ -104,13 +111,13 @@ impl Target {
         bail!("restarting splatd failed: {last}")
     }
 
-    /// SIGKILL, then start again (with a full disk or not).
-    fn kill_and_restart(&self, full_disk: bool) -> Result<()> {
+    /// SIGKILL, then start again to live `life`.
+    fn kill_and_restart(&self, life: Life) -> Result<()> {
         let mut slot = self.process.lock().unwrap();
         if let Some(p) = slot.take() {
             p.kill();
         }
-        *slot = Some(self.launch(full_disk)?);
+        *slot = Some(self.launch(life)?);
         Ok(())
     }
 
@@ -119,10 +126,20 @@ impl Target {
     }
 }
 
+/// What goes wrong in one life of the server besides its end by SIGKILL.
+#[derive(Debug, Clone, Copy, Default)]
+struct Life {
+    /// Every snapshot write fails as on a full disk.
+    full_disk: bool,
+    /// Stderr is a closed pipe: every log line fails to be written.
+    closed_log: bool,
+}
+
 #[derive(Default)]
 struct Figures {
     kills: AtomicU64,
     full_disk_lives: AtomicU64,
+    closed_log_lives: AtomicU64,
     batches: AtomicU64,
     resent: AtomicU64,
     reused_refused: AtomicU64,
@@ -243,6 +260,65 @@ async fn worker(
     }
     figures.resent.fetch_add(writer.resent(), Ordering::Relaxed);
     Ok(())
+}
+
+/// The worker written with the Python client (`tests/py/soak_worker.py`), running as its own
+/// process until the soak stops it.
+struct PythonWorker {
+    child: std::process::Child,
+    stop: PathBuf,
+    sent: PathBuf,
+}
+
+fn python_worker(
+    url: &str,
+    frame: &str,
+    args: &Args,
+    dir: &std::path::Path,
+) -> Result<PythonWorker> {
+    let script = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/soak_worker.py");
+    let stop = dir.join("python-worker.stop");
+    let sent = dir.join("python-worker.records");
+    let child = std::process::Command::new("python3")
+        .arg(&script)
+        .args([url, frame, "1000"])
+        .arg(args.seed.to_string())
+        .arg(args.batch.to_string())
+        .arg(SIZE.to_string())
+        .arg(&stop)
+        .arg(&sent)
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .with_context(|| format!("python3 {} (pip install numpy)", script.display()))?;
+    Ok(PythonWorker { child, stop, sent })
+}
+
+impl PythonWorker {
+    /// Stops the worker, waits for its sync, and adds every record it sent to `reference`;
+    /// returns its batches.
+    fn finish(self, reference: &Mutex<FrameState>) -> Result<u64> {
+        std::fs::write(&self.stop, b"")?;
+        let out = self.child.wait_with_output()?;
+        if !out.status.success() {
+            bail!("the Python worker failed ({})", out.status);
+        }
+        let report: serde_json::Value =
+            serde_json::from_slice(&out.stdout).context("the Python worker's report")?;
+        if report["kept"] != 0 {
+            bail!("the Python worker ended with batches not durable: {report}");
+        }
+        let bytes = std::fs::read(&self.sent)?;
+        let records: Vec<Record> = bytes
+            .chunks_exact(20)
+            .map(|c| {
+                let u = |i: usize| u32::from_le_bytes(c[i..i + 4].try_into().unwrap());
+                let f = |i: usize| f32::from_le_bytes(c[i..i + 4].try_into().unwrap());
+                Record::new(u(0), u(4), [f(8), f(12), f(16)])
+            })
+            .collect();
+        splat(reference, &records);
+        Ok(report["batches"].as_u64().unwrap_or(0))
+    }
 }
 
 /// A careless worker: sends a batch, makes it durable, then sends other records under the same
@@ -392,6 +468,7 @@ async fn main() -> Result<()> {
             figures.clone(),
         )));
     }
+    let python = python_worker(&url, &frames[1 % frames.len()], &args, &dir)?;
     tasks.push(tokio::spawn(careless(
         url.clone(),
         frames[0].clone(),
@@ -415,15 +492,25 @@ async fn main() -> Result<()> {
             while Instant::now() < end {
                 let wait = rng.next_u64() % (2 * args.kill_every_ms + 1);
                 std::thread::sleep(Duration::from_millis(wait));
-                let full_disk = rng.next_u64() % 4 == 0;
-                target.kill_and_restart(full_disk)?;
+                let life = Life {
+                    full_disk: rng.next_u64() % 4 == 0,
+                    closed_log: rng.next_u64() % 4 == 0,
+                };
+                target.kill_and_restart(life)?;
                 figures.kills.fetch_add(1, Ordering::Relaxed);
-                if full_disk {
+                if life.full_disk {
                     figures.full_disk_lives.fetch_add(1, Ordering::Relaxed);
                 }
+                if life.closed_log {
+                    figures.closed_log_lives.fetch_add(1, Ordering::Relaxed);
+                }
             }
-            // The last life has a working disk, so every batch can become durable.
-            target.kill_and_restart(false)?;
+            // The last life has a working disk (and a broken log), so every batch can become
+            // durable, and the end of the soak runs without a log.
+            target.kill_and_restart(Life {
+                full_disk: false,
+                closed_log: true,
+            })?;
             figures.kills.fetch_add(1, Ordering::Relaxed);
             Ok(())
         })
@@ -433,6 +520,7 @@ async fn main() -> Result<()> {
     for t in tasks {
         t.await??;
     }
+    let python_batches = python.finish(&references[1 % frames.len()])?;
 
     // The first frame's state imported into a second (durable) server, then again, also after
     // that server restarted, and into the first server itself: applied once, refused after.
@@ -447,7 +535,7 @@ async fn main() -> Result<()> {
     patiently(|| head_client.import_state(&frames[0], state.clone())).await?;
     for round in 0..3 {
         if round == 1 {
-            head.kill_and_restart(false)?;
+            head.kill_and_restart(Life::default())?;
             figures.kills.fetch_add(1, Ordering::Relaxed);
         }
         let into = if round == 2 { &admin } else { &head_client };
@@ -486,13 +574,15 @@ async fn main() -> Result<()> {
     }
     let g = |a: &AtomicU64| a.load(Ordering::Relaxed);
     println!(
-        "kills {} (full-disk lives {}), batches {}, resent after restarts {}, \
+        "kills {} (full-disk lives {}, lives without a log {}), batches {} ({python_batches} of \
+         them from the Python worker), resent after restarts {}, \
          reused ids refused {} (applied {}), frames deleted and re-created {} (came back {}), \
          double imports refused {} (applied {}); samples lost {lost}, doubled {doubled}, \
          every frame exact: {exact}",
         g(&figures.kills),
         g(&figures.full_disk_lives),
-        g(&figures.batches),
+        g(&figures.closed_log_lives),
+        g(&figures.batches) + python_batches,
         g(&figures.resent),
         g(&figures.reused_refused),
         g(&figures.reused_applied),

@@ -4,7 +4,7 @@
 use std::path::Path;
 use std::process::Command;
 
-pub use splatd_harness::{Options, ServerProcess, PATIENCE};
+pub use splatd_harness::{Log, Options, ServerProcess, PATIENCE};
 
 /// A `splatd serve` process of this build (see `splatd-harness`), with the constructors the
 /// tests use.
@@ -29,7 +29,7 @@ impl Server {
     pub fn start_logged(args: &[&str], env: &[(&str, &str)], log: &Path) -> ServerProcess {
         Self::launch(Options {
             env,
-            log: Some(log),
+            log: Log::File(log),
             ..Options::new(env!("CARGO_BIN_EXE_splatd"), args)
         })
     }

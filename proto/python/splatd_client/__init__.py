@@ -16,6 +16,10 @@ Rust crate ``splatd-proto`` byte for byte (a Rust test checks this)::
 all little-endian. The records are built with one numpy structured array, no
 Python loop, so encoding millions of samples is cheap.
 
+Durability: a worker posts through an :class:`Outbox` (``client.outbox(frame, worker)``), which
+keeps every batch and pass until the server has it on disk and resends it when the server
+restarted; ``Client.post_batch`` and ``Client.post_pass`` are single requests.
+
 Retries: ``(worker, seq)`` identifies a batch. ``Client.post_batch`` encodes
 once and resends exactly the same bytes on connection errors, timeouts, 5xx,
 408 and 429, so that the server can drop a duplicate if an earlier attempt
@@ -345,7 +349,10 @@ class Client:
         return self._request("GET", f"/v1/frames/{id}")
 
     def post_batch(self, frame: str, worker: int, seq: int, xs: Any, ys: Any, rgb: Any) -> Dict[str, Any]:
-        """Encodes once and sends (retrying with the same bytes); returns the BatchAck."""
+        """Encodes once and sends (retrying with the same bytes); returns the BatchAck.
+
+        One request: it keeps nothing for after a server restart. A worker posts through
+        :meth:`outbox` instead, which keeps every batch until it is on disk."""
         return self.post_encoded(frame, encode_batch(frame, worker, seq, xs, ys, rgb))
 
     def post_encoded(self, frame: str, body: bytes) -> Dict[str, Any]:
@@ -373,7 +380,8 @@ class Client:
         """``POST /v1/frames/{id}/passes``: one rendered pass as OpenEXR bytes; returns the BatchAck.
 
         ``layer`` names the layer holding the beauty (``"ViewLayer.Combined"``); without it the
-        server finds it (see proto/PROTOCOL.md, "Passes").
+        server finds it (see proto/PROTOCOL.md, "Passes"). One request, like :meth:`post_batch`:
+        a worker posts through :meth:`outbox`, which resends what a server restart lost.
         """
         return self._request("POST", _pass_path(frame, worker, seq, layer), bytes(exr), "image/x-exr")
 

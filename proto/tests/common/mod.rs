@@ -140,6 +140,7 @@ pub fn durable_ack_json(
         duplicate: accepted == 0,
         boot,
         durable_floor,
+        snapshots_failing: false,
     })
     .expect("serialises")
 }

@@ -217,6 +217,10 @@ async fn ingest(
         duplicate: ingested.duplicate,
         boot: app.boot,
         durable_floor,
+        snapshots_failing: app
+            .durable
+            .as_ref()
+            .is_some_and(|d| d.is_failing(frame.id())),
     }))
 }
 

@@ -1,0 +1,329 @@
+//! [`Outbox`]: the worker's side of the durability contract (feature `client`;
+//! `PROTOCOL.md`, "Exactly-once and durability"), written once for every kind
+//! of body a worker posts: record batches and rendered passes.
+//!
+//! A `200` from a durable server means *applied*, not *on disk*: a server
+//! killed before its next snapshot comes back without what it applied since.
+//! So the outbox keeps every body it posted until the server reports it
+//! durable (the acknowledgement's `durable_floor` passes its sequence number,
+//! or a sync of the same server process answers `durable`), and when an answer
+//! comes from another server process (`boot` changed) it resends what it kept,
+//! byte for byte: what the snapshot held is answered `duplicate`, the rest is
+//! applied. What [`Outbox::sync`] returns for is on disk, exactly once, across
+//! any number of restarts. The Python client's `Outbox` is the same logic.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use bytes::Bytes;
+
+use crate::api::{BatchAck, SyncAck};
+use crate::batch::validate_frame_id;
+use crate::client::{Client, ClientError};
+
+/// How many server restarts one call rides out before it gives up.
+const MAX_RESTARTS: usize = 16;
+
+/// Bodies kept in memory before the outbox syncs by itself, by default.
+pub const DEFAULT_MAX_KEPT_BYTES: usize = 256 << 20;
+
+/// What a kept body is, so that it can be sent again.
+#[derive(Debug, Clone)]
+enum Route {
+    /// `POST .../samples`: an encoded batch.
+    Samples,
+    /// `POST .../passes`, with the beauty's layer if one was named.
+    Pass { layer: Option<String> },
+}
+
+/// Where a kept body's bytes are.
+#[derive(Debug, Clone)]
+enum Body {
+    /// Held in memory.
+    Memory(Bytes),
+    /// In a file the caller posted from, read again to resend; `digest` is the XXH3-64 of the
+    /// bytes that were posted, so a file changed since is refused, not sent as the same pass.
+    File { path: PathBuf, digest: u64 },
+}
+
+#[derive(Debug, Clone)]
+struct Kept {
+    route: Route,
+    body: Body,
+    /// The server process that last acknowledged it.
+    boot: u64,
+}
+
+/// Posts one worker's batches and passes to one frame, keeping each until it
+/// is durable and resending it when the server restarted (see the module
+/// docs).
+///
+/// Against a server without `--data-dir` (acknowledgements without
+/// `durable_floor`) nothing is kept: such a server promises only *applied*.
+/// Bodies kept in memory are bounded ([`Outbox::with_max_kept_bytes`]): past
+/// the bound the outbox syncs, after which it can forget them all. Number a new
+/// worker id's batches from 0 so that `durable_floor` can advance; bodies
+/// numbered otherwise (passes numbered by a digest, say) are kept until the
+/// next sync.
+#[derive(Debug)]
+pub struct Outbox {
+    client: Client,
+    frame: String,
+    worker: u64,
+    kept: BTreeMap<u64, Kept>,
+    kept_bytes: usize,
+    max_kept_bytes: usize,
+    /// The server process last heard from.
+    boot: Option<u64>,
+    resent: u64,
+}
+
+impl Outbox {
+    /// An outbox posting as `worker` to `frame`.
+    pub fn new(
+        client: Client,
+        frame: impl Into<String>,
+        worker: u64,
+    ) -> Result<Outbox, ClientError> {
+        let frame = frame.into();
+        validate_frame_id(&frame)?;
+        Ok(Outbox {
+            client,
+            frame,
+            worker,
+            kept: BTreeMap::new(),
+            kept_bytes: 0,
+            max_kept_bytes: DEFAULT_MAX_KEPT_BYTES,
+            boot: None,
+            resent: 0,
+        })
+    }
+
+    /// Syncs by itself once the bodies kept in memory exceed `bytes`.
+    pub fn with_max_kept_bytes(mut self, bytes: usize) -> Outbox {
+        self.max_kept_bytes = bytes;
+        self
+    }
+
+    /// The frame posted to.
+    pub fn frame(&self) -> &str {
+        &self.frame
+    }
+
+    /// The worker id posted as.
+    pub fn worker(&self) -> u64 {
+        self.worker
+    }
+
+    /// Posts an encoded batch of this worker numbered `seq` (see
+    /// [`crate::Batch::encode`]).
+    pub async fn post_batch(&mut self, seq: u64, body: Bytes) -> Result<BatchAck, ClientError> {
+        self.send_and_keep(seq, Route::Samples, Body::Memory(body.clone()), body)
+            .await
+    }
+
+    /// Posts a rendered pass (OpenEXR bytes) numbered `seq`, its beauty in
+    /// `layer` or found by the server; kept in memory until durable.
+    pub async fn post_pass(
+        &mut self,
+        seq: u64,
+        layer: Option<&str>,
+        exr: Bytes,
+    ) -> Result<BatchAck, ClientError> {
+        let route = Route::Pass {
+            layer: layer.map(str::to_owned),
+        };
+        self.send_and_keep(seq, route, Body::Memory(exr.clone()), exr)
+            .await
+    }
+
+    /// [`Outbox::post_pass`] of the bytes read from `path`: only the path is
+    /// kept, and the file is read again (and checked to hold the same bytes)
+    /// if the pass must be resent, so posting many large files costs no memory.
+    pub async fn post_pass_file(
+        &mut self,
+        seq: u64,
+        layer: Option<&str>,
+        path: PathBuf,
+        exr: Bytes,
+    ) -> Result<BatchAck, ClientError> {
+        let route = Route::Pass {
+            layer: layer.map(str::to_owned),
+        };
+        let digest = xxhash_rust::xxh3::xxh3_64(&exr);
+        self.send_and_keep(seq, route, Body::File { path, digest }, exr)
+            .await
+    }
+
+    /// Returns once everything this outbox had acknowledged is on disk,
+    /// resending what a restart lost; then forgets it all. Against a server
+    /// without durability it only asks (and forgets).
+    pub async fn sync(&mut self) -> Result<SyncAck, ClientError> {
+        for _ in 0..MAX_RESTARTS {
+            let ack = self.client.sync(&self.frame).await?;
+            if !ack.durable {
+                self.forget(|_| true);
+                return Ok(ack);
+            }
+            let stale: Vec<u64> = self
+                .kept
+                .iter()
+                .filter(|(_, k)| k.boot != ack.boot)
+                .map(|(&seq, _)| seq)
+                .collect();
+            self.boot = Some(ack.boot);
+            if stale.is_empty() {
+                self.forget(|_| true);
+                return Ok(ack);
+            }
+            // Acknowledged by a process that is gone: send to this one, then ask again.
+            self.resend(&stale).await?;
+        }
+        Err(ClientError::Restarting(self.frame.clone()))
+    }
+
+    /// Bodies acknowledged as applied but not yet known to be on disk.
+    pub fn kept(&self) -> usize {
+        self.kept.len()
+    }
+
+    /// Bodies resent because the server restarted.
+    pub fn resent(&self) -> u64 {
+        self.resent
+    }
+
+    async fn send_and_keep(
+        &mut self,
+        seq: u64,
+        route: Route,
+        body: Body,
+        bytes: Bytes,
+    ) -> Result<BatchAck, ClientError> {
+        if let Some(kept) = self.kept.get(&seq) {
+            let same = match &kept.body {
+                Body::Memory(b) => *b == bytes,
+                Body::File { digest, .. } => *digest == xxhash_rust::xxh3::xxh3_64(&bytes),
+            };
+            if !same {
+                return Err(ClientError::InvalidArgument(format!(
+                    "seq {seq} of worker {} was already posted to {} with other content",
+                    self.worker, self.frame
+                )));
+            }
+        }
+        let ack = self.send(&route, seq, bytes).await?;
+        if ack.durable_floor.is_some() {
+            let in_memory = match &body {
+                Body::Memory(b) => b.len(),
+                Body::File { .. } => 0,
+            };
+            let kept = Kept {
+                route,
+                body,
+                boot: ack.boot,
+            };
+            if let Some(old) = self.kept.insert(seq, kept) {
+                self.kept_bytes -= memory_of(&old);
+            }
+            self.kept_bytes += in_memory;
+        }
+        self.heard(ack.clone()).await?;
+        if self.kept_bytes > self.max_kept_bytes {
+            self.sync().await?;
+        }
+        Ok(ack)
+    }
+
+    /// Forgets what `ack` reports durable; resends the rest if the server restarted.
+    async fn heard(&mut self, mut ack: BatchAck) -> Result<(), ClientError> {
+        for _ in 0..MAX_RESTARTS {
+            if let Some(floor) = ack.durable_floor {
+                self.forget(|seq| seq < floor);
+            }
+            let restarted = self.boot.is_some_and(|b| b != ack.boot);
+            self.boot = Some(ack.boot);
+            if !restarted {
+                return Ok(());
+            }
+            let stale: Vec<u64> = self
+                .kept
+                .iter()
+                .filter(|(_, k)| k.boot != ack.boot)
+                .map(|(&seq, _)| seq)
+                .collect();
+            if let Some(last) = self.resend(&stale).await? {
+                ack = last;
+            }
+        }
+        Err(ClientError::Restarting(self.frame.clone()))
+    }
+
+    /// Resends kept bodies, lowest number first; returns the last answer, or the first one
+    /// from yet another server process (which the caller then handles as a restart).
+    async fn resend(&mut self, seqs: &[u64]) -> Result<Option<BatchAck>, ClientError> {
+        let mut last = None;
+        for &seq in seqs {
+            let kept = self.kept.get(&seq).expect("resending a kept body").clone();
+            let bytes = match &kept.body {
+                Body::Memory(b) => b.clone(),
+                Body::File { path, digest } => read_same(path, *digest)?,
+            };
+            let again = self.send(&kept.route, seq, bytes).await?;
+            self.resent += 1;
+            if let Some(k) = self.kept.get_mut(&seq) {
+                k.boot = again.boot;
+            }
+            let other = Some(again.boot) != self.boot;
+            last = Some(again);
+            if other {
+                break;
+            }
+        }
+        Ok(last)
+    }
+
+    async fn send(&self, route: &Route, seq: u64, bytes: Bytes) -> Result<BatchAck, ClientError> {
+        match route {
+            Route::Samples => self.client.post_encoded(&self.frame, bytes).await,
+            Route::Pass { layer } => {
+                self.client
+                    .post_pass_layer(&self.frame, self.worker, seq, layer.as_deref(), bytes)
+                    .await
+            }
+        }
+    }
+
+    fn forget(&mut self, durable: impl Fn(u64) -> bool) {
+        let gone: Vec<u64> = self.kept.keys().copied().filter(|&s| durable(s)).collect();
+        for seq in gone {
+            if let Some(k) = self.kept.remove(&seq) {
+                self.kept_bytes -= memory_of(&k);
+            }
+        }
+    }
+}
+
+fn memory_of(kept: &Kept) -> usize {
+    match &kept.body {
+        Body::Memory(b) => b.len(),
+        Body::File { .. } => 0,
+    }
+}
+
+/// The bytes of `path`, if they are still those posted (digest `digest`).
+fn read_same(path: &std::path::Path, digest: u64) -> Result<Bytes, ClientError> {
+    let bytes = std::fs::read(path).map_err(|e| {
+        ClientError::InvalidArgument(format!(
+            "{}: cannot read it again to resend it after the server restarted: {e}",
+            path.display()
+        ))
+    })?;
+    if xxhash_rust::xxh3::xxh3_64(&bytes) != digest {
+        return Err(ClientError::InvalidArgument(format!(
+            "{} changed after it was posted; the server restarted and lost it, and a changed \
+             file cannot be resent as the same pass: post it again",
+            path.display()
+        )));
+    }
+    Ok(Bytes::from(bytes))
+}
