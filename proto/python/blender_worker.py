@@ -44,8 +44,9 @@ which the server counts once: jobs never overlap, a job run twice adds nothing t
 worker says so when the server answers that a pass was already there), and no way of running
 the worker posts one pass's samples twice under different ids.
 
-``--until-converged`` asks the server after every pass whether the frame has converged (its
+``--until-converged`` asks the server before every pass whether the frame has converged (its
 ``convergence.converged``, PROTOCOL.md) and stops when it has; ``--passes`` is then the budget.
+Reading a frame needs a token with the ``read`` role as well (roles ``read,write``).
 
 ``--aovs albedo,normal,depth`` renders those Cycles passes too (diffuse colour, normal, depth)
 and sends them with every pass: the pass is written as a multilayer EXR and the frame is created
@@ -427,7 +428,13 @@ def render(scene, path, layer):
 
 def converged(client, frame):
     """The server's verdict on the frame (False while it has none)."""
-    convergence = client.frame_info(frame).get("convergence")
+    try:
+        convergence = client.frame_info(frame).get("convergence")
+    except sc.SplatdError as e:
+        if e.status == 403:
+            raise WorkerError("--until-converged reads the frame's convergence, which needs a "
+                              f"token with the read role as well as write (roles read,write): {e}")
+        raise
     return bool(convergence and convergence.get("converged"))
 
 
