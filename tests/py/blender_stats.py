@@ -4,11 +4,14 @@ tests/blender_worker.rs. Every file is read with OpenEXR's own Python package.
     python3 tests/py/blender_stats.py DIR PASSES
 
 reads DIR/passes/pass_{0..PASSES-1}.exr (as Blender wrote them: RGB, or multilayer with the
-beauty in `ViewLayer.Combined` and AOV layers beside it), DIR/served.exr (splatd's image.exr)
-and DIR/reference.exr (one render with a 1-pixel box filter at many spp), and prints JSON:
+beauty in `ViewLayer.Combined` and AOV layers beside it, in one part (Blender 3.x) or one part per
+layer (Blender 4.x, 5.x)), DIR/served.exr (splatd's image.exr) and DIR/reference.exr (one render
+with a 1-pixel box filter at many spp), and prints JSON:
 
 * `served_vs_passes`: the largest |served mean - mean of the passes| over pixels and channels,
   and the largest such difference relative to the value;
+* `layers`: the passes' layers other than the beauty, with their channels, as OpenEXR reads
+  them from the first pass (what the frame should have declared);
 * `aovs`: the passes' AOV channels (every channel outside the beauty), and `aovs_worst`, the
   largest |served - mean of the passes| over pixels and channels in units of
   `1e-6 * (1 + |mean|)` (the fixed point's step 2^-20, and float32's rounding of large depths):
@@ -38,8 +41,18 @@ COMBINED = "ViewLayer.Combined."
 
 
 def channels(path):
+    """Every channel of every part, named as splatd names them: in a multi-part file the part's
+    name comes first unless the channel's name already starts with it."""
+    out = {}
     with OpenEXR.File(path, separate_channels=True) as f:
-        return {name: np.asarray(c.pixels, dtype=np.float64) for name, c in f.channels().items()}
+        multipart = len(f.parts) > 1
+        for part in f.parts:
+            prefix = part.name() if multipart else ""
+            for name, c in part.channels.items():
+                if prefix and not name.startswith(prefix + "."):
+                    name = f"{prefix}.{name}"
+                out[name] = np.asarray(c.pixels, dtype=np.float64)
+    return out
 
 
 def rgb(ch, prefix=""):
@@ -57,6 +70,10 @@ def main(d, passes, reference_spp):
     diff = np.abs(served - mean)
     rel = diff / np.maximum(np.abs(mean), 1e-30)
     aovs = sorted(n for n in files[0] if beauty and not n.startswith(beauty))
+    layers = {}
+    for name in aovs:
+        layer, _, channel = name.rpartition(".")
+        layers.setdefault(layer, []).append(channel)
     aovs_worst = 0.0
     for name in aovs:
         aov_mean = np.mean([ch[name] for ch in files], axis=0)
@@ -84,7 +101,7 @@ def main(d, passes, reference_spp):
     edges = (step >= np.quantile(step, 0.9)) & ~lamp
     json.dump({
         "served_vs_passes": {"max_abs": float(diff.max()), "max_rel": float(rel.max())},
-        "aovs": aovs, "aovs_worst": aovs_worst,
+        "layers": layers, "aovs": aovs, "aovs_worst": aovs_worst,
         "spp_min": float(spp.min()), "spp_max": float(spp.max()),
         "global": region(np.ones_like(lamp)),
         "lamp": region(lamp),
