@@ -52,7 +52,7 @@ fn install(script: &str, what: &str) -> Option<String> {
                 !on_ci,
                 "{message}; CI installs it, so this test fails there instead of skipping"
             );
-            eprintln!("skipping the Blender worker test on {what}: {message}");
+            eprintln!("skipping the Blender worker test: {message}");
             None
         }
     }

@@ -35,7 +35,14 @@ if ! have; then
         exit 1
     fi
     bash tests/setup/python_venv.sh >/dev/null
-    rm -rf "$venv"
+    # Replaced only when it is a venv (a broken or older one): never whatever else is there.
+    if [ -e "$venv" ]; then
+        if [ ! -f "$venv/pyvenv.cfg" ]; then
+            echo "$venv exists and is not a Python venv; not touching it (set SPLATD_BPY_VENV)" >&2
+            exit 1
+        fi
+        rm -rf "$venv"
+    fi
     mkdir -p "$(dirname "$venv")"
     "$base" -m venv "$venv"
     # No wheel cache: the installed module is what is kept, not a second copy of the download.
