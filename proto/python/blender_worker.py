@@ -1,6 +1,6 @@
 """A splatd render worker that renders Cycles passes with Blender and posts them to a server.
 
-Inside Blender (3.4 and later, 4.x, 5.x), arguments after ``--``::
+Inside Blender (tested: 3.4 and, as the bpy module, 5.0.1), arguments after ``--``::
 
     blender -b scene.blend --python-exit-code 1 --python blender_worker.py -- --url URL --frame ID --passes N
 
@@ -52,7 +52,7 @@ Reading a frame needs a token with the ``read`` role as well (roles ``read,write
 and sends them with every pass: the pass is written as a multilayer EXR and the frame is created
 with those layers declared, so the server serves their means beside the reweighted beauty (for a
 denoiser). The layer names are the ones the Blender in hand gives its passes (Cycles' own pass
-list: ``ViewLayer.DiffCol`` on 3.x, ``ViewLayer.Diffuse Color`` on 4.x and 5.x), checked against
+list: ``ViewLayer.DiffCol`` on 3.4, ``ViewLayer.Diffuse Color`` on 5.0), checked against
 the first pass's EXR header before anything is posted.
 
 ``--reference SPP --output PATH`` renders one image of the scene with a 1-pixel box filter at
