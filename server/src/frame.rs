@@ -228,6 +228,22 @@ pub enum IngestError {
         /// Digest of the records of this batch.
         digest: u64,
     },
+    /// A batch with this `(worker, seq)` came in an imported state that recorded no digest of
+    /// its records: this one may be it or another batch under a reused id, and dropping it as a
+    /// duplicate could lose it.
+    #[error(
+        "batch (worker {worker}, seq {seq}) is named by a state imported into this frame \
+         without a digest of its records, so the server cannot tell whether this is the same \
+         batch or another one under a reused id; it is neither applied nor dropped as a \
+         duplicate: if the imported state holds it, nothing is missing, otherwise send its \
+         samples under a new id"
+    )]
+    IdUnverified {
+        /// The worker id.
+        worker: u64,
+        /// The sequence number.
+        seq: u64,
+    },
     /// The frame was deleted while the batch was on its way.
     #[error("frame {frame:?} was deleted")]
     Deleted {
@@ -876,6 +892,7 @@ impl ShardedFrame {
                     digest,
                 })
             }
+            BatchId::Unverified => return Err(IngestError::IdUnverified { worker, seq }),
         }
         let n = parts.len();
         for (i, guard) in guards.iter_mut().enumerate() {
