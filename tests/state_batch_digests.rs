@@ -106,17 +106,10 @@ fn a_state_naming_batches_without_digests_cannot_make_their_posts_duplicates() {
     let mut state = StateDump::decode(&exported, u64::MAX).unwrap();
     let known = Batch::new("f", 8, 0, records(8)).unwrap().content_digest();
     state.batches = vec![
-        Applied {
-            worker: 7,
-            ranges: vec![0..4],
-            digests: vec![0; 4],
-        },
-        Applied {
-            worker: 8,
-            ranges: vec![0..1],
-            digests: vec![known],
-        },
+        Applied::from_batches(7, (0..4).map(|seq| (seq, None))),
+        Applied::from_batches(8, [(0, Some(known))]),
     ];
+    assert_eq!(state.batches[0].digests, [0; 4], "digest 0 on the wire");
     let (status, ack) = answer(
         http()
             .post(format!("{}/v1/frames/f/state", server.url))

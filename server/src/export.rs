@@ -18,6 +18,9 @@ use crate::frame::{Importable, PieceVisitor};
 /// A frame's AOVs as a state carries them: the declarations and the sums of the rows held.
 pub type Aovs<'a> = Option<(&'a [AovSpec], &'a AovSums)>;
 
+/// A state's AOVs, owned: `None` for a state without AOVs.
+pub type OwnedAovs = Option<(Vec<AovSpec>, AovSums)>;
+
 /// An imported state that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ImportError {
@@ -565,7 +568,7 @@ impl SparseState {
     /// The whole frame of rows held, for resolving: the one step whose memory follows the size
     /// the state declares (the image it resolves into is that size too). The buffers are
     /// reserved first, so a frame that does not fit is an error naming its size, not an abort.
-    pub fn into_dense(self) -> Result<(FrameState, Option<(Vec<AovSpec>, AovSums)>), DenseError> {
+    pub fn into_dense(self) -> Result<(FrameState, OwnedAovs), DenseError> {
         let d = &self.dump;
         let pixels = d.width as u128 * (d.rows_end - d.rows_start) as u128;
         let origin = d.rows_start as u64 * d.width as u64;
