@@ -11,8 +11,9 @@ use clap::{Args, Parser, Subcommand};
 
 use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_proto::batchfile::BatchReader;
-use splatd_proto::{Applied, DecodeLimits, StateDump};
+use splatd_proto::{Applied, DecodeLimits};
 use splatd_server::dedup::Seen;
+use splatd_server::export::SparseState;
 use splatd_server::frame::core_resolve_params;
 use splatd_server::image::{cascade_layers, encode_exr, Provenance};
 use splatd_server::server::{shutdown_signal, Server};
@@ -372,32 +373,26 @@ fn parse_aov(s: &str) -> Result<splatd_proto::api::AovSpec, String> {
     })
 }
 
-/// A state's AOVs: their declarations and sums.
-type StateAovs = Option<(Vec<splatd_proto::api::AovSpec>, splatd_estimator::AovSums)>;
-
-/// A state file: its frame id, cells, the batches they hold and its AOVs.
-fn read_state(path: &Path) -> Result<(String, FrameState, Vec<Applied>, StateAovs)> {
+/// A state file: its frame id, what it holds (only the pixels with samples: a small file may
+/// declare a huge frame, and nothing here allocates by what it declares) and its batches.
+fn read_state(path: &Path) -> Result<(String, SparseState, Vec<Applied>)> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut dump = StateDump::decode(&bytes, u64::MAX)
+    let mut state = SparseState::decode(&bytes)
         .with_context(|| format!("{} is not a valid state", path.display()))?;
-    let frame = dump.frame.clone();
-    let batches = std::mem::take(&mut dump.batches);
-    let aovs = splatd_server::export::take_aovs(&mut dump)
-        .with_context(|| format!("loading the AOVs of {}", path.display()))?;
-    let state =
-        splatd_server::export::load(dump).with_context(|| format!("loading {}", path.display()))?;
-    Ok((frame, state, batches, aovs))
+    let batches = std::mem::take(&mut state.dump.batches);
+    Ok((state.dump.frame.clone(), state, batches))
 }
 
 /// Adds state files together, checking they are of one frame and hold no batch twice. AOVs
 /// add up like the cells; a state without AOVs adds none (its passes carried none), and two
-/// states with different AOVs are refused.
-fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState, Seen, StateAovs)> {
-    let (frame, mut total, batches, mut total_aovs) = read_state(&inputs[0])?;
+/// states with different AOVs are refused. What it holds is as large as the files, whatever
+/// frame size they declare.
+fn merge_states(inputs: &[PathBuf]) -> Result<(String, SparseState, Seen)> {
+    let (frame, mut total, batches) = read_state(&inputs[0])?;
     let mut seen = Seen::default();
     seen.insert_applied(&batches);
     for path in &inputs[1..] {
-        let (other_frame, state, batches, aovs) = read_state(path)?;
+        let (other_frame, state, batches) = read_state(path)?;
         if other_frame != frame {
             bail!(
                 "{} is a state of frame {other_frame:?}, but {} is of frame {frame:?}",
@@ -417,38 +412,20 @@ fn merge_states(inputs: &[PathBuf]) -> Result<(String, FrameState, Seen, StateAo
         }
         total
             .merge(&state)
-            .with_context(|| format!("merging {}", path.display()))?;
-        match (&mut total_aovs, aovs) {
-            (_, None) => {}
-            (None, some) => total_aovs = some,
-            (Some((specs, sums)), Some((other_specs, other_sums))) => {
-                if *specs != other_specs {
-                    bail!(
-                        "{} has AOVs {}, but {} has {}",
-                        path.display(),
-                        splatd_server::frame::describe_aovs(&other_specs),
-                        inputs[0].display(),
-                        splatd_server::frame::describe_aovs(specs)
-                    );
-                }
-                sums.merge_overlap(&other_sums)
-                    .with_context(|| format!("merging the AOVs of {}", path.display()))?;
-            }
-        }
+            .with_context(|| format!("merging {} into {}", path.display(), inputs[0].display()))?;
         seen.insert_applied(&batches);
     }
-    Ok((frame, total, seen, total_aovs))
+    Ok((frame, total, seen))
 }
 
 fn merge(inputs: &[PathBuf], output: &Path) -> Result<()> {
-    let (frame, total, seen, aovs) = merge_states(inputs)?;
-    let aovs = aovs.as_ref().map(|(specs, sums)| (specs.as_slice(), sums));
-    let bytes = splatd_server::export::dump(&total, aovs, &frame, None, seen.applied()).encode();
+    let (frame, total, seen) = merge_states(inputs)?;
+    let bytes = total.encode(seen.applied());
     std::fs::write(output, bytes).with_context(|| format!("writing {}", output.display()))?;
     println!(
         "merged {} states of frame {frame:?} ({} samples) into {}",
         inputs.len(),
-        total.total_samples(),
+        total.samples(),
         output.display()
     );
     Ok(())
@@ -462,8 +439,9 @@ fn resolve(args: ResolveArgs) -> Result<()> {
         .collect::<Result<Vec<bool>>>()?;
     let mut aovs = None;
     let state = if states.iter().all(|&s| s) {
-        let (_, state, _, merged) = merge_states(&args.inputs)?;
-        aovs = merged;
+        let (_, merged, _) = merge_states(&args.inputs)?;
+        let (state, merged_aovs) = merged.into_dense().context("resolving the merged states")?;
+        aovs = merged_aovs;
         state
     } else if states.iter().all(|&s| !s) {
         let (Some(width), Some(height)) = (args.width, args.height) else {

@@ -121,6 +121,37 @@ fn set(words: &mut [u64], at: usize, v: i128) {
     words[at + 1] = ((v as u128) >> 64) as u64;
 }
 
+/// Why one pixel's AOV words (exactly [`aov_words`] of its channels: the count, then each
+/// channel's 128-bit sum) cannot be what checked values made, if they cannot: the bounds that
+/// [`AovSums::from_words`] checks for every pixel.
+pub fn check_aov_pixel(px: &[u64]) -> Result<(), String> {
+    let count = px[0];
+    if count > MAX_PIXEL_SAMPLES {
+        return Err(format!("{count} samples, more than 2^32"));
+    }
+    for c in 0..(px.len() - 1) / 2 {
+        let sum = get(px, 1 + 2 * c);
+        if sum.unsigned_abs() > (count as u128) * MAX_UNITS as u128 {
+            return Err(format!(
+                "channel {c}: sum {sum} is more than {count} values of at most 2^60 units"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Adds one pixel's AOV words `src` to `dst` (both checked, [`check_aov_pixel`]), exactly, as
+/// [`AovSums::merge_overlap`] does. The caller checks that the counts add to at most
+/// [`MAX_PIXEL_SAMPLES`]; then no sum can overflow.
+pub fn add_aov_pixel(dst: &mut [u64], src: &[u64]) {
+    dst[0] += src[0];
+    for c in 0..(dst.len() - 1) / 2 {
+        let at = 1 + 2 * c;
+        let sum = get(dst, at) + get(src, at);
+        set(dst, at, sum);
+    }
+}
+
 impl AovSums {
     /// Empty sums of `channels` channels for rows `rows` of a frame `width` wide.
     pub fn new(width: u32, rows: Range<u32>, channels: usize) -> AovSums {
@@ -171,20 +202,7 @@ impl AovSums {
 
     fn check_pixel(&self, p: usize) -> Result<(), String> {
         let n = aov_words(self.channels);
-        let px = &self.words[p * n..(p + 1) * n];
-        let count = px[0];
-        if count > MAX_PIXEL_SAMPLES {
-            return Err(format!("{count} samples, more than 2^32"));
-        }
-        for c in 0..self.channels {
-            let sum = get(px, 1 + 2 * c);
-            if sum.unsigned_abs() > (count as u128) * MAX_UNITS as u128 {
-                return Err(format!(
-                    "channel {c}: sum {sum} is more than {count} values of at most 2^60 units"
-                ));
-            }
-        }
-        Ok(())
+        check_aov_pixel(&self.words[p * n..(p + 1) * n])
     }
 
     fn position(&self, p: usize) -> (u32, u32) {
@@ -303,12 +321,7 @@ impl AovSums {
             let dst = &mut self.words[a..a + w * n];
             let src = &other.words[b..b + w * n];
             for (d, s) in dst.chunks_exact_mut(n).zip(src.chunks_exact(n)) {
-                d[0] += s[0];
-                for c in 0..self.channels {
-                    let at = 1 + 2 * c;
-                    let sum = get(d, at) + get(s, at);
-                    set(d, at, sum);
-                }
+                add_aov_pixel(d, s);
             }
         }
         Ok(())

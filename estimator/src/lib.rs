@@ -23,7 +23,8 @@ mod resolve_spread;
 mod state;
 
 pub use aov::{
-    aov_units, aov_words, AovCellsError, AovSums, AovValueError, AOV_FRAC_BITS, AOV_MAX_ABS,
+    add_aov_pixel, aov_units, aov_words, check_aov_pixel, AovCellsError, AovSums, AovValueError,
+    AOV_FRAC_BITS, AOV_MAX_ABS,
 };
 pub use layout::{
     rec709_luminance, CascadeLayout, ParamError, Split, COUNT_ONE, DEFAULT_CASCADE_BASE,
@@ -45,6 +46,7 @@ pub use resolve_spread::{
     DEFAULT_SPREAD_SUPPORT, SPREAD_RADII,
 };
 pub use state::{
-    cascade_units, cell_len, cell_spp, check_pixels, check_sample, top_sum, CellsError, FrameState,
-    Kernel, MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX, TOP_SHARE_MAX,
+    add_cell, cascade_units, cell_len, cell_spp, check_pixels, check_sample, top_sum, CellsError,
+    FrameState, Kernel, MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX,
+    TOP_SHARE_MAX,
 };

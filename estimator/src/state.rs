@@ -338,10 +338,11 @@ pub fn cascade_units(cell: &[u64], j: usize, c: usize) -> f64 {
 }
 
 /// Adds cell `src` to cell `dst` (same `K`), exactly: the top cascade's sums with carry into the
-/// high word. The caller guarantees the result holds at most [`MAX_PIXEL_SAMPLES`] samples of
-/// valid cells, so nothing overflows (debug-asserted).
+/// high word. The caller guarantees that both are valid cells ([`check_pixels`]) and that the
+/// result holds at most [`MAX_PIXEL_SAMPLES`] samples ([`cell_spp`]), so nothing overflows
+/// (debug-asserted). For a holder of cells other than a [`FrameState`] (a sparse merge).
 #[inline]
-fn add_cell(dst: &mut [u64], src: &[u64]) {
+pub fn add_cell(dst: &mut [u64], src: &[u64]) {
     let k = dst.len() / 4;
     let top = 4 * (k - 1);
     for (d, s) in dst[..top].iter_mut().zip(&src[..top]) {

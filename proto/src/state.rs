@@ -415,9 +415,32 @@ impl StateDump {
         self.aovs.iter().map(|a| a.channels.len()).sum()
     }
 
-    /// The AOV section (version 3): the AOVs' names and channels, then, when they have any
-    /// channel, the runs of pixels with AOV samples, laid out like the cells' runs.
-    fn aov_bytes(&self) -> Vec<u8> {
+    /// Encodes the state (version 3) with its cells and AOV words given pixel by pixel:
+    /// `cells` and `aov_words` are `(pixel, words)` in strictly increasing pixel order (numbered
+    /// row-major from 0 within the rows held), each pixel holding something, and
+    /// `self.cells` and `self.aov_cells` are ignored. The same bytes as [`StateDump::encode`]
+    /// of the state with those pixels and every other one empty, for a holder of a sparse
+    /// state (the offline merge), whose frame may be far larger than what it holds.
+    pub fn encode_sparse<'c>(
+        &self,
+        cells: impl IntoIterator<Item = (u64, &'c [u64])>,
+        aov_words: impl IntoIterator<Item = (u64, &'c [u64])>,
+    ) -> Vec<u8> {
+        let pixels = (self.rows_end - self.rows_start) as u64 * self.width as u64;
+        let mut out = STATE_MAGIC.to_vec();
+        out.extend_from_slice(&STATE_VERSION.to_le_bytes());
+        out.extend_from_slice(&self.header_bytes());
+        sparse_runs(&mut out, cells, pixels);
+        out.extend_from_slice(&self.batches_bytes());
+        out.extend_from_slice(&self.aov_names_bytes());
+        if self.aov_channels() > 0 {
+            sparse_runs(&mut out, aov_words, pixels);
+        }
+        out
+    }
+
+    /// The AOV declarations of the AOV section: count, then names and channels.
+    fn aov_names_bytes(&self) -> Vec<u8> {
         let mut out = Vec::new();
         let string = |out: &mut Vec<u8>, s: &str| {
             out.extend_from_slice(&(s.len() as u64).to_le_bytes());
@@ -431,6 +454,13 @@ impl StateDump {
                 string(&mut out, c);
             }
         }
+        out
+    }
+
+    /// The AOV section (version 3): the AOVs' names and channels, then, when they have any
+    /// channel, the runs of pixels with AOV samples, laid out like the cells' runs.
+    fn aov_bytes(&self) -> Vec<u8> {
+        let mut out = self.aov_names_bytes();
         let channels = self.aov_channels();
         if channels == 0 {
             return out;
@@ -668,6 +698,39 @@ impl StateDump {
             aov_cells: Vec::new(),
         })
     }
+}
+
+/// A run list (see the module docs) of the `(pixel, words)` given in strictly increasing pixel
+/// order, each holding something, of a state of `pixels` pixels: maximal runs of consecutive
+/// pixels, then the end header.
+fn sparse_runs<'c>(
+    out: &mut Vec<u8>,
+    words: impl IntoIterator<Item = (u64, &'c [u64])>,
+    pixels: u64,
+) {
+    // The open run: where its header is and its first pixel and length.
+    let mut run: Option<(usize, u64, u64)> = None;
+    let close = |out: &mut Vec<u8>, run: Option<(usize, u64, u64)>| {
+        if let Some((at, first, n)) = run {
+            out[at..at + 4].copy_from_slice(&(first as u32).to_le_bytes());
+            out[at + 4..at + 8].copy_from_slice(&(n as u32).to_le_bytes());
+        }
+    };
+    for (pixel, cells) in words {
+        debug_assert!(pixel < pixels && cells.iter().any(|&w| w != 0));
+        match &mut run {
+            Some((_, first, n)) if *first + *n == pixel => *n += 1,
+            _ => {
+                close(out, run.take());
+                run = Some((out.len(), pixel, 1));
+                out.extend_from_slice(&[0; 8]);
+            }
+        }
+        out.extend(cells.iter().flat_map(|w| w.to_le_bytes()));
+    }
+    close(out, run);
+    out.extend_from_slice(&(pixels as u32).to_le_bytes());
+    out.extend_from_slice(&0u32.to_le_bytes());
 }
 
 /// Checks the magic and the version; returns the bytes after them.

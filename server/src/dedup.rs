@@ -73,9 +73,15 @@ pub struct Seen {
     /// Pushed deltas, by the pushing node's id.
     pub nodes: HashMap<String, SeqSet>,
     /// The content digest of every applied batch, by worker id and sequence number. Batches
-    /// restored from snapshots written before digests were kept have none.
+    /// restored from snapshots written before digests were kept have none; batches an imported
+    /// state names without a digest have [`UNVERIFIED`].
     pub digests: HashMap<u64, HashMap<u64, u64>>,
 }
+
+/// The digest recorded for a batch that an imported state names with digest 0 (none): the
+/// frame holds its samples but cannot tell a later post of its id from another batch under a
+/// reused id. (A batch whose records really hash to 0, one in 2^64, shares the fate.)
+pub const UNVERIFIED: u64 = 0;
 
 /// Batches of a state that a frame has applied already (so the state would count them twice).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -100,6 +106,9 @@ pub enum BatchId {
         /// Digest of the records applied under this id.
         applied: u64,
     },
+    /// Applied before by an imported state that recorded no digest of it: neither a retry nor
+    /// a conflict can be told, so the batch is refused rather than dropped as a duplicate.
+    Unverified,
 }
 
 impl Seen {
@@ -110,7 +119,10 @@ impl Seen {
             return BatchId::New;
         }
         match self.digests.get(&worker).and_then(|d| d.get(&seq)) {
+            Some(&UNVERIFIED) => BatchId::Unverified,
             Some(&applied) if applied != digest => BatchId::Conflict { applied },
+            // The same records, or an id restored from a version 1 snapshot of this server's own
+            // (no digest): the server applied it itself, so this is its retry.
             _ => BatchId::Retry,
         }
     }
@@ -170,15 +182,16 @@ impl Seen {
         first.map(|(worker, seq)| Overlap { worker, seq, count })
     }
 
-    /// Records `batches` (none of which may have been applied: see [`Seen::overlap`]).
+    /// Records `batches` (none of which may have been applied: see [`Seen::overlap`]), the
+    /// batches of a state: those without a digest as [`UNVERIFIED`], so that a later post of
+    /// one of them is refused ([`BatchId::Unverified`]) instead of taken for a retry and dropped.
     pub fn insert_applied(&mut self, batches: &[Applied]) {
         for a in batches {
             let set = self.workers.entry(a.worker).or_default();
+            let digests = self.digests.entry(a.worker).or_default();
             for (seq, digest) in a.batches() {
                 set.insert(seq);
-                if let Some(d) = digest {
-                    self.digests.entry(a.worker).or_default().insert(seq, d);
-                }
+                digests.insert(seq, digest.unwrap_or(UNVERIFIED));
             }
         }
     }
@@ -254,7 +267,13 @@ mod tests {
             copy.check_batch(4, 9, 1),
             BatchId::Conflict { applied: 109 }
         );
-        assert_eq!(copy.check_batch(8, 3, 1), BatchId::Retry);
+        // A state's batch without a digest is not a retry of whatever is posted under its id.
+        assert_eq!(copy.check_batch(8, 3, 1), BatchId::Unverified);
+        assert_eq!(
+            seen.check_batch(8, 3, 1),
+            BatchId::Retry,
+            "a restored id of its own"
+        );
 
         let base = seen.clone();
         seen.insert_batch(4, 3, 103);

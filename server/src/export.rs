@@ -8,14 +8,18 @@ use splatd_proto::api::AovSpec;
 use splatd_proto::{Applied, Origin, Runs, StateDump, StateError};
 
 use splatd_estimator::{
-    check_pixels, AovCellsError, AovSums, CascadeLayout, CellsError, FrameState, MergeError,
-    ParamError, FRAC_BITS,
+    add_aov_pixel, add_cell, aov_words, cell_spp, check_aov_pixel, check_pixels, AovCellsError,
+    AovSums, CascadeLayout, CellsError, FrameState, MergeError, ParamError, FRAC_BITS,
+    MAX_PIXEL_SAMPLES,
 };
 
 use crate::frame::{Importable, PieceVisitor};
 
 /// A frame's AOVs as a state carries them: the declarations and the sums of the rows held.
 pub type Aovs<'a> = Option<(&'a [AovSpec], &'a AovSums)>;
+
+/// A state's AOVs, owned: `None` for a state without AOVs.
+pub type OwnedAovs = Option<(Vec<AovSpec>, AovSums)>;
 
 /// An imported state that cannot be used.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -273,6 +277,353 @@ impl Importable for Decoded<'_> {
     }
 }
 
+/// A state held as only the pixels that hold something, for the offline tools (`splatd merge`,
+/// `splatd resolve`): a state file declares its frame's size, and its runs list only the pixels
+/// with samples, so a file of 100 bytes may declare 8192x8192 pixels with 16 cascades (35 GB of
+/// cells). What this takes is bounded by the files' real size (their cells, plus 8 bytes per
+/// pixel held), never by the frame they declare; a merge of such states is as small as they are.
+/// The server's imports do not use it: they add a body's runs straight into the frame's bands.
+#[derive(Debug, Clone)]
+pub struct SparseState {
+    /// The header, AOV declarations and applied batches (no cells, no AOV words).
+    pub dump: StateDump,
+    layout: CascadeLayout,
+    cells: SparsePixels,
+    aovs: SparsePixels,
+    samples: u64,
+}
+
+/// Pixels that hold something, in increasing order: their numbers (row-major over the whole
+/// frame, so states of other rows line up) and their words, `stride` per pixel.
+#[derive(Debug, Clone, Default)]
+struct SparsePixels {
+    stride: usize,
+    at: Vec<u64>,
+    words: Vec<u64>,
+}
+
+impl SparsePixels {
+    fn new(stride: usize) -> SparsePixels {
+        SparsePixels {
+            stride,
+            ..SparsePixels::default()
+        }
+    }
+
+    fn push(&mut self, at: u64, words: &[u64]) {
+        self.at.push(at);
+        self.words.extend_from_slice(words);
+    }
+
+    fn iter(&self) -> impl Iterator<Item = (u64, &[u64])> + '_ {
+        self.at
+            .iter()
+            .copied()
+            .zip(self.words.chunks_exact(self.stride.max(1)))
+    }
+
+    /// `self + other` over the pixels of `keep`: pixels in both are added with `add` (which may
+    /// refuse), the others taken as they are.
+    fn merged<E>(
+        &self,
+        other: &SparsePixels,
+        keep: std::ops::Range<u64>,
+        mut add: impl FnMut(u64, &mut [u64], &[u64]) -> Result<(), E>,
+    ) -> Result<SparsePixels, E> {
+        let mut out = SparsePixels::new(self.stride);
+        let (mut a, mut b) = (self.iter().peekable(), other.iter().peekable());
+        loop {
+            let take_a = match (a.peek(), b.peek()) {
+                (None, None) => break,
+                (Some(_), None) => true,
+                (None, Some(_)) => false,
+                (Some(&(pa, _)), Some(&(pb, _))) => {
+                    if pa == pb {
+                        let (p, wa) = a.next().expect("peeked");
+                        let (_, wb) = b.next().expect("peeked");
+                        out.push(p, wa);
+                        let at = out.words.len() - self.stride;
+                        add(p, &mut out.words[at..], wb)?;
+                        continue;
+                    }
+                    pa < pb
+                }
+            };
+            let (p, w) = if take_a { a.next() } else { b.next() }.expect("peeked");
+            if keep.contains(&p) {
+                out.push(p, w);
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// Why a state could not be expanded into a whole frame ([`SparseState::into_dense`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DenseError {
+    /// The frame it declares does not fit in memory.
+    #[error(
+        "the state declares a {width}x{height} frame (rows {rows_start}..{rows_end}) with \
+         {what}: {bytes} bytes, which could not be allocated (the state holds {held} pixels \
+         with samples)"
+    )]
+    TooLarge {
+        /// Width.
+        width: u32,
+        /// Height.
+        height: u32,
+        /// First row held.
+        rows_start: u32,
+        /// End of the rows held.
+        rows_end: u32,
+        /// What was to be allocated (`6 cascades`, `7 AOV channels`).
+        what: String,
+        /// Bytes it takes.
+        bytes: u128,
+        /// Pixels the state holds.
+        held: usize,
+    },
+    /// Its cells or AOV words do not make a state.
+    #[error(transparent)]
+    Import(#[from] ImportError),
+}
+
+/// Why two states could not be added ([`SparseState::merge`]).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SparseMergeError {
+    /// Their frames differ, or a pixel would hold too many samples.
+    #[error(transparent)]
+    Cells(#[from] MergeError),
+    /// A pixel's AOVs would hold too many samples.
+    #[error(transparent)]
+    Aovs(#[from] AovCellsError),
+    /// They declare different AOVs.
+    #[error("it has AOVs {theirs}, but the states before it have {ours}")]
+    AovMismatch {
+        /// Ours, described.
+        ours: String,
+        /// Theirs, described.
+        theirs: String,
+    },
+}
+
+impl SparseState {
+    /// Decodes and checks a state body like [`StateDump::decode`], [`load`] and [`take_aovs`]
+    /// do, holding only the pixels its runs list.
+    pub fn decode(bytes: &[u8]) -> Result<SparseState, ImportError> {
+        let (mut dump, runs, aov_runs) = StateDump::decode_runs(bytes, u64::MAX)?;
+        if dump.frac_bits != FRAC_BITS {
+            return Err(ImportError::FracBits {
+                found: dump.frac_bits,
+            });
+        }
+        let layout =
+            CascadeLayout::new(dump.base, dump.cascades, dump.lowest_scale, dump.luminance)?;
+        let w = dump.width as u64;
+        let y0 = dump.rows_start;
+        let origin = y0 as u64 * w;
+        let mut cells = SparsePixels::new(runs.cell_len());
+        let mut samples = 0;
+        runs.try_for_each(|first, piece| {
+            samples += check_pixels(dump.width, y0, layout.cascades(), first, piece)?;
+            for (i, cell) in piece.chunks_exact(cells.stride).enumerate() {
+                cells.push(origin + first + i as u64, cell);
+            }
+            Ok::<(), ImportError>(())
+        })?;
+        if dump.aovs.iter().all(|a| a.channels.is_empty()) {
+            dump.aovs.clear();
+        }
+        let mut aovs = SparsePixels::new(aov_words(dump.aov_channels()));
+        if let Some(aov_runs) = aov_runs {
+            aov_runs.try_for_each(|first, piece| {
+                for (i, px) in piece.chunks_exact(aovs.stride).enumerate() {
+                    let pixel = first + i as u64;
+                    check_aov_pixel(px).map_err(|reason| AovCellsError::Invalid {
+                        x: (pixel % w) as u32,
+                        y: y0 + (pixel / w) as u32,
+                        reason,
+                    })?;
+                    aovs.push(origin + pixel, px);
+                }
+                Ok::<(), ImportError>(())
+            })?;
+        }
+        Ok(SparseState {
+            dump,
+            layout,
+            cells,
+            aovs,
+            samples,
+        })
+    }
+
+    /// Samples held.
+    pub fn samples(&self) -> u64 {
+        self.samples
+    }
+
+    /// The AOV declarations (empty: none).
+    pub fn aov_specs(&self) -> &[AovSpec] {
+        &self.dump.aovs
+    }
+
+    /// Adds another state of the same frame, exactly, like [`FrameState::merge`] (rows equal or
+    /// nested; the rows this one holds are kept) and [`AovSums::merge_overlap`] (a state
+    /// without AOVs adds none; if this one has none, it takes the other's).
+    pub fn merge(&mut self, other: &SparseState) -> Result<(), SparseMergeError> {
+        let d = &self.dump;
+        let (ours_w, ours_h) = (d.width, d.height);
+        if (ours_w, ours_h) != (other.dump.width, other.dump.height) {
+            return Err(MergeError::Size {
+                ours_w,
+                ours_h,
+                theirs_w: other.dump.width,
+                theirs_h: other.dump.height,
+            }
+            .into());
+        }
+        if self.layout != other.layout {
+            return Err(MergeError::Layout {
+                ours: format!("{:?}", self.layout),
+                theirs: format!("{:?}", other.layout),
+            }
+            .into());
+        }
+        let (ours, theirs) = (self.rows(), other.rows());
+        let nested = |a: &std::ops::Range<u32>, b: &std::ops::Range<u32>| {
+            a.start <= b.start && b.end <= a.end
+        };
+        if !nested(&ours, &theirs) && !nested(&theirs, &ours) {
+            return Err(MergeError::Rows { ours, theirs }.into());
+        }
+        if !other.dump.aovs.is_empty()
+            && !self.dump.aovs.is_empty()
+            && self.dump.aovs != other.dump.aovs
+        {
+            return Err(SparseMergeError::AovMismatch {
+                ours: crate::frame::describe_aovs(&self.dump.aovs),
+                theirs: crate::frame::describe_aovs(&other.dump.aovs),
+            });
+        }
+        let w = ours_w as u64;
+        let keep = ours.start as u64 * w..ours.end as u64 * w;
+        let position = |p: u64| ((p % w) as u32, (p / w) as u32);
+        let cells = self
+            .cells
+            .merged(&other.cells, keep.clone(), |p, sum, cell| {
+                if cell_spp(sum) + cell_spp(cell) > MAX_PIXEL_SAMPLES {
+                    let (x, y) = position(p);
+                    return Err(MergeError::TooManySamples { x, y });
+                }
+                add_cell(sum, cell);
+                Ok(())
+            })?;
+        let aovs = match (self.dump.aovs.is_empty(), other.dump.aovs.is_empty()) {
+            (_, true) => None,
+            (true, false) => Some(SparsePixels::new(other.aovs.stride).merged(
+                &other.aovs,
+                keep,
+                |_, _, _| Ok::<(), AovCellsError>(()),
+            )?),
+            (false, false) => Some(self.aovs.merged(&other.aovs, keep, |p, sum, px| {
+                if sum[0] + px[0] > MAX_PIXEL_SAMPLES {
+                    let (x, y) = position(p);
+                    return Err(AovCellsError::Full { x, y });
+                }
+                add_aov_pixel(sum, px);
+                Ok(())
+            })?),
+        };
+        if let Some(aovs) = aovs {
+            if self.dump.aovs.is_empty() {
+                self.dump.aovs = other.dump.aovs.clone();
+            }
+            self.aovs = aovs;
+        }
+        self.samples = cells.iter().map(|(_, cell)| cell_spp(cell)).sum();
+        self.cells = cells;
+        Ok(())
+    }
+
+    fn rows(&self) -> std::ops::Range<u32> {
+        self.dump.rows_start..self.dump.rows_end
+    }
+
+    /// The state's wire form, naming `batches` as applied: the bytes [`dump`] gives for the
+    /// same state held whole.
+    pub fn encode(&self, batches: Vec<Applied>) -> Vec<u8> {
+        let origin = self.dump.rows_start as u64 * self.dump.width as u64;
+        let header = StateDump {
+            batches,
+            origin: None,
+            ..header_of(&self.dump)
+        };
+        header.encode_sparse(
+            self.cells.iter().map(|(p, c)| (p - origin, c)),
+            self.aovs.iter().map(|(p, c)| (p - origin, c)),
+        )
+    }
+
+    /// The whole frame of rows held, for resolving: the one step whose memory follows the size
+    /// the state declares (the image it resolves into is that size too). The buffers are
+    /// reserved first, so a frame that does not fit is an error naming its size, not an abort.
+    pub fn into_dense(self) -> Result<(FrameState, OwnedAovs), DenseError> {
+        let d = &self.dump;
+        let pixels = d.width as u128 * (d.rows_end - d.rows_start) as u128;
+        let origin = d.rows_start as u64 * d.width as u64;
+        let too_large = |what: String, words: u128| DenseError::TooLarge {
+            width: d.width,
+            height: d.height,
+            rows_start: d.rows_start,
+            rows_end: d.rows_end,
+            what,
+            bytes: words * 8,
+            held: self.cells.at.len(),
+        };
+        let expand = |sparse: &SparsePixels, what: String| -> Result<Vec<u64>, DenseError> {
+            let words = pixels * sparse.stride as u128;
+            let mut dense = Vec::new();
+            usize::try_from(words)
+                .ok()
+                .and_then(|n| dense.try_reserve_exact(n).ok().map(|()| n))
+                .ok_or_else(|| too_large(what, words))?;
+            dense.resize(words as usize, 0);
+            for (p, w) in sparse.iter() {
+                let at = (p - origin) as usize * sparse.stride;
+                dense[at..at + sparse.stride].copy_from_slice(w);
+            }
+            Ok(dense)
+        };
+        let cells = expand(&self.cells, format!("{} cascades", d.cascades))?;
+        let aovs = if d.aovs.is_empty() {
+            None
+        } else {
+            let words = expand(&self.aovs, format!("{} AOV channels", d.aov_channels()))?;
+            let sums = AovSums::from_words(d.width, self.rows(), d.aov_channels(), words)
+                .map_err(ImportError::from)?;
+            Some((d.aovs.clone(), sums))
+        };
+        let state =
+            FrameState::from_cells(d.width, d.height, self.rows(), self.layout.clone(), cells)
+                .map_err(ImportError::from)?;
+        Ok((state, aovs))
+    }
+}
+
+/// A copy of `dump`'s header, declarations and batches, without cells or AOV words.
+fn header_of(dump: &StateDump) -> StateDump {
+    StateDump {
+        frame: dump.frame.clone(),
+        origin: dump.origin.clone(),
+        batches: dump.batches.clone(),
+        aovs: dump.aovs.clone(),
+        cells: Vec::new(),
+        aov_cells: Vec::new(),
+        ..*dump
+    }
+}
+
 /// Fractional bits of state format version 1.
 const V1_FRAC_BITS: u32 = 32;
 
@@ -344,6 +695,48 @@ mod tests {
         let bytes = dump(&state, None, "f", None, vec![]).encode();
         let back = load(StateDump::decode(&bytes, u64::MAX).unwrap()).unwrap();
         assert_eq!(back, state);
+    }
+
+    /// The offline merge of sparse states is the dense merge, byte for byte: pixels in one
+    /// state or both, a band nested in the frame (its rows added, the frame's kept), and the
+    /// whole frame rebuilt for resolving.
+    #[test]
+    fn sparse_merge_writes_the_bytes_of_the_dense_merge() {
+        let scene = FireflyScene::new(7, 6, 2);
+        let layout = CascadeLayout::with_defaults();
+        let mut a = FrameState::new(7, 6, layout.clone());
+        a.splat_all(scene.pass(0).filter(|s| s.0 % 3 != 0));
+        let mut b = FrameState::band(7, 6, 2..5, layout.clone());
+        b.splat_all(
+            scene
+                .pass(1)
+                .filter(|s| (2..5).contains(&s.1) && s.0 % 2 == 0),
+        );
+        let mut c = FrameState::new(7, 6, layout);
+        c.splat_all(scene.pass(2).filter(|s| s.1 == 5));
+        let bytes = |s: &FrameState| dump(s, None, "f", None, vec![]).encode();
+        let mut sparse = SparseState::decode(&bytes(&a)).unwrap();
+        for other in [&b, &c] {
+            sparse
+                .merge(&SparseState::decode(&bytes(other)).unwrap())
+                .unwrap();
+        }
+        let mut dense = a.clone();
+        dense.merge(&b).unwrap();
+        dense.merge(&c).unwrap();
+        assert_eq!(sparse.encode(vec![]), bytes(&dense));
+        assert_eq!(sparse.samples(), dense.total_samples());
+        let (back, aovs) = sparse.into_dense().unwrap();
+        assert_eq!(back, dense);
+        assert!(aovs.is_none());
+
+        // A band takes only its own rows of a whole frame.
+        let mut band = SparseState::decode(&bytes(&b)).unwrap();
+        band.merge(&SparseState::decode(&bytes(&a)).unwrap())
+            .unwrap();
+        let mut dense = b.clone();
+        dense.merge(&a).unwrap();
+        assert_eq!(band.encode(vec![]), bytes(&dense));
     }
 
     #[test]

@@ -136,8 +136,13 @@ pub const MAX_AOV_CHANNELS: usize = 64;
 /// Layer names of `image.exr` that an AOV may not take.
 const RESERVED_LAYERS: [&str; 3] = ["mean", "removed", "spp"];
 
+/// Longest EXR channel name: OpenEXR reads and writes names (attribute names, type names and
+/// channel names) of at most 255 bytes, with the header's long-names flag set for those over 31.
+pub const MAX_EXR_NAME_BYTES: usize = 255;
+
 /// Checks a frame's AOV declarations: named, each name once and not one of the served layers'
-/// (`mean`, `removed`, `spp`, `cascadeN`, the unnamed beauty), channels named, each once.
+/// (`mean`, `removed`, `spp`, `cascadeN`, the unnamed beauty), channels named, each once, and
+/// every name one that can be written into a valid EXR ([`check_exr_name`]).
 fn check_aovs(aovs: &[AovSpec]) -> Result<(), ParamError> {
     let bad = |m: String| Err(ParamError::new("aovs", m));
     let total: usize = aovs.iter().map(|a| a.channels.len()).sum();
@@ -147,31 +152,92 @@ fn check_aovs(aovs: &[AovSpec]) -> Result<(), ParamError> {
         ));
     }
     for (i, aov) in aovs.iter().enumerate() {
+        let name = shown(&aov.name);
+        // Before anything else quotes it (`{:?}` escapes a NUL or a control character).
+        check_exr_name(&aov.name)
+            .map_err(|rule| ParamError::new("aovs", format!("AOV name {name}: {rule}")))?;
         let cascade = aov
             .name
             .strip_prefix("cascade")
             .is_some_and(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()));
         if aov.name.is_empty() || RESERVED_LAYERS.contains(&aov.name.as_str()) || cascade {
             return bad(format!(
-                "AOV name {:?} is empty or taken by a layer image.exr serves (mean, removed, \
-                 spp, cascadeN)",
-                aov.name
+                "AOV name {name} is empty or taken by a layer image.exr serves (mean, removed, \
+                 spp, cascadeN)"
             ));
         }
         if aovs[..i].iter().any(|a| a.name == aov.name) {
-            return bad(format!("AOV {:?} is declared twice", aov.name));
+            return bad(format!("AOV {name} is declared twice"));
         }
         if aov.channels.is_empty() {
-            return bad(format!("AOV {:?} has no channels", aov.name));
+            return bad(format!("AOV {name} has no channels"));
         }
         for (j, c) in aov.channels.iter().enumerate() {
+            check_exr_name(c).map_err(|rule| {
+                ParamError::new(
+                    "aovs",
+                    format!("AOV {name}: channel name {}: {rule}", shown(c)),
+                )
+            })?;
             if c.is_empty() || c.contains('.') || aov.channels[..j].contains(c) {
                 return bad(format!(
-                    "AOV {:?}: channel {c:?} is empty, has a dot or is named twice",
-                    aov.name
+                    "AOV {name}: channel {c:?} is empty, has a dot or is named twice"
+                ));
+            }
+            // What image.exr writes: `<name>.<channel>`, with no other prefix.
+            let full = aov.name.len() + 1 + c.len();
+            if full > MAX_EXR_NAME_BYTES {
+                return bad(format!(
+                    "AOV {name}: channel {}: length rule: the EXR channel name \
+                     \"<name>.<channel>\" would be {full} bytes, and OpenEXR names are at \
+                     most {MAX_EXR_NAME_BYTES} bytes",
+                    shown(c)
                 ));
             }
         }
+    }
+    Ok(())
+}
+
+/// A name quoted for a message, cut short when long (a refused name may be 30,000 bytes).
+fn shown(name: &str) -> String {
+    const SHOWN: usize = 40;
+    if name.chars().count() <= SHOWN {
+        return format!("{name:?}");
+    }
+    let head: String = name.chars().take(SHOWN).collect();
+    format!("{head:?}... ({} bytes)", name.len())
+}
+
+/// Why `name` (an AOV or channel name) cannot be written into an EXR as it is, if it cannot:
+/// names are printable ASCII, bytes 0x20 (space) to 0x7E (`~`).
+///
+/// OpenEXR stores names as NUL-terminated bytes, so a NUL (or any control character) cuts or
+/// garbles the header. Bytes above 0x7E have no one meaning: the `exr` crate that writes
+/// `image.exr` and reads passes takes them as Latin-1 characters, while OpenEXR's own tools
+/// (and Blender) read and write UTF-8, so a name such as `été` would be written in one encoding
+/// and looked for in the other. Such a name is refused rather than served as an unreadable file
+/// or matched against no layer of the passes.
+pub fn check_exr_name(name: &str) -> Result<(), String> {
+    if let Some((at, c)) = name.char_indices().find(|(_, c)| !c.is_ascii()) {
+        return Err(format!(
+            "encoding rule: names are printable ASCII (0x20 to 0x7E), but {c:?} (U+{:04X}) at \
+             byte {at} is not ASCII",
+            c as u32
+        ));
+    }
+    if let Some(at) = name.bytes().position(|b| !(0x20..=0x7E).contains(&b)) {
+        return Err(format!(
+            "characters rule: names are printable ASCII (0x20 to 0x7E), but byte {at} is the \
+             control character 0x{:02X}",
+            name.as_bytes()[at]
+        ));
+    }
+    if name.len() > MAX_EXR_NAME_BYTES {
+        return Err(format!(
+            "length rule: {} bytes, and OpenEXR names are at most {MAX_EXR_NAME_BYTES} bytes",
+            name.len()
+        ));
     }
     Ok(())
 }
@@ -227,6 +293,22 @@ pub enum IngestError {
         applied: u64,
         /// Digest of the records of this batch.
         digest: u64,
+    },
+    /// A batch with this `(worker, seq)` came in an imported state that recorded no digest of
+    /// its records: this one may be it or another batch under a reused id, and dropping it as a
+    /// duplicate could lose it.
+    #[error(
+        "batch (worker {worker}, seq {seq}) is named by a state imported into this frame \
+         without a digest of its records, so the server cannot tell whether this is the same \
+         batch or another one under a reused id; it is neither applied nor dropped as a \
+         duplicate: if the imported state holds it, nothing is missing, otherwise send its \
+         samples under a new id"
+    )]
+    IdUnverified {
+        /// The worker id.
+        worker: u64,
+        /// The sequence number.
+        seq: u64,
     },
     /// The frame was deleted while the batch was on its way.
     #[error("frame {frame:?} was deleted")]
@@ -878,6 +960,7 @@ impl ShardedFrame {
                     digest,
                 })
             }
+            BatchId::Unverified => return Err(IngestError::IdUnverified { worker, seq }),
         }
         let n = parts.len();
         for (i, guard) in guards.iter_mut().enumerate() {
@@ -1376,6 +1459,37 @@ mod tests {
             .pass(pass)
             .map(|(x, y, rgb)| Record { x, y, rgb })
             .collect()
+    }
+
+    /// Names are printable ASCII and `<name>.<channel>` at most 255 bytes; each refusal names
+    /// its rule, and quotes a long name cut short.
+    #[test]
+    fn aov_names_are_what_openexr_holds() {
+        let spec = |name: &str, channel: &str| {
+            FrameSpec::new(CreateFrame {
+                aovs: vec![AovSpec::new(name, &[channel])],
+                ..CreateFrame::new("f", 2, 2)
+            })
+        };
+        let refused = |name: &str, channel: &str| spec(name, channel).unwrap_err().to_string();
+        let long = |n: usize| "a".repeat(n);
+        assert!(spec(&long(253), "R").is_ok());
+        assert!(spec("x", &long(253)).is_ok());
+        assert!(spec(r#"View Layer #1 ~!@$%^&*()[]{}<>|\/?;:'",+=-_`"#, "r g").is_ok());
+        for (name, channel, rule) in [
+            ("a\0b", "R", "characters rule"),
+            ("ab", "\u{1b}", "characters rule"),
+            ("été", "R", "encoding rule"),
+            ("ab", "深", "encoding rule"),
+            (long(254).as_str(), "R", "length rule"),
+            ("x", long(254).as_str(), "length rule"),
+            (long(30_000).as_str(), "R", "length rule"),
+        ] {
+            let e = refused(name, channel);
+            assert!(e.contains(rule), "{e}");
+            assert!(e.len() < 400, "{e}");
+        }
+        assert!(refused("a\0b", "R").contains("byte 1 is the control character 0x00"));
     }
 
     #[test]

@@ -110,7 +110,13 @@ impl Provenance<'_> {
     }
 }
 
-/// Adds attributes to the header of a single-part EXR written by `exr`, keeping their order.
+/// Longest name (attribute, type or channel) an EXR without the long-names flag may have.
+const SHORT_NAME_BYTES: usize = 31;
+/// The long-names flag's bit in the version field (bytes 4 to 7 of the file, little-endian).
+const LONG_NAMES_BIT: u32 = 10;
+
+/// Adds attributes to the header of a single-part EXR written by `exr`, keeping their order, and
+/// sets the long-names flag when a channel name needs it.
 ///
 /// `exr` keeps extra attributes in a `HashMap` and writes them in its (per-process random)
 /// order, which would make the same image different bytes from one resolve to the next; so they
@@ -118,11 +124,19 @@ impl Provenance<'_> {
 /// follows the header (absolute positions of the pixel blocks) is moved by as many bytes.
 fn add_attributes(bytes: Vec<u8>, attributes: &[(&str, HeaderValue)]) -> Result<Vec<u8>> {
     let invalid = |what: &str| Error::Invalid(format!("splatd's own EXR: {what}").into());
-    let chunks = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&bytes), false)?
-        .headers
-        .first()
-        .map(|h| h.chunk_count)
-        .ok_or_else(|| invalid("no header"))?;
+    let meta = exr::meta::MetaData::read_from_buffered(std::io::Cursor::new(&bytes), false)?;
+    let header = meta.headers.first().ok_or_else(|| invalid("no header"))?;
+    let chunks = header.chunk_count;
+    // OpenEXR's rule: the version field's long-names flag (bit 10) is set when a name is longer
+    // than 31 bytes. `exr` sets it for long attribute names only, not for channel names.
+    let long_names = header
+        .channels
+        .list
+        .iter()
+        .any(|c| c.name.as_slice().len() > SHORT_NAME_BYTES)
+        || attributes
+            .iter()
+            .any(|(name, _)| name.len() > SHORT_NAME_BYTES);
     // Magic number and version field, then `name\0 type\0 size value` until an empty name.
     let mut at = 8;
     let skip_string = |at: &mut usize| -> Result<usize> {
@@ -160,6 +174,9 @@ fn add_attributes(bytes: Vec<u8>, attributes: &[(&str, HeaderValue)]) -> Result<
     let shift = added.len() as u64;
     let mut out = Vec::with_capacity(bytes.len() + added.len());
     out.extend_from_slice(&bytes[..end]);
+    if long_names {
+        out[5] |= 1 << (LONG_NAMES_BIT - 8);
+    }
     out.extend_from_slice(&added);
     out.push(0);
     for offset in bytes[table.clone()].chunks_exact(8) {
@@ -228,6 +245,10 @@ pub fn encode_exr(
         push_rgb(&mut channels, &format!("{}.", layer.name), &layer.rgb);
     }
     for (name, plane) in aovs {
+        // A frame's AOV names were checked at its creation; a state read offline was not, and
+        // `exr` would panic on a character above U+00FF and garble a NUL.
+        crate::frame::check_exr_name(name)
+            .map_err(|rule| Error::Invalid(format!("AOV channel {name:?}: {rule}").into()))?;
         channels.push(AnyChannel::new(
             name.as_str(),
             FlatSamples::F32(plane.clone()),

@@ -137,6 +137,9 @@ impl From<IngestError> for ApiError {
             IngestError::IdReused { .. } => {
                 return ApiError::new(StatusCode::CONFLICT, "batch_id_reused", e.to_string())
             }
+            IngestError::IdUnverified { .. } => {
+                return ApiError::new(StatusCode::CONFLICT, "batch_id_unverified", e.to_string())
+            }
             IngestError::Deleted { .. } => {
                 return ApiError::new(StatusCode::NOT_FOUND, "unknown_frame", e.to_string())
             }
