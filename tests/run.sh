@@ -8,6 +8,8 @@
 #   chromium + chromedriver      the live page, driven headless (Debian packages)
 #   Mitsuba 3 + Dr.Jit           the Mitsuba worker's guided-mode test (pip, pinned in
 #                                benches/quality/requirements.txt)
+#   Open Image Denoise 2.5.1     the denoiser that `?denoise=oidn` loads at run time (pip's
+#                                pyoidn wheel); its path is exported as SPLATD_OIDN_LIB
 #   blender, openimageio-tools   the Blender worker's test, oiiotool's view of EXR headers
 #                                (optional: skipped with a message when they cannot be installed)
 #
@@ -35,6 +37,16 @@ python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ig
 bash tests/setup/nginx.sh >/dev/null
 bash tests/setup/python_venv.sh >/dev/null
 bash tests/setup/mitsuba.sh >/dev/null
+# OIDN: the denoise crate's and the server's denoise tests load the library this names. In CI a
+# failed install fails the run; elsewhere those tests say loudly that they checked nothing.
+if oidn_lib="$(bash tests/setup/oidn.sh)"; then
+    export SPLATD_OIDN_LIB="$oidn_lib"
+elif [ "${CI:-}" = true ]; then
+    echo "tests/setup/oidn.sh failed: Open Image Denoise is needed in CI" >&2
+    exit 1
+else
+    echo "WARNING: Open Image Denoise could not be installed; the denoise tests will check nothing" >&2
+fi
 # Optional: without them the Blender worker's test skips (saying why) and the provenance test
 # checks the EXR header with OpenEXR's Python package only.
 bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip"
