@@ -9,10 +9,9 @@
 //! the denoised images into the final ([`DenoisePlan::combine`]). The estimator stays pure: the
 //! caller runs the denoiser. See docs/ALGORITHM.md, "The denoiser's input".
 //!
-//! The design (its [`DenoisePlan::name`] goes into the EXR header's provenance):
-//! * `paper`: one input, the paper's resolve (the first stage of `spread`, with the frame's
-//!   `kappa`, `kappa_min` and `kappa_exponent`), no spatial spreading; the final is the
-//!   denoiser's output.
+//! The designs ([`DenoiseDesign`]; the name goes into the EXR header's provenance) are measured
+//! by the quality benchmark's denoised table; [`DEFAULT_DENOISE_DESIGN`] is what
+//! [`DenoisePlan::new`] uses. None spreads energy over neighbouring pixels before the denoiser.
 
 use crate::resolve::{resolve_bands, ResolveParams, Resolved, Variant};
 use crate::state::FrameState;
@@ -23,33 +22,101 @@ pub struct DenoisePlan {
     width: usize,
     height: usize,
     inputs: Vec<Vec<[f32; 3]>>,
-    design: Design,
+    design: DenoiseDesign,
+    /// The luminance weights of the frame's layout.
+    weights: [f64; 3],
 }
 
-/// The designs; only one is served, the others are kept for the benchmark's comparison.
+/// The ways of building the denoiser's input that the quality benchmark compares; one of them,
+/// [`DEFAULT_DENOISE_DESIGN`], is what [`DenoisePlan::new`] uses.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Design {
-    /// The paper's resolve, denoised as is.
+pub enum DenoiseDesign {
+    /// One input, the paper's resolve (the frame's `kappa` settings); the final is its
+    /// denoised image.
     Paper,
+    /// Two inputs, the paper's resolve and the plain mean; the final is the denoised paper's
+    /// image with the denoised mean's local energy: multiplied per pixel by the ratio of the
+    /// two denoised images' luminance summed over a `(2 RATIO_RADIUS + 1)^2` window, clamped
+    /// to `[1, RATIO_CAP]`. The energy the paper removed comes back after the denoiser (the
+    /// inputs stay uncorrelated), where the denoised mean put it, at a scale of a few pixels;
+    /// the cap bounds what one firefly's blotch can add around it.
+    PaperRatio,
+    /// [`PaperRatio`](Self::PaperRatio) with the paper's resolve at a fixed `kappa = 2`
+    /// (`kappa_exponent = 0`): it removes less before the denoiser.
+    MildRatio,
+}
+
+/// The design [`DenoisePlan::new`] uses, chosen by the quality benchmark (docs/ALGORITHM.md).
+pub const DEFAULT_DENOISE_DESIGN: DenoiseDesign = DenoiseDesign::PaperRatio;
+
+/// [`DenoiseDesign::PaperRatio`]'s window radius (5x5), chosen by the benchmark from 2, 4, 8.
+pub const RATIO_RADIUS: usize = 2;
+/// [`DenoiseDesign::PaperRatio`]'s largest gain, chosen by the benchmark from 1.1, 1.25, 1.5
+/// and none.
+pub const RATIO_CAP: f64 = 1.5;
+
+impl DenoiseDesign {
+    /// Every design, in declaration order.
+    pub const ALL: [DenoiseDesign; 3] = [
+        DenoiseDesign::Paper,
+        DenoiseDesign::PaperRatio,
+        DenoiseDesign::MildRatio,
+    ];
+
+    /// The design's name (what [`DenoisePlan::name`] returns).
+    pub fn name(self) -> &'static str {
+        match self {
+            DenoiseDesign::Paper => "paper",
+            DenoiseDesign::PaperRatio => "paper+ratio",
+            DenoiseDesign::MildRatio => "paper(kappa=2)+ratio",
+        }
+    }
 }
 
 impl DenoisePlan {
     /// Resolves the frame held by `bands` (as [`resolve_bands`] takes them: in order, tiling the
-    /// frame top to bottom) for the denoiser, on `threads` threads. `params` are the frame's
-    /// resolve parameters; the plan uses their `kappa`, `kappa_min` and `kappa_exponent` and
-    /// chooses its own variant (never a spatially spreading one).
+    /// frame top to bottom) for the denoiser, on `threads` threads, with
+    /// [`DEFAULT_DENOISE_DESIGN`]. `params` are the frame's resolve parameters; the plan uses
+    /// their `kappa`, `kappa_min` and `kappa_exponent` and chooses its own variant (never one
+    /// that spreads energy over neighbouring pixels).
     ///
     /// # Panics
     /// If the bands do not tile one frame (see [`resolve_bands`], which says why).
     pub fn new(bands: &[&FrameState], params: &ResolveParams, threads: usize) -> DenoisePlan {
-        let design = Design::Paper;
-        let resolved = resolve(bands, &params.with_variant(Variant::Paper), threads);
+        Self::with_design(bands, params, threads, DEFAULT_DENOISE_DESIGN)
+    }
+
+    /// [`new`](Self::new) with another design (for the quality benchmark's comparison).
+    ///
+    /// # Panics
+    /// If the bands do not tile one frame.
+    pub fn with_design(
+        bands: &[&FrameState],
+        params: &ResolveParams,
+        threads: usize,
+        design: DenoiseDesign,
+    ) -> DenoisePlan {
+        let paper = match design {
+            DenoiseDesign::Paper | DenoiseDesign::PaperRatio => params.with_variant(Variant::Paper),
+            DenoiseDesign::MildRatio => {
+                ResolveParams::new(Variant::Paper, 2.0, params.kappa_min(), 0.0)
+                    .expect("valid kappa")
+            }
+        };
+        let resolved = resolve(bands, &paper, threads);
         let (width, height) = (resolved.width as usize, resolved.height as usize);
+        let inputs = match design {
+            DenoiseDesign::Paper => vec![resolved.reweighted],
+            DenoiseDesign::PaperRatio | DenoiseDesign::MildRatio => {
+                vec![resolved.reweighted, resolved.mean]
+            }
+        };
         DenoisePlan {
             width,
             height,
-            inputs: vec![resolved.reweighted],
+            inputs,
             design,
+            weights: bands[0].layout().luminance_weights(),
         }
     }
 
@@ -85,17 +152,64 @@ impl DenoisePlan {
             denoised.iter().all(|d| d.len() == pixels),
             "every denoised image has width * height pixels"
         );
+        let mut outputs = denoised.into_iter();
+        let mut out = outputs.next().expect("one input");
         match self.design {
-            Design::Paper => denoised.into_iter().next().expect("one input"),
+            DenoiseDesign::Paper => {}
+            DenoiseDesign::PaperRatio | DenoiseDesign::MildRatio => {
+                let mean = outputs.next().expect("two inputs");
+                let lum = |img: &[[f32; 3]]| -> Vec<f64> {
+                    img.iter()
+                        .map(|p| {
+                            let l = (0..3).map(|c| self.weights[c] * p[c] as f64).sum::<f64>();
+                            // The denoiser may return slightly negative values.
+                            l.max(0.0)
+                        })
+                        .collect()
+                };
+                let (w, h) = (self.width, self.height);
+                let kept = box_sums(&lum(&out), w, h, RATIO_RADIUS);
+                let all = box_sums(&lum(&mean), w, h, RATIO_RADIUS);
+                for (p, (k, a)) in out.iter_mut().zip(kept.iter().zip(&all)) {
+                    let gain = if *k > 0.0 {
+                        (a / k).clamp(1.0, RATIO_CAP)
+                    } else {
+                        1.0
+                    };
+                    *p = p.map(|v| (v as f64 * gain) as f32);
+                }
+            }
         }
+        out
     }
 
     /// The design's name, for the EXR header's provenance.
     pub fn name(&self) -> &'static str {
-        match self.design {
-            Design::Paper => "paper",
+        self.design.name()
+    }
+}
+
+/// Sums of `values` (a `w x h` plane) over the `(2r + 1)^2` window around every pixel, clamped
+/// to the frame: a summed-area table, four lookups per pixel.
+fn box_sums(values: &[f64], w: usize, h: usize, r: usize) -> Vec<f64> {
+    let mut sat = vec![0.0f64; (w + 1) * (h + 1)];
+    for y in 0..h {
+        let mut row = 0.0;
+        for x in 0..w {
+            row += values[y * w + x];
+            sat[(y + 1) * (w + 1) + x + 1] = sat[y * (w + 1) + x + 1] + row;
         }
     }
+    let mut out = Vec::with_capacity(w * h);
+    for y in 0..h {
+        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+        for x in 0..w {
+            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+            let at = |yy: usize, xx: usize| sat[yy * (w + 1) + xx];
+            out.push(at(y1, x1) - at(y0, x1) - at(y1, x0) + at(y0, x0));
+        }
+    }
+    out
 }
 
 fn resolve(bands: &[&FrameState], params: &ResolveParams, threads: usize) -> Resolved {
@@ -125,14 +239,14 @@ mod tests {
     }
 
     #[test]
-    fn the_input_is_the_papers_resolve_without_spreading() {
+    fn the_inputs_are_the_papers_resolve_without_spreading_and_the_mean() {
         let state = firefly_frame(9, 7, 32);
         let params = ResolveParams::with_defaults();
-        let plan = DenoisePlan::new(&[&state], &params, 2);
-        assert_eq!((plan.width(), plan.height()), (9, 7));
-        assert_eq!(plan.inputs().len(), 1);
         let paper = state.resolve(&params.with_variant(Variant::Paper));
-        assert_eq!(plan.inputs()[0], paper.reweighted);
+        let plan = DenoisePlan::with_design(&[&state], &params, 2, DenoiseDesign::Paper);
+        assert_eq!((plan.width(), plan.height()), (9, 7));
+        assert_eq!(plan.inputs(), std::slice::from_ref(&paper.reweighted));
+        assert_eq!(plan.name(), "paper");
         // The firefly is removed in its pixel and nowhere else touched (no spreading).
         let centre = 3 * 9 + 4;
         assert!(plan.inputs()[0][centre][0] < 1.0);
@@ -141,7 +255,9 @@ mod tests {
                 assert_eq!(*v, [0.5, 0.4, 0.3], "pixel {p}");
             }
         }
-        assert_eq!(plan.name(), "paper");
+        let plan = DenoisePlan::new(&[&state], &params, 2);
+        assert_eq!(plan.name(), DEFAULT_DENOISE_DESIGN.name());
+        assert_eq!(plan.inputs(), &[paper.reweighted, paper.mean]);
     }
 
     #[test]
@@ -153,22 +269,82 @@ mod tests {
             band.merge_overlap(&state).unwrap();
         }
         let params = ResolveParams::with_defaults();
-        let whole = DenoisePlan::new(&[&state], &params, 1);
-        let banded = DenoisePlan::new(&bands.iter().collect::<Vec<_>>(), &params, 3);
-        assert_eq!(whole.inputs(), banded.inputs());
+        for design in DenoiseDesign::ALL {
+            let whole = DenoisePlan::with_design(&[&state], &params, 1, design);
+            let banded =
+                DenoisePlan::with_design(&bands.iter().collect::<Vec<_>>(), &params, 3, design);
+            assert_eq!(whole.inputs(), banded.inputs(), "{design:?}");
+        }
+    }
+
+    /// Every input of `plan` as the denoiser's output, the first scaled by `first`, the others
+    /// by `rest`.
+    fn scaled(plan: &DenoisePlan, first: f32, rest: f32) -> Vec<Vec<[f32; 3]>> {
+        plan.inputs()
+            .iter()
+            .enumerate()
+            .map(|(i, img)| {
+                let s = if i == 0 { first } else { rest };
+                img.iter().map(|p| p.map(|v| v * s)).collect()
+            })
+            .collect()
     }
 
     #[test]
-    fn combine_returns_the_final_from_the_denoised_inputs() {
+    fn the_paper_design_returns_the_denoised_paper() {
         let state = firefly_frame(5, 4, 4);
-        let plan = DenoisePlan::new(&[&state], &ResolveParams::with_defaults(), 1);
-        let denoised: Vec<Vec<[f32; 3]>> = plan
-            .inputs()
-            .iter()
-            .map(|i| i.iter().map(|p| p.map(|v| v * 0.5)).collect())
-            .collect();
+        let plan = DenoisePlan::with_design(
+            &[&state],
+            &ResolveParams::with_defaults(),
+            1,
+            DenoiseDesign::Paper,
+        );
+        let denoised = scaled(&plan, 0.5, 0.5);
         let expected = denoised[0].clone();
         assert_eq!(plan.combine(denoised), expected);
+    }
+
+    #[test]
+    fn the_ratio_gives_back_the_denoised_means_local_energy_up_to_its_cap() {
+        // A flat frame: the denoised paper is a constant, the denoised mean `s` times it.
+        let state = firefly_frame(8, 8, 16);
+        let params = ResolveParams::with_defaults();
+        for (s, gain) in [(1.0, 1.0), (1.2, 1.2), (3.0, RATIO_CAP), (0.5, 1.0)] {
+            let plan = DenoisePlan::with_design(&[&state], &params, 1, DenoiseDesign::PaperRatio);
+            let flat = vec![vec![[0.5f32, 0.4, 0.3]; 64]; 2];
+            let denoised = vec![
+                flat[0].clone(),
+                flat[1].iter().map(|p| p.map(|v| v * s as f32)).collect(),
+            ];
+            let out = plan.combine(denoised);
+            for p in &out {
+                for (c, v) in p.iter().enumerate() {
+                    let want = [0.5, 0.4, 0.3][c] * gain;
+                    assert!((*v as f64 - want).abs() < 1e-6, "s {s}: {p:?}");
+                }
+            }
+        }
+        // A bright spot in the denoised mean raises only the pixels within RATIO_RADIUS of it.
+        let plan = DenoisePlan::with_design(&[&state], &params, 1, DenoiseDesign::PaperRatio);
+        let paper = vec![[1.0f32; 3]; 64];
+        let mut mean = paper.clone();
+        mean[3 * 8 + 3] = [2.0; 3];
+        let out = plan.combine(vec![paper, mean]);
+        for y in 0..8usize {
+            for x in 0..8usize {
+                let near = y.abs_diff(3) <= RATIO_RADIUS && x.abs_diff(3) <= RATIO_RADIUS;
+                assert_eq!(out[y * 8 + x][0] > 1.0, near, "({x}, {y})");
+            }
+        }
+    }
+
+    #[test]
+    fn box_sums_are_window_sums_clamped_to_the_frame() {
+        let v: Vec<f64> = (0..12).map(f64::from).collect(); // 4 x 3
+        let s = box_sums(&v, 4, 3, 1);
+        assert_eq!(s[0], 0.0 + 1.0 + 4.0 + 5.0);
+        assert_eq!(s[5], (0..12).filter(|i| i % 4 <= 2).sum::<i32>() as f64);
+        assert_eq!(s[11], 6.0 + 7.0 + 10.0 + 11.0);
     }
 
     #[test]
