@@ -42,25 +42,28 @@ pub enum DenoiseDesign {
     /// the cap bounds what one firefly's blotch can add around it.
     PaperRatio,
     /// [`PaperRatio`](Self::PaperRatio) with the paper's resolve at a fixed `kappa = 2`
-    /// (`kappa_exponent = 0`): it removes less before the denoiser.
+    /// (`kappa_exponent = 0`, the frame's `kappa_min`): it removes less before the denoiser.
     MildRatio,
+    /// [`PaperRatio`](Self::PaperRatio) with a fixed `kappa = 1`: removes less still.
+    GentleRatio,
 }
 
 /// The design [`DenoisePlan::new`] uses, chosen by the quality benchmark (docs/ALGORITHM.md).
-pub const DEFAULT_DENOISE_DESIGN: DenoiseDesign = DenoiseDesign::PaperRatio;
+pub const DEFAULT_DENOISE_DESIGN: DenoiseDesign = DenoiseDesign::MildRatio;
 
-/// [`DenoiseDesign::PaperRatio`]'s window radius (5x5), chosen by the benchmark from 2, 4, 8.
+/// The ratio designs' window radius (5x5), chosen by a sweep of 2, 4, 8 (docs/ALGORITHM.md).
 pub const RATIO_RADIUS: usize = 2;
-/// [`DenoiseDesign::PaperRatio`]'s largest gain, chosen by the benchmark from 1.1, 1.25, 1.5
+/// The ratio designs' largest gain, chosen by a sweep of 1.1, 1.25, 1.5
 /// and none.
 pub const RATIO_CAP: f64 = 1.5;
 
 impl DenoiseDesign {
     /// Every design, in declaration order.
-    pub const ALL: [DenoiseDesign; 3] = [
+    pub const ALL: [DenoiseDesign; 4] = [
         DenoiseDesign::Paper,
         DenoiseDesign::PaperRatio,
         DenoiseDesign::MildRatio,
+        DenoiseDesign::GentleRatio,
     ];
 
     /// The design's name (what [`DenoisePlan::name`] returns).
@@ -69,6 +72,19 @@ impl DenoiseDesign {
             DenoiseDesign::Paper => "paper",
             DenoiseDesign::PaperRatio => "paper+ratio",
             DenoiseDesign::MildRatio => "paper(kappa=2)+ratio",
+            DenoiseDesign::GentleRatio => "paper(kappa=1)+ratio",
+        }
+    }
+
+    /// The paper's resolve this design hands the denoiser, from the frame's parameters.
+    pub fn paper_params(self, params: &ResolveParams) -> ResolveParams {
+        let fixed = |kappa| {
+            ResolveParams::new(Variant::Paper, kappa, params.kappa_min(), 0.0).expect("valid kappa")
+        };
+        match self {
+            DenoiseDesign::Paper | DenoiseDesign::PaperRatio => params.with_variant(Variant::Paper),
+            DenoiseDesign::MildRatio => fixed(2.0),
+            DenoiseDesign::GentleRatio => fixed(1.0),
         }
     }
 }
@@ -96,20 +112,11 @@ impl DenoisePlan {
         threads: usize,
         design: DenoiseDesign,
     ) -> DenoisePlan {
-        let paper = match design {
-            DenoiseDesign::Paper | DenoiseDesign::PaperRatio => params.with_variant(Variant::Paper),
-            DenoiseDesign::MildRatio => {
-                ResolveParams::new(Variant::Paper, 2.0, params.kappa_min(), 0.0)
-                    .expect("valid kappa")
-            }
-        };
-        let resolved = resolve(bands, &paper, threads);
+        let resolved = resolve(bands, &design.paper_params(params), threads);
         let (width, height) = (resolved.width as usize, resolved.height as usize);
         let inputs = match design {
             DenoiseDesign::Paper => vec![resolved.reweighted],
-            DenoiseDesign::PaperRatio | DenoiseDesign::MildRatio => {
-                vec![resolved.reweighted, resolved.mean]
-            }
+            _ => vec![resolved.reweighted, resolved.mean],
         };
         DenoisePlan {
             width,
@@ -156,7 +163,7 @@ impl DenoisePlan {
         let mut out = outputs.next().expect("one input");
         match self.design {
             DenoiseDesign::Paper => {}
-            DenoiseDesign::PaperRatio | DenoiseDesign::MildRatio => {
+            _ => {
                 let mean = outputs.next().expect("two inputs");
                 let lum = |img: &[[f32; 3]]| -> Vec<f64> {
                     img.iter()
@@ -257,7 +264,9 @@ mod tests {
         }
         let plan = DenoisePlan::new(&[&state], &params, 2);
         assert_eq!(plan.name(), DEFAULT_DENOISE_DESIGN.name());
-        assert_eq!(plan.inputs(), &[paper.reweighted, paper.mean]);
+        let mild = state.resolve(&DEFAULT_DENOISE_DESIGN.paper_params(&params));
+        assert_eq!(mild.mean, paper.mean);
+        assert_eq!(plan.inputs(), &[mild.reweighted, mild.mean]);
     }
 
     #[test]
