@@ -41,6 +41,14 @@ The table in docs/ALGORITHM.md was measured on 64x64 streams of 1024 passes
     python3 $S $O --scenes slit,caustic,smalllight --gt-spp 8192
     cargo run --release --bin quality
 
+The raw and denoised tables of issue 22 (docs/ALGORITHM.md, "The denoiser's input") were
+measured on 128x128 streams with AOVs (about 600 MB per scene):
+
+    S=benches/quality/render_streams.py; O="--res 128 --passes 1024 --check-spp 2048"
+    python3 $S $O --scenes caustic,smalllight,slit --gt-spp 16384
+    python3 $S $O --scenes pool --gt-spp 32768
+    SPLATD_OIDN_LIB=$(bash tests/setup/oidn.sh) cargo run --release --bin quality
+
 Requirements: see benches/quality/requirements.txt (pip install -r ...).
 The fast `llvm_ad_rgb` variant needs a libLLVM that Dr.Jit can use: on Debian 12
 `apt-get install -y libllvm19` works (LLVM 14, the default `llvm` package, aborts
