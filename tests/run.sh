@@ -8,6 +8,8 @@
 #   chromium + chromedriver      the live page, driven headless (Debian packages)
 #   Mitsuba 3 + Dr.Jit           the Mitsuba worker's guided-mode test (pip, pinned in
 #                                benches/quality/requirements.txt)
+#   Open Image Denoise 2.5.1     the denoiser that `?denoise=oidn` loads at run time (pip's
+#                                pyoidn wheel); its path is exported as SPLATD_OIDN_LIB
 #   blender                      the Blender worker's test on Debian's Blender 3.4 (Debian package)
 #   bpy                          the same test on Blender 5.0 as a Python module (pip, pinned in
 #                                tests/requirements-bpy.txt, into a venv of its own under
@@ -41,6 +43,16 @@ python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ig
 bash tests/setup/nginx.sh >/dev/null
 bash tests/setup/python_venv.sh >/dev/null
 bash tests/setup/mitsuba.sh >/dev/null
+# OIDN: the denoise crate's and the server's denoise tests load the library this names. In CI a
+# failed install fails the run; elsewhere those tests say loudly that they checked nothing.
+if oidn_lib="$(bash tests/setup/oidn.sh)"; then
+    export SPLATD_OIDN_LIB="$oidn_lib"
+elif [ "${CI:-}" = true ]; then
+    echo "tests/setup/oidn.sh failed: Open Image Denoise is needed in CI" >&2
+    exit 1
+else
+    echo "WARNING: Open Image Denoise could not be installed; the denoise tests will check nothing" >&2
+fi
 # Without a Blender the worker's test on it skips, saying why (and fails on CI); without oiiotool
 # the provenance test checks the EXR header with OpenEXR's Python package only.
 bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip (fail on CI)"

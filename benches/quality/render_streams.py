@@ -31,7 +31,7 @@ Run (from the repository root):
 
     python3 benches/quality/render_streams.py [--out DIR] [--passes P] [--gt-spp G] [--res N]
         [--scenes caustic,smalllight,slit,pool] [--variant auto|llvm_ad_rgb|scalar_rgb]
-        [--check-spp C]
+        [--check-spp C] [--no-aovs]
 
 The table in docs/ALGORITHM.md was measured on 64x64 streams of 1024 passes
 (4 independent realizations of 256 spp for the benchmark):
@@ -40,6 +40,14 @@ The table in docs/ALGORITHM.md was measured on 64x64 streams of 1024 passes
     python3 $S $O --scenes pool --gt-spp 32768
     python3 $S $O --scenes slit,caustic,smalllight --gt-spp 8192
     cargo run --release --bin quality
+
+The raw and denoised tables of issue 22 (docs/ALGORITHM.md, "The denoiser's input") were
+measured on 128x128 streams with AOVs (about 600 MB per scene):
+
+    S=benches/quality/render_streams.py; O="--res 128 --passes 1024 --check-spp 2048"
+    python3 $S $O --scenes caustic,smalllight,slit --gt-spp 16384
+    python3 $S $O --scenes pool --gt-spp 32768
+    SPLATD_OIDN_LIB=$(bash tests/setup/oidn.sh) cargo run --release --bin quality
 
 Requirements: see benches/quality/requirements.txt (pip install -r ...).
 The fast `llvm_ad_rgb` variant needs a libLLVM that Dr.Jit can use: on Debian 12
@@ -57,7 +65,17 @@ Output, per scene, in <out>/<scene>/ (default <out> = <repo>/bench-data, git-ign
               Pass p was rendered with seed p (p = 0..P-1), 1 sample per pixel.
   gt.f32      raw little-endian float32, shape (H, W, 3), same layout: the
               per-pixel mean of G = gt_spp independent samples.
+  albedo.f32  (unless --no-aovs) raw little-endian float32, shape (P, H, W, 3), the
+              layout of passes.f32: pass p's albedo at the same sample's primary hit
+              (Mitsuba 3's `aov` integrator, `albedo`, wrapping the path integrator,
+              which then draws exactly the samples it draws alone).
+  normal.f32  (unless --no-aovs) the same for the shading normal (`sh_normal`, world
+              space, components in [-1, 1]; 0 where the ray leaves the scene).
+              These are the guides a denoiser (OIDN) takes; their per-pixel means
+              over a run's passes are what a frame with AOVs holds. Streams
+              rendered before the AOVs existed lack both files and stay readable.
   meta.json   {"scene", "width", "height", "passes", "gt_spp", "variant",
+               "aovs" ({"albedo": "albedo.f32", "normal": "normal.f32"} or {}),
                "seconds" (total render time of the scene), "mean_luminance"
                (image mean of GT Rec.709 luminance), "max_sample_luminance"
                (max luminance over all pass samples), plus extra diagnostics:
@@ -369,19 +387,30 @@ def rel_mse(x, ref):
     return float(np.mean((x - ref) ** 2 / (ref ** 2 + EPS_REL)))
 
 
+AOV_SPEC = "albedo:albedo,nn:sh_normal"   # Mitsuba's aov integrator: RGB, albedo, normal
+
+
 def render_scene(mi, dr, name, args, variant):
     res = args.res
     d = SCENES[name](mi, res)
     scene = mi.load_dict(d)
+    aovs = not args.no_aovs
+    # Passes with AOVs: the aov integrator wraps the scene's own integrator; its first three
+    # channels are that integrator's radiance from the same random numbers (checked: identical
+    # means), then albedo and the shading normal.
+    pass_scene = scene
+    if aovs:
+        pass_scene = mi.load_dict({**d, "integrator": {"type": "aov", "aovs": AOV_SPEC,
+                                                       "integrator": d["integrator"]}})
     H = W = res
     P, G = args.passes, args.gt_spp
     outdir = os.path.join(args.out, name)
     os.makedirs(outdir, exist_ok=True)
 
-    def render(spp, seed):
+    def render(spp, seed, which=scene, channels=3):
         s = dr.opaque(mi.UInt32, seed) if variant != "scalar_rgb" else seed
-        img = np.array(mi.render(scene, spp=spp, seed=s), dtype=np.float32)
-        assert img.shape == (H, W, 3), img.shape
+        img = np.array(mi.render(which, spp=spp, seed=s), dtype=np.float32)
+        assert img.shape == (H, W, channels), img.shape
         return img
 
     # seeds: passes 0..P-1, GT chunks P.., check chunks after those (disjoint).
@@ -392,15 +421,29 @@ def render_scene(mi, dr, name, args, variant):
     ck_seed0 = P + len(gt_chunks)
 
     render(1, 0)  # warm-up: JIT compilation is not counted as render time
+    if aovs:
+        render(1, 0, pass_scene, 9)
     t_start = time.time()
 
-    # ---- passes: one sample per pixel each
+    # ---- passes: one sample per pixel each (with its albedo and normal)
     passes = np.empty((P, H, W, 3), dtype=np.float32)
+    albedo = np.empty((P, H, W, 3), dtype=np.float32) if aovs else None
+    normal = np.empty((P, H, W, 3), dtype=np.float32) if aovs else None
     t0 = time.time()
     for p in range(P):
-        passes[p] = render(1, p)
+        if aovs:
+            img = render(1, p, pass_scene, 9)
+            passes[p], albedo[p], normal[p] = img[..., 0:3], img[..., 3:6], img[..., 6:9]
+        else:
+            passes[p] = render(1, p)
     t_passes = time.time() - t0
     passes.astype("<f4", copy=False).tofile(os.path.join(outdir, "passes.f32"))
+    aov_files = {}
+    if aovs:
+        for key, arr in (("albedo", albedo), ("normal", normal)):
+            aov_files[key] = f"{key}.f32"
+            arr.astype("<f4", copy=False).tofile(os.path.join(outdir, aov_files[key]))
+        del albedo, normal
 
     # ---- ground truth: weighted mean of chunk means
     t0 = time.time()
@@ -461,7 +504,7 @@ def render_scene(mi, dr, name, args, variant):
 
     meta = {
         "scene": name, "width": W, "height": H, "passes": P, "gt_spp": G,
-        "variant": variant, "seconds": round(seconds, 3),
+        "variant": variant, "seconds": round(seconds, 3), "aovs": aov_files,
         "mean_luminance": mean_gt, "max_sample_luminance": max_lum,
         "dtype": "float32 little-endian", "passes_shape": [P, H, W, 3], "gt_shape": [H, W, 3],
         "layout": "row-major [p][y][x][rgb], y=0 is the top row, linear Rec.709 RGB radiance",
@@ -513,7 +556,7 @@ def render_scene(mi, dr, name, args, variant):
         warn.append("non-finite sample values")
     for w in warn:
         print(f"   WARNING: {w}")
-    for fn in ("passes.f32", "gt.f32", "meta.json"):
+    for fn in ("passes.f32", "gt.f32", "meta.json", *aov_files.values()):
         print(f"   {os.path.join(outdir, fn)}: {os.path.getsize(os.path.join(outdir, fn))} bytes")
     return meta
 
@@ -528,6 +571,8 @@ def main():
     ap.add_argument("--res", type=int, default=128)
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--variant", default="auto", choices=["auto", "llvm_ad_rgb", "scalar_rgb"])
+    ap.add_argument("--no-aovs", action="store_true",
+                    help="skip albedo.f32 and normal.f32 (the denoiser's guides)")
     args = ap.parse_args()
     names = [s for s in args.scenes.split(",") if s]
     for s in names:

@@ -16,6 +16,7 @@
 //! order samples arrived in and however they were split across partial states.
 
 mod aov;
+pub mod denoise;
 mod layout;
 mod need;
 mod resolve;

@@ -240,6 +240,94 @@ pub struct CreateFrame {
     /// [`AovSpec`].
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub aovs: Vec<AovSpec>,
+    /// The denoiser `image.exr` runs when its query does not say (`denoise=`); none when
+    /// omitted.
+    #[serde(default, skip_serializing_if = "Denoise::is_none")]
+    pub denoise: Denoise,
+    /// Which declared AOVs guide the denoiser; when omitted they are chosen by name (see
+    /// [`DenoiseGuides`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub denoise_guides: Option<DenoiseGuides>,
+}
+
+/// A denoiser `image.exr` can run over the frame (`denoise=oidn`), adding the layer `denoised`.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Denoise {
+    /// No denoising (the default).
+    #[default]
+    None,
+    /// Intel Open Image Denoise 2.x, its `RT` filter.
+    Oidn,
+}
+
+impl Denoise {
+    /// Whether this is [`Denoise::None`].
+    pub fn is_none(&self) -> bool {
+        *self == Denoise::None
+    }
+
+    /// The name used in JSON and queries: `none` or `oidn`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Denoise::None => "none",
+            Denoise::Oidn => "oidn",
+        }
+    }
+}
+
+/// OIDN's quality mode for a denoised `image.exr` (`denoise_quality=`); `high` when omitted.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum DenoiseQuality {
+    /// OIDN's own default.
+    Default,
+    /// Balanced quality and speed.
+    Balanced,
+    /// OIDN's best, for final frames (the default here).
+    #[default]
+    High,
+    /// Fastest, for previews.
+    Fast,
+}
+
+impl DenoiseQuality {
+    /// The name used in queries and the EXR header.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DenoiseQuality::Default => "default",
+            DenoiseQuality::Balanced => "balanced",
+            DenoiseQuality::High => "high",
+            DenoiseQuality::Fast => "fast",
+        }
+    }
+}
+
+/// The AOVs a denoiser is guided by: each the name of a declared AOV with exactly three
+/// channels (albedo R, G, B in [0, 1]; normal X, Y, Z in [-1, 1]). A normal needs an albedo.
+///
+/// Given in [`CreateFrame::denoise_guides`], these are exactly the guides (`{}` denoises
+/// unguided). Omitted, the server picks by the AOV name's last dot-separated component, case
+/// ignored, among AOVs with three channels, the first declared winning: albedo `DiffCol`,
+/// `Diffuse Color`, `albedo` or `Denoising Albedo`; normal `Normal`, `N` or `Denoising Normal`
+/// (Blender's `ViewLayer.DiffCol` and `ViewLayer.Normal`). [`FrameInfo::denoise_guides`] shows
+/// the guides in force.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DenoiseGuides {
+    /// The albedo AOV's name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub albedo: Option<String>,
+    /// The normal AOV's name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normal: Option<String>,
+}
+
+impl DenoiseGuides {
+    /// Neither guide.
+    pub fn is_empty(&self) -> bool {
+        self.albedo.is_none() && self.normal.is_none()
+    }
 }
 
 impl CreateFrame {
@@ -253,6 +341,8 @@ impl CreateFrame {
             resolve: ResolveParams::default(),
             converged_below: DEFAULT_CONVERGED_BELOW,
             aovs: Vec::new(),
+            denoise: Denoise::None,
+            denoise_guides: None,
         }
     }
 }
@@ -309,6 +399,12 @@ pub struct PutFrame {
     /// [`AovSpec`].
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub aovs: Vec<AovSpec>,
+    /// [`CreateFrame::denoise`].
+    #[serde(default, skip_serializing_if = "Denoise::is_none")]
+    pub denoise: Denoise,
+    /// [`CreateFrame::denoise_guides`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub denoise_guides: Option<DenoiseGuides>,
 }
 
 impl PutFrame {
@@ -322,6 +418,8 @@ impl PutFrame {
             resolve: self.resolve,
             converged_below: self.converged_below,
             aovs: self.aovs,
+            denoise: self.denoise,
+            denoise_guides: self.denoise_guides,
         }
     }
 }
@@ -336,6 +434,8 @@ impl From<&CreateFrame> for PutFrame {
             resolve: c.resolve.clone(),
             converged_below: c.converged_below,
             aovs: c.aovs.clone(),
+            denoise: c.denoise,
+            denoise_guides: c.denoise_guides.clone(),
         }
     }
 }
@@ -374,6 +474,13 @@ pub struct FrameInfo {
     /// `<layer>.<channel>`); empty for a frame without AOVs.
     #[serde(default)]
     pub aovs: Vec<AovSpec>,
+    /// The frame's default denoiser ([`CreateFrame::denoise`]; absent: none).
+    #[serde(default, skip_serializing_if = "Denoise::is_none")]
+    pub denoise: Denoise,
+    /// The AOVs a denoised image is guided by, as given at creation or chosen by name (see
+    /// [`DenoiseGuides`]); absent when there are none.
+    #[serde(default, skip_serializing_if = "DenoiseGuides::is_empty")]
+    pub denoise_guides: DenoiseGuides,
     /// How far the frame is from converged (`GET /v1/frames/{id}` only; absent in lists, and
     /// when the server's working memory was too busy to resolve the frame).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -654,6 +761,13 @@ pub struct ImageQuery {
     /// Add one layer per cascade to the EXR (`cascades=1`).
     #[serde(default, with = "flag")]
     pub cascades: bool,
+    /// Run a denoiser and add its output as the layer `denoised` (`denoise=oidn`), or not
+    /// (`denoise=none`); overrides [`CreateFrame::denoise`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub denoise: Option<Denoise>,
+    /// OIDN's quality mode (`high` when omitted).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub denoise_quality: Option<DenoiseQuality>,
 }
 
 impl ImageQuery {
@@ -796,6 +910,11 @@ mod tests {
             rejected_batches: 1,
             memory_bytes: 4096,
             aovs: vec![AovSpec::new("albedo", &["R", "G", "B"])],
+            denoise: Denoise::Oidn,
+            denoise_guides: DenoiseGuides {
+                albedo: Some("albedo".into()),
+                normal: None,
+            },
             convergence: None,
         };
         let mut v = serde_json::to_value(&info).expect("serialises");
@@ -810,8 +929,14 @@ mod tests {
         );
         // A server from before AOVs were listed: no `aovs` field, read as none.
         v.as_object_mut().unwrap().remove("aovs");
+        v.as_object_mut().unwrap().remove("denoise");
+        v.as_object_mut().unwrap().remove("denoise_guides");
         let old = serde_json::from_value::<FrameInfo>(v).expect("an older server's answer");
         assert!(old.aovs.is_empty());
+        assert_eq!(
+            (old.denoise, old.denoise_guides),
+            (Denoise::None, DenoiseGuides::default())
+        );
 
         let ack = BatchAck {
             frame: "f".into(),

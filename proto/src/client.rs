@@ -591,6 +591,12 @@ fn image_query_string(q: &ImageQuery) -> String {
     if q.cascades {
         parts.push("cascades=1".to_owned());
     }
+    if let Some(d) = q.denoise {
+        parts.push(format!("denoise={}", d.as_str()));
+    }
+    if let Some(d) = q.denoise_quality {
+        parts.push(format!("denoise_quality={}", d.as_str()));
+    }
     if parts.is_empty() {
         String::new()
     } else {
@@ -599,9 +605,10 @@ fn image_query_string(q: &ImageQuery) -> String {
 }
 
 /// Statuses worth retrying: the server or something in front of it is
-/// overloaded or restarting, or the request timed out.
+/// overloaded or restarting, or the request timed out. Not 501: the server lacks the
+/// feature (e.g. `denoiser_unavailable`), and asking again does not give it one.
 fn is_transient(status: StatusCode) -> bool {
-    status.is_server_error()
+    (status.is_server_error() && status != StatusCode::NOT_IMPLEMENTED)
         || status == StatusCode::REQUEST_TIMEOUT
         || status == StatusCode::TOO_MANY_REQUESTS
 }
@@ -697,7 +704,7 @@ mod tests {
         for s in [500, 502, 503, 504, 408, 429] {
             assert!(is_transient(StatusCode::from_u16(s).expect("valid")), "{s}");
         }
-        for s in [400, 401, 404, 409, 413, 415, 422] {
+        for s in [400, 401, 404, 409, 413, 415, 422, 501] {
             assert!(
                 !is_transient(StatusCode::from_u16(s).expect("valid")),
                 "{s}"

@@ -64,8 +64,8 @@ pub mod state;
 pub mod writer;
 
 pub use api::{
-    BatchAck, CascadeParams, CreateFrame, ErrorBody, FrameInfo, FrameList, ImageQuery, ImportAck,
-    PutFrame, ResolveParams, SyncAck, Variant,
+    BatchAck, CascadeParams, CreateFrame, Denoise, DenoiseGuides, DenoiseQuality, ErrorBody,
+    FrameInfo, FrameList, ImageQuery, ImportAck, PutFrame, ResolveParams, SyncAck, Variant,
 };
 pub use batch::{records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError};
 #[cfg(feature = "client")]

@@ -167,6 +167,8 @@ async fn create_frame_and_frame_info() {
             rejected_batches: 0,
             memory_bytes: 1024,
             aovs: vec![],
+            denoise: Default::default(),
+            denoise_guides: Default::default(),
             convergence: None,
         };
         let json = serde_json::to_string(&info).expect("serialises");

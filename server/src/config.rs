@@ -96,6 +96,16 @@ pub struct Config {
     /// Bearer token sent to the upstream.
     #[arg(long, requires = "upstream")]
     pub upstream_token: Option<String>,
+    /// Intel Open Image Denoise 2.x library (the path of libOpenImageDenoise.so.2) that
+    /// `image.exr?denoise=oidn` runs, loaded at start; without it the dynamic loader's search
+    /// path is tried. A server without a usable one runs, and answers denoise requests 501
+    /// `denoiser_unavailable`. `bash tests/setup/oidn.sh` installs OIDN and prints the path.
+    #[arg(long, env = "SPLATD_OIDN_LIB", value_name = "PATH")]
+    pub oidn_lib: Option<PathBuf>,
+    /// MiB one denoise may use inside OIDN (its maxMemoryMB: it denoises in tiles to stay
+    /// below), reserved from --work-memory-mib with the denoise's images.
+    #[arg(long, default_value_t = 512)]
+    pub oidn_max_memory_mib: u32,
 }
 
 /// `Config` as a whole command line, only to parse the defaults.

@@ -78,6 +78,8 @@ pub struct FrameSpec {
     pub layout: CascadeLayout,
     /// The default resolve parameters.
     pub resolve: estimator::ResolveParams,
+    /// The AOVs that guide its denoised images (see [`crate::denoise::Guides::choose`]).
+    pub guides: crate::denoise::Guides,
 }
 
 impl FrameSpec {
@@ -99,10 +101,13 @@ impl FrameSpec {
         let resolve = core_resolve_params(&request.resolve)?;
         estimator::check_converged_below(request.converged_below)?;
         check_aovs(&request.aovs)?;
+        let guides =
+            crate::denoise::Guides::choose(&request.aovs, request.denoise_guides.as_ref())?;
         Ok(FrameSpec {
             request,
             layout,
             resolve,
+            guides,
         })
     }
 
@@ -134,7 +139,7 @@ impl FrameSpec {
 pub const MAX_AOV_CHANNELS: usize = 64;
 
 /// Layer names of `image.exr` that an AOV may not take.
-const RESERVED_LAYERS: [&str; 3] = ["mean", "removed", "spp"];
+const RESERVED_LAYERS: [&str; 4] = ["mean", "removed", "spp", crate::denoise::DENOISED_LAYER];
 
 /// Longest EXR channel name: OpenEXR reads and writes names (attribute names, type names and
 /// channel names) of at most 255 bytes, with the header's long-names flag set for those over 31.
@@ -163,7 +168,7 @@ fn check_aovs(aovs: &[AovSpec]) -> Result<(), ParamError> {
         if aov.name.is_empty() || RESERVED_LAYERS.contains(&aov.name.as_str()) || cascade {
             return bad(format!(
                 "AOV name {name} is empty or taken by a layer image.exr serves (mean, removed, \
-                 spp, cascadeN)"
+                 spp, denoised, cascadeN)"
             ));
         }
         if aovs[..i].iter().any(|a| a.name == aov.name) {
@@ -1306,6 +1311,8 @@ impl ShardedFrame {
             rejected_batches: c.rejected_batches,
             memory_bytes: self.spec.memory_bytes(),
             aovs: r.aovs.clone(),
+            denoise: r.denoise,
+            denoise_guides: self.spec.guides.to_api(),
             convergence: None,
         }
     }

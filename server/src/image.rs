@@ -21,6 +21,16 @@
 //! | `splatd:luminance` | v3f | the luminance weights of R, G, B |
 //! | `splatd:samples` | double | samples in the image (exact below 2^53) |
 //! | `splatd:sppMin`, `splatd:sppMean`, `splatd:sppMax` | double | samples per pixel |
+//!
+//! An image with the `denoised` layer adds how it was made (see [`crate::denoise`]):
+//!
+//! | attribute | type | value |
+//! |-----------|------|-------|
+//! | `splatd:denoiser`, `splatd:denoiserVersion` | string | `oidn`, OIDN's version (`2.5.1`) |
+//! | `splatd:denoiseQuality` | string | OIDN's quality mode: `high`, `balanced`, `fast`, `default` |
+//! | `splatd:denoiseInput` | string | the denoiser input's design (`DenoisePlan::name`) |
+//! | `splatd:denoiseInputImages` | int | how many images OIDN denoised for it |
+//! | `splatd:denoiseAlbedo`, `splatd:denoiseNormal` | string | the AOVs that guided it, or `none` |
 
 use exr::prelude::*;
 
@@ -232,6 +242,19 @@ pub fn encode_exr(
     aovs: &[(String, Vec<f32>)],
     provenance: &Provenance<'_>,
 ) -> Result<Vec<u8>> {
+    encode_exr_with(resolved, extra, aovs, provenance, Vec::new())
+}
+
+/// [`encode_exr`] with more header attributes (`splatd:` names; for example how the `denoised`
+/// layer was made, [`crate::denoise::DenoiseRun::attributes`]), written among the provenance's
+/// in order of name.
+pub fn encode_exr_with(
+    resolved: &Resolved,
+    extra: &[ExtraLayer],
+    aovs: &[(String, Vec<f32>)],
+    provenance: &Provenance<'_>,
+    more_attributes: Vec<(&'static str, HeaderValue)>,
+) -> Result<Vec<u8>> {
     let size = (resolved.width as usize, resolved.height as usize);
     let mut channels: Vec<AnyChannel<FlatSamples>> = Vec::with_capacity(10 + 3 * extra.len());
     push_rgb(&mut channels, "", &resolved.reweighted);
@@ -255,7 +278,10 @@ pub fn encode_exr(
         ));
     }
     let bytes = write_one_part(size, LayerAttributes::default(), channels)?;
-    add_attributes(bytes, &provenance.attributes(resolved))
+    let mut attributes = provenance.attributes(resolved);
+    attributes.extend(more_attributes);
+    attributes.sort_by_key(|(name, _)| *name);
+    add_attributes(bytes, &attributes)
 }
 
 /// One part of `size` pixels holding `channels`, in the layout of the module docs (scan lines,

@@ -9,7 +9,8 @@
 //! * [`http`]: the router, one handler file per concept, the JSON errors and bearer-token roles;
 //! * [`durable`]: snapshots, recovery and quarantine; [`failpoint`]: fault injection for tests;
 //! * [`renders`] and [`work`]: shared resolves and the working-memory budget; [`converge`]: need
-//!   maps and each frame's convergence over time, from those shared resolves;
+//!   maps and each frame's convergence over time, from those shared resolves; [`denoise`]:
+//!   Open Image Denoise (loaded at run time) over a frame, for `image.exr?denoise=oidn`;
 //! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
 //!   [`viewer`]: pushing frames to tev; [`memory`]: huge pages for large buffers.
 
@@ -17,6 +18,7 @@ pub mod config;
 pub mod connection;
 pub mod converge;
 pub mod dedup;
+pub mod denoise;
 pub mod durable;
 pub mod export;
 pub mod failpoint;
@@ -111,6 +113,8 @@ pub struct Shared {
     pub pass_scratch: passes::ScratchPool,
     /// Buffers kept for large request bodies (see [`http::extract::BodyPool`]).
     pub body_pool: Arc<http::extract::BodyPool>,
+    /// Open Image Denoise, or why this server has none.
+    pub denoiser: denoise::Denoiser,
 }
 
 /// Finished renders kept for requests that ask again before the frame changes: enough for a
@@ -145,6 +149,18 @@ impl AppState {
         durable: Option<Arc<Durable>>,
         auth: Auth,
     ) -> AppState {
+        let none = denoise::Denoiser::unavailable("no denoiser was configured for this server");
+        Self::with_denoiser(limits, metrics, durable, auth, none)
+    }
+
+    /// A server state with an empty store, access rules and a denoiser.
+    pub fn with_denoiser(
+        limits: Limits,
+        metrics: Option<PrometheusHandle>,
+        durable: Option<Arc<Durable>>,
+        auth: Auth,
+        denoiser: denoise::Denoiser,
+    ) -> AppState {
         let decode_limits = DecodeLimits {
             max_records: limits.max_records,
             ..DecodeLimits::default()
@@ -163,6 +179,7 @@ impl AppState {
             durable,
             boot: boot_id(),
             auth,
+            denoiser,
         }))
     }
 
@@ -199,7 +216,26 @@ impl AppState {
         } else {
             tracing::warn!("no tokens configured: anyone who can reach this server may use it");
         }
-        let app = AppState::with_auth(config.limits(), metrics, durable.clone(), auth);
+        let denoiser =
+            denoise::Denoiser::load(config.oidn_lib.as_deref(), config.oidn_max_memory_mib);
+        match denoiser.oidn() {
+            Ok(oidn) => tracing::info!(
+                version = %oidn.version(),
+                library = %oidn.path().display(),
+                max_memory_mib = config.oidn_max_memory_mib,
+                "Open Image Denoise loaded: image.exr?denoise=oidn is served"
+            ),
+            Err(e) if config.oidn_lib.is_some() => {
+                tracing::warn!(
+                    "Open Image Denoise not loaded, denoise requests will be refused: {e}"
+                )
+            }
+            Err(e) => tracing::info!(
+                "Open Image Denoise not loaded, denoise requests will be refused: {e}"
+            ),
+        }
+        let app =
+            AppState::with_denoiser(config.limits(), metrics, durable.clone(), auth, denoiser);
         if let Some(durable) = &durable {
             let n = durable
                 .recover(&app.store)

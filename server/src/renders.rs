@@ -72,7 +72,7 @@ pub(crate) async fn on_low_priority_thread<T: Send + 'static>(
 /// Lowers the calling thread's priority to [`RENDER_NICE`] (Linux keeps a nice value per
 /// thread; threads it starts inherit it). Failing to is harmless: the render runs at normal
 /// priority.
-fn lower_priority() {
+pub(crate) fn lower_priority() {
     // SAFETY: gettid and setpriority only read their arguments.
     let result = unsafe {
         let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;

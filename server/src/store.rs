@@ -242,6 +242,19 @@ fn describe_difference(ours: &CreateFrame, theirs: &CreateFrame) -> String {
             crate::frame::describe_aovs(&theirs.aovs)
         ));
     }
+    if ours.denoise != theirs.denoise {
+        diffs.push(format!(
+            "denoise {} here, {} requested",
+            ours.denoise.as_str(),
+            theirs.denoise.as_str()
+        ));
+    }
+    if ours.denoise_guides != theirs.denoise_guides {
+        diffs.push(format!(
+            "denoise_guides {:?} here, {:?} requested",
+            ours.denoise_guides, theirs.denoise_guides
+        ));
+    }
     if ours.converged_below != theirs.converged_below {
         diffs.push(format!(
             "converged_below {} here, {} requested",

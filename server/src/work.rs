@@ -87,6 +87,16 @@ impl WorkBudget {
         })
     }
 
+    /// Reserves without waiting, or the [`Busy`] a request that waited would have got.
+    pub fn reserve_now(self: &Arc<Self>, bytes: u64) -> Result<Reservation, Busy> {
+        self.try_reserve(bytes).ok_or_else(|| Busy {
+            needed: bytes,
+            used: self.used(),
+            capacity: self.capacity,
+            retry_after: self.wait.max(Duration::from_secs(1)),
+        })
+    }
+
     /// Reserves `bytes`, waiting up to the budget's wait for others to give theirs back.
     pub async fn reserve(self: &Arc<Self>, bytes: u64) -> Result<Reservation, Busy> {
         let deadline = tokio::time::Instant::now() + self.wait;

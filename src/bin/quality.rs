@@ -15,10 +15,23 @@
 //!
 //! with every row's ratio to the best anchor of its scene and spp. `--time` adds what `spread`'s
 //! second stage costs, as the ratio of a 1080p resolve's time to `paper`'s.
+//!
+//! Then, in the same run, the DENOISED table (issue 22: studios ship the frame after Intel Open
+//! Image Denoise): OIDN (`splatd-denoise`, `hdr`, default quality; the library from
+//! `SPLATD_OIDN_LIB`, see `tests/setup/oidn.sh`) on every anchor a user could feed it instead,
+//! each at its best per row (the plain mean, G-MoN with 8 or 16 sets, and every luminance clamp
+//! that removes at most 5 % of the frame's energy), and on splatd's denoised final
+//! ([`DenoisePlan`]: inputs, OIDN, combine) for every [`DenoiseDesign`], unguided and guided by
+//! the means of the stream's albedo and normal AOVs (`albedo.f32`, `normal.f32`) where it has
+//! them: relMSE, its ratio to the best denoised anchor (goal <= 0.8x at every spp), and the
+//! energy relative to OIDN(mean)'s (goal within 2 % at 64 and 256 spp). `--denoised-only`
+//! skips the raw table (for iterating on designs; the recorded tables come from one run of both).
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context, Result};
+use splatd_denoise::{DenoiseInput, Oidn, Quality};
+use splatd_estimator::denoise::{DenoiseDesign, DenoisePlan, DEFAULT_DENOISE_DESIGN};
 use splatd_estimator::{
     CascadeLayout, FrameState, ResolveParams, SpreadParams, Variant, DEFAULT_KAPPA,
     DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_LOWEST_SCALE, DEFAULT_VARIANT,
@@ -30,6 +43,12 @@ use splatd_scenes::synth::FireflyScene;
 
 const SPPS: [usize; 3] = [16, 64, 256];
 const CLAMPS: [f64; 9] = [0.25, 0.5, 1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
+/// Clamp levels fed to the denoiser: powers of 2 from 1/4 to 2^14, wide enough that some keep
+/// directly seen lights (a clamp that removes more than [`SENSIBLE_CLAMP`] of the energy is
+/// not an anchor of the denoised table).
+const DENOISE_CLAMPS: std::ops::RangeInclusive<i32> = -2..=14;
+/// The most energy a clamp fed to the denoiser may remove (issue 22's "sensible clamp").
+const SENSIBLE_CLAMP: f64 = 0.05;
 const C0S: [f64; 4] = [1.0, 0.25, 1.0 / 16.0, 1.0 / 64.0];
 const KAPPAS: [f64; 6] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0];
 /// The paper's `kappa` when it was splatd's default (fixed, `kappa_exponent = 0`): the rows
@@ -97,6 +116,18 @@ struct Scene {
     height: u32,
     runs: Vec<Vec<Vec<[f32; 3]>>>,
     gt: Vec<[f32; 3]>,
+    /// Per run and per entry of [`SPPS`], the means of the albedo and normal AOVs over the
+    /// run's first `spp` passes (empty for a stream without AOVs).
+    guides: Vec<Vec<Guides>>,
+    /// The ground truth's own relMSE as render_streams.py estimated it (its chunks' spread):
+    /// a floor under every relMSE of the scene.
+    gt_noise: Option<f64>,
+}
+
+/// A denoiser's guides: the albedo and normal means of a run's first passes.
+struct Guides {
+    albedo: Vec<[f32; 3]>,
+    normal: Vec<[f32; 3]>,
 }
 
 impl Scene {
@@ -118,6 +149,8 @@ impl Scene {
             gt: (0..size)
                 .flat_map(|y| (0..size).map(move |x| scene.mean(x, y).map(|v| v as f32)))
                 .collect(),
+            guides: Vec::new(),
+            gt_noise: Some(0.0),
         }
     }
 
@@ -166,12 +199,58 @@ impl Scene {
         if runs.is_empty() {
             bail!("{name}: {p} passes, at least {} needed", SPPS[2]);
         }
+        // The AOVs (streams rendered before they existed have none): only their means over
+        // each run's first 16, 64, 256 passes are kept.
+        let mut guides = Vec::new();
+        if dir.join("albedo.f32").exists() && dir.join("normal.f32").exists() {
+            let means = |file: &str| -> Result<Vec<Vec<Vec<[f32; 3]>>>> {
+                let all = floats(file, pixels * p as usize)?;
+                Ok((0..runs.len())
+                    .map(|r| {
+                        SPPS.iter()
+                            .map(|&spp| {
+                                let passes = &all[r * SPPS[2] * pixels..];
+                                (0..pixels)
+                                    .map(|i| {
+                                        let mut sum = [0.0f64; 3];
+                                        for pass in 0..spp {
+                                            let v = passes[pass * pixels + i];
+                                            for c in 0..3 {
+                                                sum[c] += if v[c].is_finite() {
+                                                    v[c] as f64
+                                                } else {
+                                                    0.0
+                                                };
+                                            }
+                                        }
+                                        sum.map(|s| (s / spp as f64) as f32)
+                                    })
+                                    .collect()
+                            })
+                            .collect()
+                    })
+                    .collect())
+            };
+            let (albedo, normal) = (means("albedo.f32")?, means("normal.f32")?);
+            guides = albedo
+                .into_iter()
+                .zip(normal)
+                .map(|(a, n)| {
+                    a.into_iter()
+                        .zip(n)
+                        .map(|(albedo, normal)| Guides { albedo, normal })
+                        .collect()
+                })
+                .collect();
+        }
         Ok(Self {
             name,
             width: w,
             height: h,
             runs,
             gt: floats("gt.f32", pixels)?,
+            guides,
+            gt_noise: meta["relmse_gt_est_from_chunks"].as_f64(),
         })
     }
 }
@@ -413,6 +492,202 @@ fn best_of(label: &str, anchor: bool, family: Vec<(String, Score)>) -> Row {
     }
 }
 
+/// One denoised estimator's relMSE and energy relative to OIDN(mean), per realization.
+#[derive(Default)]
+struct Denoised {
+    rel_mse: Vec<f64>,
+    energy: Vec<f64>,
+}
+
+impl Denoised {
+    fn err(&self) -> f64 {
+        Score::mean(&self.rel_mse)
+    }
+    fn energy(&self) -> f64 {
+        Score::mean(&self.energy)
+    }
+}
+
+/// How many rows of a table meet a goal, and which miss it.
+#[derive(Default)]
+struct Goal {
+    met: usize,
+    rows: usize,
+    missed: Vec<String>,
+}
+
+impl Goal {
+    fn check(&mut self, ok: bool, row: &str) -> &'static str {
+        self.rows += 1;
+        if ok {
+            self.met += 1;
+            "ok"
+        } else {
+            self.missed.push(row.to_owned());
+            "MISS"
+        }
+    }
+    fn report(&self, what: &str) {
+        println!("  {what}: {}/{} rows", self.met, self.rows);
+        if !self.missed.is_empty() {
+            println!("    missed: {}", self.missed.join("; "));
+        }
+    }
+}
+
+/// The denoised table's rows of one scene: for every spp and guide (none, and the AOVs' means
+/// where the stream has them), OIDN on every anchor and on every design's final.
+fn denoised_rows(
+    scene: &Scene,
+    states: &[Vec<FrameState>],
+    oidn: &Oidn,
+    ratio_goal: &mut Goal,
+    energy_goal: &mut Goal,
+) -> Result<()> {
+    let (w, h) = (scene.width as usize, scene.height as usize);
+    let runs = scene.runs.len();
+    let defaults = ResolveParams::with_defaults();
+    let lum = |img: &[[f32; 3]]| energy(img);
+    for (si, &spp) in SPPS.iter().enumerate() {
+        let guides: &[bool] = if scene.guides.is_empty() {
+            &[false]
+        } else {
+            &[false, true]
+        };
+        for &guided in guides {
+            let denoise = |r: usize, color: &[[f32; 3]]| -> Result<Vec<[f32; 3]>> {
+                let g = guided.then(|| &scene.guides[r][si]);
+                Ok(oidn.denoise(&DenoiseInput {
+                    width: w,
+                    height: h,
+                    color,
+                    albedo: g.map(|g| &g.albedo[..]),
+                    normal: g.map(|g| &g.normal[..]),
+                    hdr: true,
+                    quality: Quality::Default,
+                    clean_aux: false,
+                })?)
+            };
+            let means: Vec<Vec<[f32; 3]>> = (0..runs)
+                .map(|r| states[r][si].resolve(&ResolveParams::off()).reweighted)
+                .collect();
+            let mut reference = Vec::new(); // OIDN(mean)'s energy per realization
+            let mut rows: Vec<(String, bool, Denoised)> = Vec::new();
+            let mut mean_row = Denoised::default();
+            for (r, mean) in means.iter().enumerate() {
+                let d = denoise(r, mean)?;
+                reference.push(lum(&d));
+                mean_row.rel_mse.push(rel_mse(&d, &scene.gt));
+                mean_row.energy.push(0.0);
+            }
+            let score = |images: &dyn Fn(usize) -> Result<Vec<[f32; 3]>>| -> Result<Denoised> {
+                let mut s = Denoised::default();
+                for (r, reference) in reference.iter().enumerate() {
+                    let d = images(r)?;
+                    s.rel_mse.push(rel_mse(&d, &scene.gt));
+                    s.energy.push(lum(&d) / reference - 1.0);
+                }
+                Ok(s)
+            };
+            rows.push(("OIDN(mean)".into(), true, mean_row));
+            // Clamps that remove at most 5 % of the mean's energy (averaged over realizations).
+            let mut clamps = Vec::new();
+            for k in DENOISE_CLAMPS {
+                let c = 2f64.powi(k);
+                let images: Vec<Vec<[f32; 3]>> = (0..runs)
+                    .map(|r| per_pixel(&scene.runs[r], spp, |x| clamped_mean(x, c)))
+                    .collect();
+                let removed = (0..runs)
+                    .map(|r| 1.0 - lum(&images[r]) / lum(&means[r]))
+                    .sum::<f64>()
+                    / runs as f64;
+                if removed <= SENSIBLE_CLAMP {
+                    let s = score(&|r| denoise(r, &images[r]))?;
+                    clamps.push((
+                        format!("L<={c}, removes {:.1} %", 100.0 * removed.max(0.0)),
+                        s,
+                    ));
+                }
+            }
+            match clamps
+                .into_iter()
+                .min_by(|a, b| a.1.err().total_cmp(&b.1.err()))
+            {
+                Some((setting, s)) => {
+                    rows.push((format!("OIDN(clamp <= 5 %) [{setting}]"), true, s))
+                }
+                None => println!(
+                    "{} {spp} spp: no clamp of 2^{:?} removes at most 5 % of the energy",
+                    scene.name, DENOISE_CLAMPS
+                ),
+            }
+            let mut gmons = Vec::new();
+            for m in [8, 16] {
+                let s = score(&|r| denoise(r, &per_pixel(&scene.runs[r], spp, |x| gmon(x, m))))?;
+                gmons.push((format!("M={m}"), s));
+            }
+            let (setting, s) = gmons
+                .into_iter()
+                .min_by(|a, b| a.1.err().total_cmp(&b.1.err()))
+                .expect("two G-MoN settings");
+            rows.push((format!("OIDN(G-MoN) [{setting}]"), true, s));
+            for design in DenoiseDesign::ALL {
+                let s = score(&|r| {
+                    let plan = DenoisePlan::with_design(&[&states[r][si]], &defaults, 2, design);
+                    let outputs = plan
+                        .inputs()
+                        .iter()
+                        .map(|input| denoise(r, input))
+                        .collect::<Result<Vec<_>>>()?;
+                    Ok(plan.combine(outputs))
+                })?;
+                let default = if design == DEFAULT_DENOISE_DESIGN {
+                    " (default)"
+                } else {
+                    ""
+                };
+                rows.push((format!("splatd {}{default}", design.name()), false, s));
+            }
+            let best = rows
+                .iter()
+                .filter(|r| r.1)
+                .map(|r| r.2.err())
+                .fold(f64::INFINITY, f64::min);
+            let guide = if guided { "aovs" } else { "none" };
+            for (label, anchor, s) in &rows {
+                let ratio = s.err() / best;
+                let mut goals = String::new();
+                if label.ends_with("(default)") {
+                    let row = format!("{} {spp} {guide}", scene.name);
+                    goals = format!(
+                        "ratio<=0.8: {}",
+                        ratio_goal.check(ratio <= 0.8, &format!("{row} {ratio:.2}x"))
+                    );
+                    if spp >= 64 {
+                        let e = s.energy();
+                        goals += &format!(
+                            "  |energy|<=2%: {}",
+                            energy_goal
+                                .check(e.abs() <= 0.02, &format!("{row} {:+.2} %", 100.0 * e))
+                        );
+                    }
+                }
+                println!(
+                    "{:<10} {:>4} {:<5} {:<46} {:>9.5} {:>7.3} {:>+8.2}%  {goals}",
+                    scene.name,
+                    spp,
+                    guide,
+                    format!("{label}{}", if *anchor { " *" } else { "" }),
+                    s.err(),
+                    ratio,
+                    100.0 * s.energy(),
+                );
+            }
+        }
+    }
+    Ok(())
+}
+
 fn main() -> Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let value = |name: &str| {
@@ -429,6 +704,7 @@ fn main() -> Result<()> {
     let only: Option<Vec<String>> =
         value("--scenes").map(|s| s.split(',').map(str::to_owned).collect());
     let wanted = |name: &str| only.as_ref().is_none_or(|o| o.iter().any(|n| n == name));
+    let denoised_only = args.iter().any(|a| a == "--denoised-only");
 
     let mut scenes = Vec::new();
     if wanted("synthetic") {
@@ -480,7 +756,8 @@ fn main() -> Result<()> {
         Some(g) => g.1.push(err),
         None => grid.push((setting.to_owned(), vec![err])),
     };
-    for scene in &scenes {
+    let (mut raw_ratio_goal, mut raw_energy_goal) = (Goal::default(), Goal::default());
+    for scene in scenes.iter().filter(|_| !denoised_only) {
         let runs = scene.runs.len();
         let default_layout = CascadeLayout::with_defaults();
         let default_states: Vec<Vec<FrameState>> = scene
@@ -587,20 +864,48 @@ fn main() -> Result<()> {
                 .fold(f64::INFINITY, f64::min);
             best_anchor.push(best);
             for row in &rows {
+                let ratio = row.score.err() / best;
+                let mut goals = String::new();
+                if row.label.starts_with("splatd defaults") {
+                    let name = format!("{} {spp}", scene.name);
+                    goals = format!(
+                        "  ratio<=0.8: {}",
+                        raw_ratio_goal.check(ratio <= 0.8, &format!("{name} {ratio:.2}x"))
+                    );
+                    let loss = -row.score.bias();
+                    let allowed = match spp {
+                        64 => Some(0.03),
+                        256 => Some(0.015),
+                        _ => None,
+                    };
+                    if let Some(allowed) = allowed {
+                        goals += &format!(
+                            "  loss<={:.1}%: {}",
+                            100.0 * allowed,
+                            raw_energy_goal
+                                .check(loss <= allowed, &format!("{name} -{:.2} %", 100.0 * loss))
+                        );
+                    }
+                }
                 println!(
-                    "{:<10} {:>4} {:>3}  {:<36} {:>9.5} {:>7.3} {:>+7.2}%",
+                    "{:<10} {:>4} {:>3}  {:<36} {:>9.5} {:>7.3} {:>+7.2}%{goals}",
                     scene.name,
                     spp,
                     runs,
                     format!("{}{}", row.label, if row.anchor { " *" } else { "" }),
                     row.score.err(),
-                    row.score.err() / best,
+                    ratio,
                     100.0 * row.score.bias()
                 );
             }
         }
     }
-    println!("* = anchor");
+    if !denoised_only {
+        println!("* = anchor");
+        println!("raw goals of splatd's default:");
+        raw_ratio_goal.report("relMSE <= 0.8x the best raw anchor (every spp)");
+        raw_energy_goal.report("energy loss <= 3 % at 64 spp, <= 1.5 % at 256 spp");
+    }
     // One setting for every scene: the grid ranked by the geometric mean of relMSE over every
     // scene and spp (how a default is chosen without an oracle per row).
     let geo = |v: &[f64]| (v.iter().map(|e| e.ln()).sum::<f64>() / v.len() as f64).exp();
@@ -644,5 +949,52 @@ fn main() -> Result<()> {
     if args.iter().any(|a| a == "--time") {
         resolve_time()?;
     }
+    denoised_table(&scenes)
+}
+
+/// The DENOISED table (see the module docs), after the raw one in the same run.
+fn denoised_table(scenes: &[Scene]) -> Result<()> {
+    let oidn = match Oidn::load() {
+        Ok(oidn) => oidn,
+        Err(e) => {
+            println!(
+                "\nDENOISED: skipped, OIDN not loaded ({e}); SPLATD_OIDN_LIB=$(bash tests/setup/oidn.sh)"
+            );
+            return Ok(());
+        }
+    };
+    println!(
+        "\nDENOISED: OIDN {} (hdr, quality default, guides not clean), {}; relMSE and energy \
+         (vs OIDN(mean) of the same realization and guide) are means over the realizations; \
+         ratio = relMSE / best denoised anchor (*); default design {}",
+        oidn.version(),
+        oidn.path().display(),
+        DEFAULT_DENOISE_DESIGN.name()
+    );
+    for scene in scenes {
+        if let Some(noise) = scene.gt_noise {
+            println!(
+                "  {}: the ground truth's own relMSE is about {noise:.5} (a floor under every row)",
+                scene.name
+            );
+        }
+    }
+    println!(
+        "{:<10} {:>4} {:<5} {:<46} {:>9} {:>7} {:>9}  goals of the default",
+        "scene", "spp", "guide", "estimator", "relMSE", "ratio", "energy"
+    );
+    let (mut ratio_goal, mut energy_goal) = (Goal::default(), Goal::default());
+    let layout = CascadeLayout::with_defaults();
+    for scene in scenes {
+        let states: Vec<Vec<FrameState>> = scene
+            .runs
+            .iter()
+            .map(|run| states(scene, run, &layout))
+            .collect();
+        denoised_rows(scene, &states, &oidn, &mut ratio_goal, &mut energy_goal)?;
+    }
+    println!("* = anchor; denoised goals of splatd's default design:");
+    ratio_goal.report("relMSE <= 0.8x the best denoised anchor (every spp and guide)");
+    energy_goal.report("energy within 2 % of OIDN(mean)'s at 64 and 256 spp");
     Ok(())
 }

@@ -257,7 +257,8 @@ def decode_batch(
 
 
 def _is_transient(status: int) -> bool:
-    return status >= 500 or status in (408, 429)
+    # Not 501: the server lacks the feature (``denoiser_unavailable``); asking again won't help.
+    return (status >= 500 and status != 501) or status in (408, 429)
 
 
 class Client:
@@ -292,6 +293,8 @@ class Client:
         cascades: Optional[dict] = None,
         resolve: Optional[dict] = None,
         aovs: Optional[List[Tuple[str, List[str]]]] = None,
+        denoise: Optional[str] = None,
+        denoise_guides: Optional[Dict[str, str]] = None,
     ) -> Dict[str, Any]:
         """``POST /v1/frames``; returns the FrameInfo as a dict. Omitted params take server defaults.
 
@@ -303,8 +306,11 @@ class Client:
         kappa * N**kappa_exponent). ``aovs``: ``(layer name, [channel names])`` of the passes'
         other layers to keep as per-pixel means beside the beauty, e.g.
         ``[("ViewLayer.DiffCol", ["R", "G", "B"]), ("ViewLayer.Depth", ["Z"])]``; served as
-        ``<layer>.<channel>`` channels of ``image.exr``. See proto/PROTOCOL.md and
-        docs/ALGORITHM.md.
+        ``<layer>.<channel>`` channels of ``image.exr``. ``denoise``: ``"oidn"`` makes every
+        ``image.exr`` of the frame carry OIDN's denoised final (layer ``denoised``) unless its
+        query says ``denoise="none"``; ``denoise_guides``: ``{"albedo": AOV, "normal": AOV}``, the
+        AOVs that guide it (``{}``: none; omitted, chosen by name, see PROTOCOL.md, "Denoised
+        finals"). See proto/PROTOCOL.md and docs/ALGORITHM.md.
         """
         validate_frame_id(id)
         req: Dict[str, Any] = {"id": id, "width": int(width), "height": int(height)}
@@ -314,6 +320,10 @@ class Client:
             req["resolve"] = resolve
         if aovs:
             req["aovs"] = _aovs(aovs)
+        if denoise is not None:
+            req["denoise"] = denoise
+        if denoise_guides is not None:
+            req["denoise_guides"] = dict(denoise_guides)
         # The id also goes in a header, for proxies that route frames by id (deploy/nginx/).
         return self._request(
             "POST", "/v1/frames", json.dumps(req).encode(), "application/json", headers={"X-Splatd-Frame": id}
@@ -327,6 +337,8 @@ class Client:
         cascades: Optional[Dict[str, Any]] = None,
         resolve: Optional[Dict[str, Any]] = None,
         aovs: Optional[List[Tuple[str, List[str]]]] = None,
+        denoise: Optional[str] = None,
+        denoise_guides: Optional[Dict[str, str]] = None,
     ) -> Dict[str, Any]:
         """``PUT /v1/frames/{id}``: creates the frame, or returns it when it exists with exactly
         these parameters (the FrameInfo as a dict). A frame with other parameters is refused with
@@ -341,6 +353,10 @@ class Client:
             req["resolve"] = resolve
         if aovs:
             req["aovs"] = _aovs(aovs)
+        if denoise is not None:
+            req["denoise"] = denoise
+        if denoise_guides is not None:
+            req["denoise_guides"] = dict(denoise_guides)
         return self._request("PUT", f"/v1/frames/{id}", json.dumps(req).encode(), "application/json")
 
     def frame_info(self, id: str) -> Dict[str, Any]:
@@ -386,7 +402,12 @@ class Client:
         return self._request("POST", _pass_path(frame, worker, seq, layer), bytes(exr), "image/x-exr")
 
     def image(self, frame: str, **query: Any) -> bytes:
-        """``GET /v1/frames/{id}/image.exr`` with optional query parameters; returns the EXR bytes."""
+        """``GET /v1/frames/{id}/image.exr`` with optional query parameters; returns the EXR bytes.
+
+        ``image(frame, denoise="oidn")`` adds OIDN's denoised final as the layer ``denoised``
+        (``denoised.R``, ``.G``, ``.B``; ``denoise_quality="fast"`` etc. picks OIDN's quality,
+        ``denoise="none"`` turns a frame's default off); a server without OIDN refuses it with
+        501 ``denoiser_unavailable`` (an ``Error``, not retried)."""
         validate_frame_id(frame)
         qs = "&".join(f"{k}={v}" for k, v in query.items())
         return self._request("GET", f"/v1/frames/{frame}/image.exr" + (f"?{qs}" if qs else ""), binary=True)

@@ -240,6 +240,29 @@ impl<E: Into<ApiError>> From<crate::renders::RenderError<E>> for ApiError {
     }
 }
 
+/// A denoise the server cannot run: 501 without a usable OIDN (the request is fine, the server
+/// lacks the part), 500 when OIDN failed on the frame (its message is passed on: it names no
+/// secret and says what went wrong).
+impl From<crate::denoise::DenoiseError> for ApiError {
+    fn from(e: crate::denoise::DenoiseError) -> ApiError {
+        match e {
+            crate::denoise::DenoiseError::Unavailable { .. } => ApiError::new(
+                StatusCode::NOT_IMPLEMENTED,
+                "denoiser_unavailable",
+                e.to_string(),
+            ),
+            crate::denoise::DenoiseError::Failed { .. } => {
+                tracing::error!(error = %e, "denoise failed");
+                ApiError::new(
+                    StatusCode::INTERNAL_SERVER_ERROR,
+                    "denoise_failed",
+                    e.to_string(),
+                )
+            }
+        }
+    }
+}
+
 /// A state that decodes but does not describe a frame this build can hold.
 impl From<ImportError> for ApiError {
     fn from(e: ImportError) -> ApiError {

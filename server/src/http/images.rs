@@ -1,48 +1,74 @@
 //! Images out: the resolved OpenEXR (`image.exr`) and the live page's PNG preview.
 
+use std::sync::Arc;
 use std::time::Instant;
 
 use axum::extract::State;
 use axum::http::header;
 use axum::response::IntoResponse;
-use serde::{Deserialize, Deserializer};
-use splatd_proto::api::ImageQuery;
-
 use bytes::Bytes;
+use serde::{Deserialize, Deserializer};
+use splatd_estimator::denoise::DenoisePlan;
+use splatd_estimator::{FrameState, ResolveParams};
+use splatd_proto::api::{Denoise, DenoiseQuality, ImageQuery};
 
-use crate::frame::{core_resolve_params, ShardedFrame};
+use crate::denoise;
+use crate::frame::{core_resolve_params, FrameCut, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
-use crate::image::{cascade_layers, encode_exr, Provenance};
+use crate::image::{cascade_layers, encode_exr_with, ExtraLayer, Provenance};
+use crate::work::WorkBudget;
 use crate::AppState;
 
-/// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now.
+/// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now, and denoises it when the
+/// query or the frame asks for it (`denoise=oidn`: the layer `denoised`).
 pub async fn get_image(
     State(app): State<AppState>,
-    Query(query): Query<ImageQuery>,
+    Query(mut query): Query<ImageQuery>,
     Frame(frame): Frame,
 ) -> Result<impl IntoResponse, ApiError> {
     let params = core_resolve_params(&query.apply(&frame.spec().request.resolve))?;
     let threads = app.resolve_threads;
     let started = Instant::now();
+    // The query in its canonical form (the render's key): what is run, not how it was said.
+    let denoise = query.denoise.unwrap_or(frame.spec().request.denoise);
+    query.denoise = Some(denoise);
+    query.denoise_quality = match denoise {
+        Denoise::Oidn => Some(query.denoise_quality.unwrap_or_default()),
+        Denoise::None => None,
+    };
+    // Refused before any memory is reserved or anything resolved.
+    let oidn = match denoise {
+        Denoise::Oidn => Some(app.denoiser.oidn()?.clone()),
+        Denoise::None => None,
+    };
     let extra_layers = if query.cascades {
         frame.spec().layout.cascades() as u64
     } else {
         0
     };
+    let px = pixels(&frame);
     // The copy of the state, three resolved layers and the EXR holding them (and the raw
     // cascades when asked for), at 12 bytes per pixel and layer.
     // AOV means: two copies (planes and channels) of 4 bytes per channel and pixel.
-    let aov_bytes = pixels(&frame) * 8 * frame.spec().aov_channels() as u64;
+    let aov_bytes = px * 8 * frame.spec().aov_channels() as u64;
+    // A denoise: OIDN's own memory, the plan's images for one input (more are reserved once
+    // the plan says how many), and the `denoised` layer in the EXR. All counted as if held at
+    // once, though the state copy is dropped before OIDN runs.
+    let denoise_bytes = match oidn {
+        Some(_) => app.denoiser.working_bytes(px) + denoise::image_bytes(px, 1) + px * 12 * 2,
+        None => 0,
+    };
     let cost =
-        frame.spec().memory_bytes() + pixels(&frame) * 12 * (6 + 2 * extra_layers) + aov_bytes;
+        frame.spec().memory_bytes() + px * 12 * (6 + 2 * extra_layers) + aov_bytes + denoise_bytes;
     let key = format!("exr {params:?} {query:?}");
+    let budget = app.renders.budget().clone();
     let exr = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
             let cut = frame.cut();
             let resolved = cut.resolve(&params, threads);
-            let extra = if query.cascades {
+            let mut extra = if query.cascades {
                 cascade_layers(cut.cascade_means())
             } else {
                 Vec::new()
@@ -52,12 +78,26 @@ pub async fn get_image(
                 .as_ref()
                 .map(|sums| crate::image::aov_planes(&frame.spec().request.aovs, sums))
                 .unwrap_or_default();
-            drop(cut);
+            let mut more_attributes = Vec::new();
+            if let Some(oidn) = oidn {
+                let planes: Vec<&[f32]> = aovs.iter().map(|(_, p)| p.as_slice()).collect();
+                let quality = query.denoise_quality.unwrap_or_default();
+                let run = denoise_cut(
+                    &oidn, frame, cut, &params, threads, &planes, px, &budget, quality,
+                )?;
+                more_attributes = run.attributes();
+                extra.push(ExtraLayer {
+                    name: denoise::DENOISED_LAYER.to_owned(),
+                    rgb: run.rgb,
+                });
+            } else {
+                drop(cut);
+            }
             let provenance = Provenance {
                 layout: &frame.spec().layout,
                 params: &params,
             };
-            encode_exr(&resolved, &extra, &aovs, &provenance)
+            encode_exr_with(&resolved, &extra, &aovs, &provenance, more_attributes)
                 .map(Bytes::from)
                 .map_err(|e| ApiError::internal("EXR encoding", e))
         })
@@ -83,6 +123,9 @@ pub enum PreviewLayer {
     Mean,
     /// The energy removed as fireflies.
     Removed,
+    /// The denoised final (as `image.exr?denoise=oidn` has it, quality `high`); 501
+    /// `denoiser_unavailable` on a server without OIDN.
+    Denoised,
 }
 
 /// Query of `GET /v1/frames/{id}/preview.png`.
@@ -136,21 +179,53 @@ pub async fn get_preview(
 ) -> Result<impl IntoResponse, ApiError> {
     let params = frame.spec().resolve;
     let threads = app.resolve_threads;
-    // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG.
-    let cost = frame.spec().memory_bytes() + pixels(&frame) * (36 + 6);
+    let oidn = match query.layer {
+        PreviewLayer::Denoised => Some(app.denoiser.oidn()?.clone()),
+        _ => None,
+    };
+    let px = pixels(&frame);
+    // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG; for the
+    // denoised layer, what a denoise holds (see `get_image`) and the AOV means.
+    let denoise_bytes = match oidn {
+        Some(_) => {
+            app.denoiser.working_bytes(px)
+                + denoise::image_bytes(px, 1)
+                + px * 4 * frame.spec().aov_channels() as u64
+        }
+        None => 0,
+    };
+    let cost = frame.spec().memory_bytes() + px * (36 + 6) + denoise_bytes;
     let key = format!("png {:?} {:?} {}", query.layer, query.exposure, query.stops);
+    let budget = app.renders.budget().clone();
     let png = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
-            let resolved = frame.cut().resolve(&params, threads);
+            let cut = frame.cut();
+            let resolved = cut.resolve(&params, threads);
             let exposure = query
                 .exposure
                 .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted))
                 * query.stops.exp2();
+            let denoised;
             let layer = match query.layer {
                 PreviewLayer::Reweighted => &resolved.reweighted,
                 PreviewLayer::Mean => &resolved.mean,
                 PreviewLayer::Removed => &resolved.removed,
+                PreviewLayer::Denoised => {
+                    let oidn = oidn.expect("checked above");
+                    let aovs = cut
+                        .aovs
+                        .as_ref()
+                        .map(|sums| sums.means())
+                        .unwrap_or_default();
+                    let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
+                    let high = DenoiseQuality::High;
+                    denoised = denoise_cut(
+                        &oidn, frame, cut, &params, threads, &planes, px, &budget, high,
+                    )?
+                    .rgb;
+                    &denoised
+                }
             };
             let pixels = crate::preview::tonemap(layer, exposure);
             crate::preview::encode_png(resolved.width, resolved.height, &pixels)
@@ -165,4 +240,41 @@ pub async fn get_preview(
         ],
         png,
     ))
+}
+
+/// The denoised final of `cut` (a copy of `frame`, dropped once the denoiser input is made)
+/// at OIDN's `quality`, guided by the frame's guides among `aov_planes` (all its AOV channel
+/// means). The plan's inputs beyond the first are reserved from `budget` here, now or never
+/// (the caller reserved for one).
+#[allow(clippy::too_many_arguments)]
+fn denoise_cut(
+    oidn: &splatd_denoise::Oidn,
+    frame: &ShardedFrame,
+    cut: FrameCut,
+    params: &ResolveParams,
+    threads: usize,
+    aov_planes: &[&[f32]],
+    px: u64,
+    budget: &Arc<WorkBudget>,
+    quality: DenoiseQuality,
+) -> Result<denoise::DenoiseRun, ApiError> {
+    let bands: Vec<&FrameState> = cut.bands.iter().collect();
+    let plan = DenoisePlan::new(&bands, params, threads);
+    drop(bands);
+    drop(cut);
+    let inputs = plan.inputs().len() as u64;
+    let _more_memory = if inputs > 1 {
+        let more = denoise::image_bytes(px, inputs) - denoise::image_bytes(px, 1);
+        Some(budget.reserve_now(more).map_err(|b| ApiError::busy(&b))?)
+    } else {
+        None
+    };
+    Ok(denoise::run(
+        oidn,
+        frame.id(),
+        plan,
+        &frame.spec().guides,
+        aov_planes,
+        quality,
+    )?)
 }

@@ -782,3 +782,95 @@ async fn large_pass_bodies_and_decodes_reuse_kept_buffers() {
     assert_eq!(server.body_pool.idle_bytes(), exr.len());
     assert_eq!(server.pass_scratch.idle_bytes(), scratch);
 }
+
+/// A server without a denoiser refuses every denoise (asked for, or the frame's default) with
+/// 501 `denoiser_unavailable` before reserving or resolving anything, and serves the rest; the
+/// frame lists its guides, chosen by name, and `denoised` is no AOV name.
+#[tokio::test]
+async fn without_a_denoiser_only_denoising_is_refused() {
+    use serde_json::json;
+    let server = app(true);
+    let aovs = json!([
+        {"name": "ViewLayer.Normal", "channels": ["X", "Y", "Z"]},
+        {"name": "ViewLayer.DiffCol", "channels": ["R", "G", "B"]}
+    ]);
+    let (status, created) = put_frame(
+        &server,
+        "d",
+        WRITE,
+        json!({"width": 4, "height": 4, "aovs": aovs, "denoise": "oidn"}),
+    )
+    .await;
+    assert_eq!(status, StatusCode::CREATED, "{created}");
+    assert_eq!(created["denoise"], "oidn");
+    assert_eq!(
+        created["denoise_guides"],
+        json!({"albedo": "ViewLayer.DiffCol", "normal": "ViewLayer.Normal"})
+    );
+    for path in [
+        "/v1/frames/d/image.exr",
+        "/v1/frames/f/image.exr?denoise=oidn",
+        "/v1/frames/f/image.exr?denoise=oidn&denoise_quality=fast",
+        "/v1/frames/f/preview.png?layer=denoised",
+    ] {
+        let (status, code, _) = send(&server, Method::GET, path, None, Body::empty()).await;
+        assert_eq!(
+            (status, code.as_str()),
+            (StatusCode::NOT_IMPLEMENTED, "denoiser_unavailable"),
+            "{path}"
+        );
+    }
+    assert_eq!(
+        server.renders.rendered(),
+        0,
+        "nothing was resolved for them"
+    );
+    for path in [
+        "/v1/frames/d/image.exr?denoise=none",
+        "/v1/frames/f/image.exr",
+        "/v1/frames/f/preview.png",
+    ] {
+        let (status, code, _) = send(&server, Method::GET, path, None, Body::empty()).await;
+        assert_eq!((status, code.as_str()), (StatusCode::OK, ""), "{path}");
+    }
+    let (status, code, _) = send(
+        &server,
+        Method::GET,
+        "/v1/frames/f/image.exr?denoise=bm3d",
+        None,
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "bad_query")
+    );
+    let (status, err) = put_frame(
+        &server,
+        "x",
+        WRITE,
+        json!({"width": 4, "height": 4, "aovs": [{"name": "denoised", "channels": ["R"]}]}),
+    )
+    .await;
+    assert_eq!(
+        (status, err["error"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("invalid_parameters")),
+        "{err}"
+    );
+    // Another default denoiser is another frame.
+    let (status, err) = put_frame(
+        &server,
+        "d",
+        WRITE,
+        json!({"width": 4, "height": 4, "aovs": aovs}),
+    )
+    .await;
+    assert_eq!(status, StatusCode::CONFLICT, "{err}");
+    assert!(
+        err["message"]
+            .as_str()
+            .unwrap()
+            .contains("denoise oidn here, none requested"),
+        "{err}"
+    );
+}

@@ -1,0 +1,424 @@
+//! Denoised finals: Intel Open Image Denoise over the frame's denoiser input.
+//!
+//! `image.exr?denoise=oidn` (or a frame created with `"denoise": "oidn"`) adds the layer
+//! `denoised`. What OIDN is handed is the estimator's business
+//! ([`splatd_estimator::denoise::DenoisePlan`]: the images to denoise and how their outputs
+//! make the final); this module runs OIDN over each of them with the same guides and says in
+//! the header how the layer was made ([`DenoiseRun::attributes`]).
+//!
+//! OIDN is loaded at start ([`Denoiser::load`]), at run time (`splatd-denoise`), from
+//! `--oidn-lib` / `SPLATD_OIDN_LIB` or the dynamic loader's search path. A server without it runs
+//! as ever; a denoise request is refused with [`DenoiseError::Unavailable`], saying why.
+//!
+//! **Guides.** OIDN's `RT` filter takes an albedo, or an albedo and a normal, beside the colour.
+//! They come from the frame's AOVs (plain per-pixel means, see PROTOCOL.md, "AOVs"), chosen at
+//! creation ([`Guides::choose`]): exactly the AOVs `denoise_guides` names, or else by name. The
+//! AOV means are noisy at low sample counts, so OIDN is told they are not clean (`cleanAux`
+//! off), as its documentation asks for noisy guides.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use splatd_denoise::{DenoiseInput, Oidn, Quality};
+use splatd_estimator::denoise::DenoisePlan;
+use splatd_estimator::ParamError;
+use splatd_proto::api::{AovSpec, DenoiseGuides, DenoiseQuality};
+
+use crate::image::HeaderValue;
+
+/// The layer of `image.exr` that holds the denoised final.
+pub const DENOISED_LAYER: &str = "denoised";
+
+/// Why a frame was not denoised.
+#[derive(Debug, thiserror::Error)]
+pub enum DenoiseError {
+    /// The server has no usable OIDN (not found, not 2.x, or it failed to start a device).
+    #[error(
+        "this server cannot denoise: {reason}. Start it with --oidn-lib PATH (or \
+         SPLATD_OIDN_LIB) naming libOpenImageDenoise.so.2 of OIDN 2.x; \
+         `bash tests/setup/oidn.sh` installs one and prints its path"
+    )]
+    Unavailable {
+        /// Why the library could not be used, naming the path tried.
+        reason: String,
+    },
+    /// OIDN failed on this frame.
+    #[error("denoising frame {frame:?} failed: {source}")]
+    Failed {
+        /// The frame.
+        frame: String,
+        /// What OIDN said.
+        source: splatd_denoise::DenoiseError,
+    },
+}
+
+/// The server's denoiser: OIDN when it loaded, or why it did not.
+#[derive(Debug, Clone)]
+pub struct Denoiser {
+    oidn: Result<Arc<Oidn>, String>,
+}
+
+impl Denoiser {
+    /// A denoiser that refuses every request, saying `reason`.
+    pub fn unavailable(reason: impl Into<String>) -> Denoiser {
+        Denoiser {
+            oidn: Err(reason.into()),
+        }
+    }
+
+    /// Loads OIDN from `path`, or else from the dynamic loader's search path
+    /// (`libOpenImageDenoise.so.2`), with `max_memory_mib` as each filter's memory cap. Never
+    /// fails: a library that cannot be used makes a denoiser that refuses, saying why.
+    ///
+    /// The library is loaded on a thread at the renders' lower priority
+    /// ([`crate::renders::RENDER_NICE`]), so that the worker threads OIDN's thread pool starts,
+    /// which inherit their creator's nice value, take only the cores ingest leaves idle.
+    pub fn load(path: Option<&Path>, max_memory_mib: u32) -> Denoiser {
+        let path: PathBuf = path.map_or_else(
+            || PathBuf::from(splatd_denoise::DEFAULT_LIB),
+            Path::to_path_buf,
+        );
+        let loaded = std::thread::Builder::new()
+            .name("splatd-oidn-load".into())
+            .spawn(move || {
+                crate::renders::lower_priority();
+                Oidn::load_from(&path)
+            })
+            .expect("spawning a thread")
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        match loaded {
+            Ok(oidn) => Denoiser {
+                oidn: Ok(Arc::new(oidn.with_max_memory_mib(Some(max_memory_mib)))),
+            },
+            Err(e) => Denoiser::unavailable(e.to_string()),
+        }
+    }
+
+    /// OIDN, or why there is none.
+    pub fn oidn(&self) -> Result<&Arc<Oidn>, DenoiseError> {
+        self.oidn
+            .as_ref()
+            .map_err(|reason| DenoiseError::Unavailable {
+                reason: reason.clone(),
+            })
+    }
+
+    /// Bytes one denoise of `pixels` pixels may use inside OIDN: its filter's memory cap, or
+    /// what OIDN 2.5.1 was measured to use per pixel when the image needs less (570 bytes a
+    /// pixel at 1920x1080, `high`, unlimited; rounded up to 640).
+    pub fn working_bytes(&self, pixels: u64) -> u64 {
+        let per_pixel = pixels.saturating_mul(640);
+        match self.oidn.as_ref().ok().and_then(|o| o.max_memory_mib()) {
+            Some(mib) => per_pixel.min(u64::from(mib) << 20),
+            None => per_pixel,
+        }
+    }
+}
+
+/// One guide: a declared AOV with three channels.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Guide {
+    /// The AOV's name.
+    pub name: String,
+    /// Index of its first channel among all the frame's AOV channels (declaration order).
+    pub first_channel: usize,
+}
+
+/// The guides of a frame's denoised images.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Guides {
+    /// The albedo, if any.
+    pub albedo: Option<Guide>,
+    /// The normal, if any (only with an albedo).
+    pub normal: Option<Guide>,
+}
+
+/// Last name components taken as an albedo when guides are chosen by name (case ignored).
+pub const ALBEDO_NAMES: [&str; 4] = ["diffcol", "diffuse color", "albedo", "denoising albedo"];
+/// Last name components taken as a normal when guides are chosen by name (case ignored).
+pub const NORMAL_NAMES: [&str; 3] = ["normal", "n", "denoising normal"];
+
+impl Guides {
+    /// The guides of a frame declaring `aovs`: exactly those `explicit` names (each a declared
+    /// AOV with three channels; a normal only with an albedo), or, without `explicit`, the first
+    /// AOV with three channels whose last dot-separated name component is one of
+    /// [`ALBEDO_NAMES`] (and likewise [`NORMAL_NAMES`]); a normal found without an albedo is
+    /// left out, since OIDN takes a normal only beside an albedo.
+    pub fn choose(
+        aovs: &[AovSpec],
+        explicit: Option<&DenoiseGuides>,
+    ) -> Result<Guides, ParamError> {
+        let first_channels: Vec<usize> = aovs
+            .iter()
+            .scan(0, |at, a| {
+                let first = *at;
+                *at += a.channels.len();
+                Some(first)
+            })
+            .collect();
+        let guide = |i: usize| Guide {
+            name: aovs[i].name.clone(),
+            first_channel: first_channels[i],
+        };
+        let Some(explicit) = explicit else {
+            let by_name = |names: &[&str]| {
+                aovs.iter().position(|a| {
+                    let last = a.name.rsplit('.').next().unwrap_or(&a.name);
+                    a.channels.len() == 3 && names.contains(&last.to_lowercase().as_str())
+                })
+            };
+            let albedo = by_name(&ALBEDO_NAMES).map(guide);
+            let normal = albedo
+                .as_ref()
+                .and_then(|_| by_name(&NORMAL_NAMES))
+                .map(guide);
+            return Ok(Guides { albedo, normal });
+        };
+        let named = |role: &str, name: &Option<String>| -> Result<Option<Guide>, ParamError> {
+            let Some(name) = name else { return Ok(None) };
+            let i = aovs.iter().position(|a| a.name == *name).ok_or_else(|| {
+                ParamError::new(
+                    "denoise_guides",
+                    format!(
+                        "{role} {name:?} is not one of the frame's AOVs ({})",
+                        crate::frame::describe_aovs(aovs)
+                    ),
+                )
+            })?;
+            if aovs[i].channels.len() != 3 {
+                return Err(ParamError::new(
+                    "denoise_guides",
+                    format!(
+                        "{role} {name:?} has {} channels; a guide has three",
+                        aovs[i].channels.len()
+                    ),
+                ));
+            }
+            Ok(Some(guide(i)))
+        };
+        let albedo = named("albedo", &explicit.albedo)?;
+        let normal = named("normal", &explicit.normal)?;
+        if normal.is_some() && albedo.is_none() {
+            return Err(ParamError::new(
+                "denoise_guides",
+                "a normal guide needs an albedo guide (OIDN takes a normal only beside an albedo)",
+            ));
+        }
+        Ok(Guides { albedo, normal })
+    }
+
+    /// As the API shows them ([`splatd_proto::api::FrameInfo::denoise_guides`]).
+    pub fn to_api(&self) -> DenoiseGuides {
+        DenoiseGuides {
+            albedo: self.albedo.as_ref().map(|g| g.name.clone()),
+            normal: self.normal.as_ref().map(|g| g.name.clone()),
+        }
+    }
+}
+
+/// OIDN's quality from the API's.
+pub fn quality(q: DenoiseQuality) -> Quality {
+    match q {
+        DenoiseQuality::Default => Quality::Default,
+        DenoiseQuality::Balanced => Quality::Balanced,
+        DenoiseQuality::High => Quality::High,
+        DenoiseQuality::Fast => Quality::Fast,
+    }
+}
+
+/// A denoised final and how it was made.
+#[derive(Debug, Clone)]
+pub struct DenoiseRun {
+    /// The final, row-major RGB.
+    pub rgb: Vec<[f32; 3]>,
+    /// OIDN's version.
+    pub version: String,
+    /// The quality mode.
+    pub quality: DenoiseQuality,
+    /// The denoiser input's design ([`DenoisePlan::name`]).
+    pub input: &'static str,
+    /// How many images OIDN denoised for it.
+    pub images: usize,
+    /// The guides used.
+    pub guides: Guides,
+}
+
+impl DenoiseRun {
+    /// The EXR header attributes that say how the `denoised` layer was made.
+    pub fn attributes(&self) -> Vec<(&'static str, HeaderValue)> {
+        use HeaderValue as V;
+        let name = |g: &Option<Guide>| V::Text(g.as_ref().map_or("none", |g| &g.name).to_owned());
+        vec![
+            ("splatd:denoiseAlbedo", name(&self.guides.albedo)),
+            ("splatd:denoiseInput", V::Text(self.input.to_owned())),
+            (
+                "splatd:denoiseInputImages",
+                V::Int(i32::try_from(self.images).unwrap_or(i32::MAX)),
+            ),
+            ("splatd:denoiseNormal", name(&self.guides.normal)),
+            (
+                "splatd:denoiseQuality",
+                V::Text(self.quality.as_str().to_owned()),
+            ),
+            ("splatd:denoiser", V::Text("oidn".to_owned())),
+            ("splatd:denoiserVersion", V::Text(self.version.clone())),
+        ]
+    }
+}
+
+/// Bytes a denoise holds beside OIDN's own ([`Denoiser::working_bytes`]) for a plan of
+/// `inputs` images: the plan's resolve (three RGB layers and the sample counts, 44 bytes a
+/// pixel) and inputs, the two guides, one output per input and the final, at 12 bytes a pixel
+/// each.
+pub fn image_bytes(pixels: u64, inputs: u64) -> u64 {
+    pixels * (44 + 12 * (2 * inputs + 3))
+}
+
+/// Runs OIDN over `plan`'s inputs, one after the other, each with the same guides, taken from
+/// the frame's AOV channel means `aov_planes` (every channel in declaration order; empty when
+/// the frame has none), and combines the outputs into the final.
+pub fn run(
+    oidn: &Oidn,
+    frame: &str,
+    plan: DenoisePlan,
+    guides: &Guides,
+    aov_planes: &[&[f32]],
+    quality_mode: DenoiseQuality,
+) -> Result<DenoiseRun, DenoiseError> {
+    let (w, h) = (plan.width(), plan.height());
+    let guide_image = |g: &Option<Guide>| -> Option<Vec<[f32; 3]>> {
+        let g = g.as_ref()?;
+        let planes = aov_planes.get(g.first_channel..g.first_channel + 3)?;
+        Some(
+            (0..w * h)
+                .map(|i| [planes[0][i], planes[1][i], planes[2][i]])
+                .collect(),
+        )
+    };
+    let albedo = guide_image(&guides.albedo);
+    let normal = albedo.as_ref().and_then(|_| guide_image(&guides.normal));
+    let used = Guides {
+        albedo: albedo.as_ref().and(guides.albedo.clone()),
+        normal: normal.as_ref().and(guides.normal.clone()),
+    };
+    let started = std::time::Instant::now();
+    let mut outputs = Vec::with_capacity(plan.inputs().len());
+    for color in plan.inputs() {
+        let input = DenoiseInput {
+            width: w,
+            height: h,
+            color,
+            albedo: albedo.as_deref(),
+            normal: normal.as_deref(),
+            hdr: true,
+            quality: quality(quality_mode),
+            clean_aux: false,
+        };
+        let out = oidn
+            .denoise(&input)
+            .map_err(|source| DenoiseError::Failed {
+                frame: frame.to_owned(),
+                source,
+            })?;
+        outputs.push(out);
+    }
+    metrics::histogram!("splatd_denoise_seconds").record(started.elapsed().as_secs_f64());
+    drop((albedo, normal));
+    let input = plan.name();
+    let images = plan.inputs().len();
+    Ok(DenoiseRun {
+        rgb: plan.combine(outputs),
+        version: oidn.version(),
+        quality: quality_mode,
+        input,
+        images,
+        guides: used,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn aov(name: &str, channels: &[&str]) -> AovSpec {
+        AovSpec::new(name, channels)
+    }
+
+    #[test]
+    fn guides_are_chosen_by_name_or_exactly_as_given() {
+        let aovs = [
+            aov("ViewLayer.Depth", &["Z"]),
+            aov("ViewLayer.Normal", &["X", "Y", "Z"]),
+            aov("ViewLayer.DiffCol", &["R", "G", "B"]),
+            aov("albedo", &["R", "G", "B"]),
+        ];
+        let by_name = Guides::choose(&aovs, None).unwrap();
+        assert_eq!(
+            by_name.albedo,
+            Some(Guide {
+                name: "ViewLayer.DiffCol".into(),
+                first_channel: 4
+            }),
+            "the first declared albedo"
+        );
+        assert_eq!(by_name.normal.as_ref().unwrap().first_channel, 1);
+
+        let explicit = DenoiseGuides {
+            albedo: Some("albedo".into()),
+            normal: None,
+        };
+        let chosen = Guides::choose(&aovs, Some(&explicit)).unwrap();
+        assert_eq!(chosen.albedo.unwrap().first_channel, 7);
+        assert_eq!(chosen.normal, None, "exactly what was given");
+        assert_eq!(
+            Guides::choose(&aovs, Some(&DenoiseGuides::default())).unwrap(),
+            Guides::default(),
+            "{{}} is unguided"
+        );
+
+        // A normal alone is no guide by name, and refused when named.
+        let normal_only = [aov("N", &["X", "Y", "Z"])];
+        assert_eq!(
+            Guides::choose(&normal_only, None).unwrap(),
+            Guides::default()
+        );
+        let err = Guides::choose(
+            &normal_only,
+            Some(&DenoiseGuides {
+                albedo: None,
+                normal: Some("N".into()),
+            }),
+        )
+        .unwrap_err();
+        assert!(err.reason.contains("needs an albedo"), "{}", err.reason);
+
+        for (name, want) in [
+            ("nope", "not one of the frame's AOVs"),
+            ("ViewLayer.Depth", "has 1 channels"),
+        ] {
+            let err = Guides::choose(
+                &aovs,
+                Some(&DenoiseGuides {
+                    albedo: Some(name.into()),
+                    normal: None,
+                }),
+            )
+            .unwrap_err();
+            assert!(err.reason.contains(want), "{}", err.reason);
+            assert_eq!(err.name, "denoise_guides");
+        }
+
+        // Names by their last component, case ignored; a one-channel "albedo" is no guide.
+        let blender = [
+            aov("ViewLayer.Denoising Albedo", &["R", "G", "B"]),
+            aov("ViewLayer.Denoising Normal", &["X", "Y", "Z"]),
+        ];
+        let g = Guides::choose(&blender, None).unwrap();
+        assert!(g.albedo.is_some() && g.normal.is_some());
+        assert_eq!(
+            Guides::choose(&[aov("albedo", &["Y"])], None).unwrap(),
+            Guides::default()
+        );
+    }
+}

@@ -1,0 +1,573 @@
+//! Denoised finals with the real Open Image Denoise: `splatd serve` processes loading OIDN 2.5.1
+//! (`SPLATD_OIDN_LIB`, installed by `tests/setup/oidn.sh`), frames whose passes (written by
+//! OpenEXR's Python package, `tests/py/write_denoise_passes.py`) carry albedo and normal AOVs,
+//! and `image.exr?denoise=oidn` read back with OpenEXR's Python reader.
+//!
+//! The `denoised` layer is checked against OIDN run another way: OIDN's own `oidnDenoise`
+//! (from the same wheel) on the denoiser input rebuilt from the served layers, written as PFM.
+//! That rebuild knows the input design `paper` (the paper's resolve, `image.exr?variant=paper`,
+//! denoised as is); for another design the test says so and checks what holds for any: finite,
+//! energy near the mean's, and far less variance than the input on the flat wall.
+//!
+//! Without OIDN the tests say so loudly and check nothing, except in CI (`CI=true`), where that
+//! fails them; the refusal of a server whose library path is wrong needs no OIDN.
+
+mod common;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use bytes::Bytes;
+use common::{
+    read_exr_attributes_with_python, read_exr_with_python, run_setup, runtime, Options, Server,
+    ServerProcess,
+};
+use splatd_proto::api::{AovSpec, CreateFrame, Denoise, DenoiseGuides, DenoiseQuality, ImageQuery};
+use splatd_proto::{Client, ClientError, Variant};
+
+const W: u32 = 64;
+const H: u32 = 48;
+const PASSES: u64 = 8;
+
+/// The OIDN library to start servers with, or `None` (said loudly) outside CI.
+fn oidn_library() -> Option<String> {
+    if let Some(path) = std::env::var("SPLATD_OIDN_LIB")
+        .ok()
+        .filter(|p| !p.is_empty())
+    {
+        return Some(path);
+    }
+    match run_setup("oidn.sh") {
+        Ok(path) => Some(path),
+        Err(e) => {
+            let why = format!("OIDN IS NOT AVAILABLE (tests/setup/oidn.sh failed: {e})");
+            if std::env::var("CI").is_ok_and(|v| v == "true") {
+                panic!("{why}");
+            }
+            eprintln!(
+                "\n!!!!!!!!!! {why}\n!!!!!!!!!! THIS TEST CHECKED NOTHING WITH THE REAL OIDN\n"
+            );
+            None
+        }
+    }
+}
+
+fn aovs() -> Vec<AovSpec> {
+    vec![
+        AovSpec::new("ViewLayer.DiffCol", &["R", "G", "B"]),
+        AovSpec::new("ViewLayer.Normal", &["X", "Y", "Z"]),
+    ]
+}
+
+fn write_passes(dir: &Path) {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/write_denoise_passes.py");
+    let out = Command::new("python3")
+        .arg(script)
+        .arg(dir)
+        .args(["--width", &W.to_string(), "--height", &H.to_string()])
+        .args(["--passes", &PASSES.to_string()])
+        .output()
+        .expect("running python3 (tests/run.sh installs its packages)");
+    assert!(
+        out.status.success(),
+        "write_denoise_passes.py failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// Creates `frame` and posts every pass to it.
+async fn fill(client: &Client, passes: &Path, frame: &CreateFrame) {
+    client.create_frame(frame).await.unwrap();
+    for k in 0..PASSES {
+        let body = Bytes::from(std::fs::read(passes.join(format!("pass_{k}.exr"))).unwrap());
+        let ack = client.post_pass(&frame.id, 1, k, body).await.unwrap();
+        assert_eq!(ack.accepted, u64::from(W * H));
+    }
+}
+
+/// An EXR as OpenEXR's Python package reads it: channels by name, and the header attributes.
+struct Exr {
+    channels: Vec<(String, Vec<f64>)>,
+    attributes: serde_json::Value,
+}
+
+impl Exr {
+    fn read(dir: &Path, name: &str, bytes: &[u8]) -> Exr {
+        let path = dir.join(name);
+        std::fs::write(&path, bytes).unwrap();
+        let (w, h, channels) = read_exr_with_python(&path);
+        assert_eq!((w, h), (W, H));
+        Exr {
+            channels,
+            attributes: read_exr_attributes_with_python(&path),
+        }
+    }
+
+    fn has(&self, name: &str) -> bool {
+        self.channels.iter().any(|(n, _)| n == name)
+    }
+
+    fn channel(&self, name: &str) -> &[f64] {
+        &self
+            .channels
+            .iter()
+            .find(|(n, _)| n == name)
+            .unwrap_or_else(|| panic!("no channel {name}"))
+            .1
+    }
+
+    /// Layer `prefix` (`""` for the unnamed one) as RGB triples, with channels `c0 c1 c2`.
+    fn rgb(&self, prefix: &str, names: [&str; 3]) -> Vec<[f32; 3]> {
+        let planes = names.map(|c| self.channel(&format!("{prefix}{c}")).to_vec());
+        (0..planes[0].len())
+            .map(|i| [0, 1, 2].map(|c| planes[c][i] as f32))
+            .collect()
+    }
+
+    fn text(&self, name: &str) -> &str {
+        self.attributes[name]
+            .as_str()
+            .unwrap_or_else(|| panic!("no string attribute {name} in {}", self.attributes))
+    }
+}
+
+/// Writes a little-endian colour PFM (bottom row first).
+fn write_pfm(path: &Path, rgb: &[[f32; 3]]) {
+    let (w, h) = (W as usize, H as usize);
+    let mut bytes = format!("PF\n{w} {h}\n-1.0\n").into_bytes();
+    for y in (0..h).rev() {
+        for px in &rgb[y * w..(y + 1) * w] {
+            for c in px {
+                bytes.extend_from_slice(&c.to_le_bytes());
+            }
+        }
+    }
+    std::fs::write(path, bytes).unwrap();
+}
+
+/// Reads the little-endian colour PFM `oidnDenoise` writes, top row first.
+fn read_pfm(path: &Path) -> Vec<[f32; 3]> {
+    let bytes = std::fs::read(path).unwrap();
+    let header = format!("PF\n{W} {H}\n-1.0\n");
+    assert!(
+        bytes.starts_with(header.as_bytes()),
+        "a {W}x{H} little-endian PFM"
+    );
+    let floats: Vec<f32> = bytes[header.len()..]
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+        .collect();
+    let (w, h) = (W as usize, H as usize);
+    assert_eq!(floats.len(), w * h * 3);
+    let mut rgb = vec![[0f32; 3]; w * h];
+    for (row, line) in floats.chunks_exact(w * 3).enumerate() {
+        for (x, px) in line.chunks_exact(3).enumerate() {
+            rgb[(h - 1 - row) * w + x] = [px[0], px[1], px[2]];
+        }
+    }
+    rgb
+}
+
+/// OIDN's own command on `color` (and the guides), at `quality`.
+fn oidn_denoise(
+    lib: &str,
+    dir: &Path,
+    color: &[[f32; 3]],
+    guides: Option<(&[[f32; 3]], Option<&[[f32; 3]]>)>,
+    quality: &str,
+) -> Vec<[f32; 3]> {
+    let lib = std::fs::canonicalize(lib).unwrap();
+    let cli: PathBuf = lib.parent().unwrap().join("../bin/oidnDenoise");
+    write_pfm(&dir.join("color.pfm"), color);
+    let mut cmd = Command::new(&cli);
+    cmd.args(["-d", "cpu", "--affinity", "0", "-q", quality, "--hdr"])
+        .arg(dir.join("color.pfm"));
+    if let Some((albedo, normal)) = guides {
+        write_pfm(&dir.join("albedo.pfm"), albedo);
+        cmd.arg("--alb").arg(dir.join("albedo.pfm"));
+        if let Some(normal) = normal {
+            write_pfm(&dir.join("normal.pfm"), normal);
+            cmd.arg("--nrm").arg(dir.join("normal.pfm"));
+        }
+    }
+    cmd.arg("-o").arg(dir.join("out.pfm"));
+    let out = cmd
+        .output()
+        .unwrap_or_else(|e| panic!("{}: {e}", cli.display()));
+    assert!(
+        out.status.success(),
+        "oidnDenoise failed: {}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    read_pfm(&dir.join("out.pfm"))
+}
+
+fn max_relative_difference(a: &[[f32; 3]], b: &[[f32; 3]]) -> f32 {
+    assert_eq!(a.len(), b.len());
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| (x - y).abs() / (x.abs().max(y.abs()) + 1e-3))
+        .fold(0.0, f32::max)
+}
+
+fn luminance_sum(rgb: &[[f32; 3]]) -> f64 {
+    rgb.iter()
+        .map(|p| 0.2126 * f64::from(p[0]) + 0.7152 * f64::from(p[1]) + 0.0722 * f64::from(p[2]))
+        .sum()
+}
+
+/// Variance of the green channel over the flat wall (the left half, away from its edges).
+fn flat_variance(rgb: &[[f32; 3]]) -> f64 {
+    let values: Vec<f64> = (4..H as usize - 4)
+        .flat_map(|y| (4..W as usize / 2 - 4).map(move |x| (x, y)))
+        .map(|(x, y)| f64::from(rgb[y * W as usize + x][1]))
+        .collect();
+    let mean = values.iter().sum::<f64>() / values.len() as f64;
+    values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / values.len() as f64
+}
+
+/// What holds for any denoiser input: the `denoised` layer is finite, keeps the energy of the
+/// mean within 5 %, and on the flat wall has far less variance than the plain mean.
+fn check_denoised_plausibly(exr: &Exr, what: &str) {
+    let denoised = exr.rgb("denoised.", ["R", "G", "B"]);
+    let mean = exr.rgb("mean.", ["R", "G", "B"]);
+    assert!(
+        denoised.iter().flatten().all(|v| v.is_finite()),
+        "{what}: a non-finite denoised value"
+    );
+    let energy = luminance_sum(&denoised) / luminance_sum(&mean);
+    assert!(
+        (0.95..=1.05).contains(&energy),
+        "{what}: the denoised final has {energy} of the mean's energy"
+    );
+    let (before, after) = (flat_variance(&mean), flat_variance(&denoised));
+    assert!(
+        after < 0.2 * before,
+        "{what}: the flat wall's variance went from {before} to {after} only"
+    );
+    eprintln!(
+        "{what}: energy {energy:.4} of the mean's, flat-wall variance {before:.4} -> {after:.5}"
+    );
+}
+
+/// The `denoised` layer against `oidnDenoise` on the input the test rebuilds: for the design
+/// `paper`, the paper's resolve (`variant=paper` of the same frame, served as float32, exact)
+/// with the guides served as AOV layers.
+#[allow(clippy::too_many_arguments)]
+fn check_against_oidn_denoise(
+    lib: &str,
+    dir: &Path,
+    exr: &Exr,
+    paper: &Exr,
+    albedo: Option<&str>,
+    normal: Option<&str>,
+    quality: &str,
+    what: &str,
+) {
+    let design = exr.text("splatd:denoiseInput");
+    if design != "paper" || exr.attributes["splatd:denoiseInputImages"] != 1 {
+        eprintln!(
+            "\n!!!!!!!!!! {what}: the input design is {design:?} ({} images), which this test \
+             cannot rebuild; the denoised layer was checked for plausibility only\n",
+            exr.attributes["splatd:denoiseInputImages"]
+        );
+        return;
+    }
+    let color = paper.rgb("", ["R", "G", "B"]);
+    let albedo = albedo.map(|a| exr.rgb(&format!("{a}."), ["R", "G", "B"]));
+    let normal = normal.map(|n| exr.rgb(&format!("{n}."), ["X", "Y", "Z"]));
+    let guides = albedo.as_deref().map(|a| (a, normal.as_deref()));
+    let theirs = oidn_denoise(lib, dir, &color, guides, quality);
+    let ours = exr.rgb("denoised.", ["R", "G", "B"]);
+    let diff = max_relative_difference(&ours, &theirs);
+    eprintln!("{what}: denoised layer vs oidnDenoise: max relative difference {diff:e}");
+    assert!(
+        diff < 1e-4,
+        "{what}: the denoised layer differs from oidnDenoise on the same input by {diff}"
+    );
+}
+
+fn rejected(e: ClientError) -> (u16, String, String) {
+    match e {
+        ClientError::Rejected { status, body } => (status, body.error, body.message),
+        other => panic!("expected a refusal, got {other}"),
+    }
+}
+
+fn query(denoise: Option<Denoise>) -> ImageQuery {
+    ImageQuery {
+        denoise,
+        ..ImageQuery::default()
+    }
+}
+
+#[test]
+fn denoised_finals_guided_unguided_and_by_default() {
+    let Some(lib) = oidn_library() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let passes = dir.path().join("passes");
+    write_passes(&passes);
+    let server = Server::start_with_env(&[], &[("SPLATD_OIDN_LIB", &lib)]);
+    let client = Client::new(&server.url).unwrap();
+    let rt = runtime();
+
+    // Guided by name: the frame declares Blender's DiffCol and Normal.
+    let guided = CreateFrame {
+        aovs: aovs(),
+        ..CreateFrame::new("guided", W, H)
+    };
+    // Unguided: the same passes, no AOVs declared (the passes' AOV layers are not read).
+    let unguided = CreateFrame::new("unguided", W, H);
+    // Denoised by default, guided by the albedo alone, chosen explicitly.
+    let by_default = CreateFrame {
+        aovs: aovs(),
+        denoise: Denoise::Oidn,
+        denoise_guides: Some(DenoiseGuides {
+            albedo: Some("ViewLayer.DiffCol".into()),
+            normal: None,
+        }),
+        ..CreateFrame::new("by-default", W, H)
+    };
+    let (info, images) = rt.block_on(async {
+        for frame in [&guided, &unguided, &by_default] {
+            fill(&client, &passes, frame).await;
+        }
+        let info = client.frame_info("guided").await.unwrap();
+        let mut images = Vec::new();
+        for (frame, q) in [
+            ("guided", query(Some(Denoise::Oidn))),
+            ("guided", query(None)),
+            (
+                "guided",
+                ImageQuery {
+                    variant: Some(Variant::Paper),
+                    ..ImageQuery::default()
+                },
+            ),
+            (
+                "guided",
+                ImageQuery {
+                    denoise_quality: Some(DenoiseQuality::Fast),
+                    ..query(Some(Denoise::Oidn))
+                },
+            ),
+            ("unguided", query(Some(Denoise::Oidn))),
+            (
+                "unguided",
+                ImageQuery {
+                    variant: Some(Variant::Paper),
+                    ..ImageQuery::default()
+                },
+            ),
+            ("by-default", query(None)),
+            ("by-default", query(Some(Denoise::None))),
+        ] {
+            images.push(client.image(frame, &q).await.unwrap());
+        }
+        (info, images)
+    });
+    let d = dir.path();
+    let [guided_exr, guided_plain, guided_paper, guided_fast, unguided_exr, unguided_paper, default_exr, default_off] =
+        [0, 1, 2, 3, 4, 5, 6, 7].map(|i| Exr::read(d, &format!("image{i}.exr"), &images[i]));
+
+    // The frame shows the guides chosen by name.
+    assert_eq!(
+        info.denoise_guides,
+        DenoiseGuides {
+            albedo: Some("ViewLayer.DiffCol".into()),
+            normal: Some("ViewLayer.Normal".into()),
+        }
+    );
+    assert_eq!(info.denoise, Denoise::None);
+
+    // Guided: the header says how, and the layer is OIDN's on the rebuilt input.
+    for (name, want) in [
+        ("splatd:denoiser", "oidn"),
+        ("splatd:denoiserVersion", "2.5.1"),
+        ("splatd:denoiseQuality", "high"),
+        ("splatd:denoiseAlbedo", "ViewLayer.DiffCol"),
+        ("splatd:denoiseNormal", "ViewLayer.Normal"),
+    ] {
+        assert_eq!(guided_exr.text(name), want, "{name}");
+    }
+    assert!(!guided_exr.text("splatd:denoiseInput").is_empty());
+    check_denoised_plausibly(&guided_exr, "guided");
+    check_against_oidn_denoise(
+        &lib,
+        d,
+        &guided_exr,
+        &guided_paper,
+        Some("ViewLayer.DiffCol"),
+        Some("ViewLayer.Normal"),
+        "high",
+        "guided",
+    );
+    // The other layers are the plain image's, bit for bit, and the plain image has no
+    // `denoised` layer nor denoise attributes.
+    for (name, values) in &guided_plain.channels {
+        assert_eq!(guided_exr.channel(name), &values[..], "{name}");
+    }
+    assert!(!guided_plain.has("denoised.R"));
+    assert!(guided_plain.attributes.get("splatd:denoiser").is_none());
+
+    // Another quality is another denoise, said in the header.
+    assert_eq!(guided_fast.text("splatd:denoiseQuality"), "fast");
+    check_against_oidn_denoise(
+        &lib,
+        d,
+        &guided_fast,
+        &guided_paper,
+        Some("ViewLayer.DiffCol"),
+        Some("ViewLayer.Normal"),
+        "fast",
+        "guided, fast",
+    );
+
+    // Unguided.
+    assert_eq!(unguided_exr.text("splatd:denoiseAlbedo"), "none");
+    assert_eq!(unguided_exr.text("splatd:denoiseNormal"), "none");
+    check_denoised_plausibly(&unguided_exr, "unguided");
+    check_against_oidn_denoise(
+        &lib,
+        d,
+        &unguided_exr,
+        &unguided_paper,
+        None,
+        None,
+        "high",
+        "unguided",
+    );
+
+    // The frame's default: denoised without asking, guided by the albedo it names only; and
+    // `denoise=none` turns it off.
+    assert!(default_exr.has("denoised.G"));
+    assert_eq!(
+        default_exr.text("splatd:denoiseAlbedo"),
+        "ViewLayer.DiffCol"
+    );
+    assert_eq!(default_exr.text("splatd:denoiseNormal"), "none");
+    check_denoised_plausibly(&default_exr, "by default, albedo only");
+    check_against_oidn_denoise(
+        &lib,
+        d,
+        &default_exr,
+        &guided_paper,
+        Some("ViewLayer.DiffCol"),
+        None,
+        "high",
+        "by default, albedo only",
+    );
+    assert!(!default_off.has("denoised.G"));
+    assert!(default_off.attributes.get("splatd:denoiser").is_none());
+
+    // The preview shows the denoised final too.
+    let preview = reqwest::blocking::get(format!(
+        "{}/v1/frames/guided/preview.png?layer=denoised",
+        server.url
+    ))
+    .unwrap();
+    assert_eq!(preview.status(), 200);
+    assert_eq!(preview.headers()["content-type"], "image/png");
+    let png = preview.bytes().unwrap();
+    assert!(png.starts_with(b"\x89PNG"), "a PNG");
+}
+
+#[test]
+fn guides_that_do_not_fit_are_refused_at_creation() {
+    // No OIDN needed: the guides are checked when the frame is created, on any server.
+    let server = Server::start(&[]);
+    let client = Client::new(&server.url).unwrap();
+    let rt = runtime();
+    for (guides, want) in [
+        (
+            DenoiseGuides {
+                albedo: Some("albedo".into()),
+                normal: None,
+            },
+            "\"albedo\" is not one of the frame's AOVs",
+        ),
+        (
+            DenoiseGuides {
+                albedo: None,
+                normal: Some("ViewLayer.Normal".into()),
+            },
+            "needs an albedo",
+        ),
+    ] {
+        let frame = CreateFrame {
+            aovs: aovs(),
+            denoise_guides: Some(guides),
+            ..CreateFrame::new("f", W, H)
+        };
+        let (status, code, message) =
+            rejected(rt.block_on(client.create_frame(&frame)).unwrap_err());
+        assert_eq!(
+            (status, code.as_str()),
+            (400, "invalid_parameters"),
+            "{message}"
+        );
+        assert!(message.contains(want), "{message}");
+    }
+}
+
+#[test]
+fn a_server_without_a_usable_oidn_refuses_denoising_and_nothing_else() {
+    let missing = "/nonexistent/oidn/lib/libOpenImageDenoise.so.2";
+    let log = tempfile::NamedTempFile::new().unwrap();
+    let server = ServerProcess::launch(&Options {
+        env: &[("SPLATD_OIDN_LIB", missing)],
+        log: Some(log.path()),
+        log_level: "info",
+        ..Options::new(env!("CARGO_BIN_EXE_splatd"), &[])
+    })
+    .unwrap_or_else(|e| panic!("{e}"));
+    let client = Client::new(&server.url).unwrap();
+    let rt = runtime();
+    let frame = CreateFrame {
+        denoise: Denoise::Oidn,
+        ..CreateFrame::new("d", 8, 4)
+    };
+    rt.block_on(async {
+        client.create_frame(&frame).await.unwrap();
+        client
+            .create_frame(&CreateFrame::new("plain", 8, 4))
+            .await
+            .unwrap();
+        // Asked for, or the frame's default: 501 naming the path and how to give one.
+        for (id, q) in [("plain", query(Some(Denoise::Oidn))), ("d", query(None))] {
+            let (status, code, message) = rejected(client.image(id, &q).await.unwrap_err());
+            assert_eq!(
+                (status, code.as_str()),
+                (501, "denoiser_unavailable"),
+                "{message}"
+            );
+            assert!(
+                message.contains(missing)
+                    && message.contains("--oidn-lib")
+                    && message.contains("SPLATD_OIDN_LIB"),
+                "{message}"
+            );
+        }
+        // Everything else is served as ever.
+        client.image("plain", &query(None)).await.unwrap();
+        client
+            .image("d", &query(Some(Denoise::None)))
+            .await
+            .unwrap();
+    });
+    let preview = reqwest::blocking::get(format!(
+        "{}/v1/frames/plain/preview.png?layer=denoised",
+        server.url
+    ))
+    .unwrap();
+    assert_eq!(preview.status(), 501);
+    let body: serde_json::Value = preview.json().unwrap();
+    assert_eq!(body["error"], "denoiser_unavailable");
+    let said = std::fs::read_to_string(log.path()).unwrap();
+    assert!(
+        said.contains("Open Image Denoise not loaded") && said.contains(missing),
+        "the log says why at start: {said}"
+    );
+}
