@@ -168,12 +168,15 @@ fn read_pfm(path: &Path) -> Vec<[f32; 3]> {
     rgb
 }
 
+/// An albedo, and a normal beside it, for `oidnDenoise`.
+type Guides<'a> = Option<(&'a [[f32; 3]], Option<&'a [[f32; 3]]>)>;
+
 /// OIDN's own command on `color` (and the guides), at `quality`.
 fn oidn_denoise(
     lib: &str,
     dir: &Path,
     color: &[[f32; 3]],
-    guides: Option<(&[[f32; 3]], Option<&[[f32; 3]]>)>,
+    guides: Guides<'_>,
     quality: &str,
 ) -> Vec<[f32; 3]> {
     let lib = std::fs::canonicalize(lib).unwrap();
