@@ -19,7 +19,7 @@ use std::process::Command;
 
 use bytes::Bytes;
 use common::{
-    read_exr_attributes_with_python, read_exr_with_python, run_setup, runtime, Options, Server,
+    read_exr_attributes_with_python, read_exr_with_python, run_setup, runtime, Log, Options, Server,
     ServerProcess,
 };
 use splatd_proto::api::{AovSpec, CreateFrame, Denoise, DenoiseGuides, DenoiseQuality, ImageQuery};
@@ -27,7 +27,7 @@ use splatd_proto::{Client, ClientError, Variant};
 
 const W: u32 = 64;
 const H: u32 = 48;
-const PASSES: u64 = 8;
+const PASSES: u64 = 16;
 
 /// The OIDN library to start servers with, or `None` (said loudly) outside CI.
 fn oidn_library() -> Option<String> {
@@ -168,12 +168,15 @@ fn read_pfm(path: &Path) -> Vec<[f32; 3]> {
     rgb
 }
 
+/// An albedo, and a normal beside it, for `oidnDenoise`.
+type Guides<'a> = Option<(&'a [[f32; 3]], Option<&'a [[f32; 3]]>)>;
+
 /// OIDN's own command on `color` (and the guides), at `quality`.
 fn oidn_denoise(
     lib: &str,
     dir: &Path,
     color: &[[f32; 3]],
-    guides: Option<(&[[f32; 3]], Option<&[[f32; 3]]>)>,
+    guides: Guides<'_>,
     quality: &str,
 ) -> Vec<[f32; 3]> {
     let lib = std::fs::canonicalize(lib).unwrap();
@@ -228,8 +231,11 @@ fn flat_variance(rgb: &[[f32; 3]]) -> f64 {
     values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / values.len() as f64
 }
 
-/// What holds for any denoiser input: the `denoised` layer is finite, keeps the energy of the
-/// mean within 5 %, and on the flat wall has far less variance than the plain mean.
+/// What holds for any denoiser input: the `denoised` layer is finite, keeps most of the mean's
+/// energy (the input design may leave out some of what the resolve removes as fireflies: the
+/// `paper` input kept 86 % at 8 spp of this scene; OIDN's own part is checked against its
+/// input in [`check_against_oidn_denoise`]), and on the flat wall has far less variance than
+/// the plain mean.
 fn check_denoised_plausibly(exr: &Exr, what: &str) {
     let denoised = exr.rgb("denoised.", ["R", "G", "B"]);
     let mean = exr.rgb("mean.", ["R", "G", "B"]);
@@ -239,7 +245,7 @@ fn check_denoised_plausibly(exr: &Exr, what: &str) {
     );
     let energy = luminance_sum(&denoised) / luminance_sum(&mean);
     assert!(
-        (0.95..=1.05).contains(&energy),
+        (0.8..=1.05).contains(&energy),
         "{what}: the denoised final has {energy} of the mean's energy"
     );
     let (before, after) = (flat_variance(&mean), flat_variance(&denoised));
@@ -286,6 +292,12 @@ fn check_against_oidn_denoise(
     assert!(
         diff < 1e-4,
         "{what}: the denoised layer differs from oidnDenoise on the same input by {diff}"
+    );
+    let kept = luminance_sum(&ours) / luminance_sum(&color);
+    eprintln!("{what}: OIDN kept {kept:.4} of its input's energy");
+    assert!(
+        (0.97..=1.03).contains(&kept),
+        "{what}: OIDN kept {kept} of its input's energy"
     );
 }
 
@@ -518,7 +530,7 @@ fn a_server_without_a_usable_oidn_refuses_denoising_and_nothing_else() {
     let log = tempfile::NamedTempFile::new().unwrap();
     let server = ServerProcess::launch(&Options {
         env: &[("SPLATD_OIDN_LIB", missing)],
-        log: Some(log.path()),
+        log: Log::File(log.path()),
         log_level: "info",
         ..Options::new(env!("CARGO_BIN_EXE_splatd"), &[])
     })

@@ -850,6 +850,38 @@ mod tests {
         assert_eq!(c.converged_below, 0.01);
     }
 
+    /// The denoise fields: omitted means none and by name, and they round-trip through
+    /// `PutFrame`; an old frame's JSON (without them) writes back unchanged.
+    #[test]
+    fn denoise_fields_default_to_none_and_round_trip() {
+        let c: CreateFrame = serde_json::from_value(json!({
+            "id": "f", "width": 4, "height": 2, "denoise": "oidn",
+            "denoise_guides": {"albedo": "ViewLayer.DiffCol"}
+        }))
+        .expect("valid");
+        assert_eq!(c.denoise, Denoise::Oidn);
+        let guides = c.denoise_guides.clone().unwrap();
+        assert_eq!(
+            (guides.albedo.as_deref(), guides.normal),
+            (Some("ViewLayer.DiffCol"), None)
+        );
+        assert_eq!(PutFrame::from(&c).into_create("f"), c);
+        let plain = json!({"id": "f", "width": 4, "height": 2});
+        let old: CreateFrame = serde_json::from_value(plain.clone()).unwrap();
+        assert_eq!(
+            (old.denoise, old.denoise_guides.clone()),
+            (Denoise::None, None)
+        );
+        let back = serde_json::to_value(&old).unwrap();
+        assert!(back.get("denoise").is_none() && back.get("denoise_guides").is_none());
+        for bad in [
+            json!({"id": "f", "width": 4, "height": 2, "denoise": "bm3d"}),
+            json!({"id": "f", "width": 4, "height": 2, "denoise_guides": {"albedo": "a", "depth": "z"}}),
+        ] {
+            assert!(serde_json::from_value::<CreateFrame>(bad).is_err());
+        }
+    }
+
     #[test]
     fn partial_params_fill_in_per_field() {
         let c: CreateFrame = serde_json::from_value(json!({

@@ -56,7 +56,8 @@ pub enum ClientError {
     /// A batch or frame id was refused before anything was sent.
     #[error("refused locally before sending: {0}")]
     Wire(#[from] WireError),
-    /// The server refused the request (a 4xx other than 408 and 429).
+    /// The server refused the request (a 4xx other than 408 and 429, or a 501: the server
+    /// lacks the feature asked for).
     /// Resending the same request will fail the same way.
     #[error("server refused the request with HTTP {status}: {body}")]
     Rejected {
@@ -527,7 +528,8 @@ impl Client {
                 });
                 continue;
             }
-            if status.is_client_error() {
+            // 501: the server lacks the feature (`denoiser_unavailable`); final like a 4xx.
+            if status.is_client_error() || status == StatusCode::NOT_IMPLEMENTED {
                 return Err(ClientError::Rejected {
                     status: status.as_u16(),
                     body: error_body(status, &bytes),

@@ -26,6 +26,11 @@ use splatd_proto::api::{AovSpec, DenoiseGuides, DenoiseQuality};
 
 use crate::image::HeaderValue;
 
+/// How an operator gives a server OIDN, for the messages of [`DenoiseError::Unavailable`].
+pub const HOW: &str = "start the server with --oidn-lib PATH or SPLATD_OIDN_LIB naming \
+    libOpenImageDenoise.so.2 of OIDN 2.x; `bash tests/setup/oidn.sh` installs one and prints \
+    its path";
+
 /// The layer of `image.exr` that holds the denoised final.
 pub const DENOISED_LAYER: &str = "denoised";
 
@@ -33,11 +38,7 @@ pub const DENOISED_LAYER: &str = "denoised";
 #[derive(Debug, thiserror::Error)]
 pub enum DenoiseError {
     /// The server has no usable OIDN (not found, not 2.x, or it failed to start a device).
-    #[error(
-        "this server cannot denoise: {reason}. Start it with --oidn-lib PATH (or \
-         SPLATD_OIDN_LIB) naming libOpenImageDenoise.so.2 of OIDN 2.x; \
-         `bash tests/setup/oidn.sh` installs one and prints its path"
-    )]
+    #[error("this server cannot denoise: {reason}")]
     Unavailable {
         /// Why the library could not be used, naming the path tried.
         reason: String,
@@ -91,7 +92,10 @@ impl Denoiser {
             Ok(oidn) => Denoiser {
                 oidn: Ok(Arc::new(oidn.with_max_memory_mib(Some(max_memory_mib)))),
             },
-            Err(e) => Denoiser::unavailable(e.to_string()),
+            Err(e @ splatd_denoise::DenoiseError::Load { .. }) => {
+                Denoiser::unavailable(e.to_string())
+            }
+            Err(e) => Denoiser::unavailable(format!("{e} ({HOW})")),
         }
     }
 

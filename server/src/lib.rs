@@ -149,7 +149,10 @@ impl AppState {
         durable: Option<Arc<Durable>>,
         auth: Auth,
     ) -> AppState {
-        let none = denoise::Denoiser::unavailable("no denoiser was configured for this server");
+        let none = denoise::Denoiser::unavailable(format!(
+            "no denoiser was configured for this server ({})",
+            denoise::HOW
+        ));
         Self::with_denoiser(limits, metrics, durable, auth, none)
     }
 
