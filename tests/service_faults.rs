@@ -27,17 +27,7 @@ fn create(server: &ServerProcess, id: &str, w: u32, h: u32) {
 }
 
 fn post(server: &ServerProcess, id: &str, w: u32, h: u32) {
-    let records = (0..w * h)
-        .map(|i| Record::new(i % w, i / w, [1.0, 2.0, 3.0]))
-        .collect();
-    let batch = Batch::new(id, 1, 0, records).unwrap();
-    let r = http()
-        .post(format!("{}/v1/frames/{id}/samples", server.url))
-        .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
-        .body(batch.encode())
-        .send()
-        .unwrap();
-    assert_eq!(r.status(), 200, "{}", r.text().unwrap());
+    post_seq(server, id, w, h, 0);
 }
 
 /// `(status, body)` of `POST .../sync`.
