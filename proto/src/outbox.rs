@@ -165,12 +165,7 @@ impl Outbox {
                 self.forget(|_| true);
                 return Ok(ack);
             }
-            let stale: Vec<u64> = self
-                .kept
-                .iter()
-                .filter(|(_, k)| k.boot != ack.boot)
-                .map(|(&seq, _)| seq)
-                .collect();
+            let stale = self.acknowledged_elsewhere(ack.boot);
             self.boot = Some(ack.boot);
             if stale.is_empty() {
                 self.forget(|_| true);
@@ -213,17 +208,14 @@ impl Outbox {
         }
         let ack = self.send(&route, seq, bytes).await?;
         if ack.durable_floor.is_some() {
-            let in_memory = match &body {
-                Body::Memory(b) => b.len(),
-                Body::File { .. } => 0,
-            };
+            let in_memory = body.in_memory();
             let kept = Kept {
                 route,
                 body,
                 boot: ack.boot,
             };
             if let Some(old) = self.kept.insert(seq, kept) {
-                self.kept_bytes -= memory_of(&old);
+                self.kept_bytes -= old.body.in_memory();
             }
             self.kept_bytes += in_memory;
         }
@@ -245,12 +237,7 @@ impl Outbox {
             if !restarted {
                 return Ok(());
             }
-            let stale: Vec<u64> = self
-                .kept
-                .iter()
-                .filter(|(_, k)| k.boot != ack.boot)
-                .map(|(&seq, _)| seq)
-                .collect();
+            let stale = self.acknowledged_elsewhere(ack.boot);
             if let Some(last) = self.resend(&stale).await? {
                 ack = last;
             }
@@ -293,20 +280,32 @@ impl Outbox {
         }
     }
 
+    /// The kept bodies last acknowledged by another server process than `boot`, lowest first.
+    fn acknowledged_elsewhere(&self, boot: u64) -> Vec<u64> {
+        self.kept
+            .iter()
+            .filter(|(_, k)| k.boot != boot)
+            .map(|(&seq, _)| seq)
+            .collect()
+    }
+
     fn forget(&mut self, durable: impl Fn(u64) -> bool) {
         let gone: Vec<u64> = self.kept.keys().copied().filter(|&s| durable(s)).collect();
         for seq in gone {
             if let Some(k) = self.kept.remove(&seq) {
-                self.kept_bytes -= memory_of(&k);
+                self.kept_bytes -= k.body.in_memory();
             }
         }
     }
 }
 
-fn memory_of(kept: &Kept) -> usize {
-    match &kept.body {
-        Body::Memory(b) => b.len(),
-        Body::File { .. } => 0,
+impl Body {
+    /// Bytes this body holds in memory (a file's are on disk).
+    fn in_memory(&self) -> usize {
+        match self {
+            Body::Memory(b) => b.len(),
+            Body::File { .. } => 0,
+        }
     }
 }
 
