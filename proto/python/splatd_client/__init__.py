@@ -546,7 +546,7 @@ class Outbox:
             if not ack["durable"]:
                 self._forget(lambda seq: True)
                 return ack
-            stale = [seq for seq, kept in self._kept.items() if kept[3] != ack["boot"]]
+            stale = self._acknowledged_elsewhere(ack["boot"])
             if not stale:
                 self._boot = ack["boot"]
                 self._forget(lambda seq: True)
@@ -579,7 +579,7 @@ class Outbox:
             self._boot = ack["boot"]
             if not restarted:
                 return
-            ack = self._resend([seq for seq, kept in self._kept.items() if kept[3] != ack["boot"]]) or ack
+            ack = self._resend(self._acknowledged_elsewhere(ack["boot"])) or ack
         raise SplatdError(None, "restarting", f"{self.frame}: the server kept restarting")
 
     def _resend(self, seqs: List[int]) -> Optional[Dict[str, Any]]:
@@ -594,6 +594,10 @@ class Outbox:
             if again["boot"] != self._boot:
                 break
         return again
+
+    def _acknowledged_elsewhere(self, boot: int) -> List[int]:
+        """The kept bodies last acknowledged by another server process than ``boot``."""
+        return [seq for seq, kept in self._kept.items() if kept[3] != boot]
 
     def _forget(self, durable: Any) -> None:
         for seq in [s for s in self._kept if durable(s)]:
