@@ -45,6 +45,11 @@ impl Default for History {
 }
 
 impl History {
+    /// The version the latest figures are of, if any were filed.
+    pub fn latest_version(&self) -> Option<u64> {
+        self.latest.map(|(v, _)| v)
+    }
+
     /// Seconds since the frame was taken in.
     pub fn seconds(&self) -> f64 {
         self.started.elapsed().as_secs_f64()
@@ -132,7 +137,7 @@ pub async fn need_map(
         .get_or_render(frame, format!("need {tile}"), cost, move |frame| {
             let cut = frame.cut();
             let resolved = cut.resolve(&params, threads);
-            let bands: Vec<&estimator::FrameState> = cut.bands.iter().collect();
+            let bands = cut.band_refs();
             let map = NeedMap::build(&bands, &resolved, &params, tile)
                 .map_err(|e| ApiError::internal("need map", e))?;
             {
@@ -150,12 +155,17 @@ pub async fn need_map(
 }
 
 /// The frame's convergence now: renders its need map at the default tile size if the frame
-/// changed since the last render (shared with everyone asking), then reads the history.
+/// changed since the figures were last filed (shared with everyone asking), then reads the
+/// history. An unchanged frame costs no render however many frames the server holds: the
+/// figures are kept with the frame, not in the renders' cache.
 pub async fn convergence(
     app: &AppState,
     frame: &Arc<ShardedFrame>,
 ) -> Result<api::Convergence, ApiError> {
-    need_map(app, frame, estimator::DEFAULT_NEED_TILE).await?;
+    let filed = frame.history().latest_version();
+    if filed != Some(frame.version()) {
+        need_map(app, frame, estimator::DEFAULT_NEED_TILE).await?;
+    }
     let samples = frame.samples();
     let threshold = frame.spec().request.converged_below;
     let history = frame.history();

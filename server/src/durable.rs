@@ -383,10 +383,10 @@ impl Durable {
         let this = self.clone();
         let f = frame.clone();
         let written = async move {
-            // The copy at normal priority, band by band: writers wait for one band's copy at
-            // most, and the copy is over quickly, so few of them have to copy a band themselves.
-            let copier = f.clone();
-            let cut = tokio::task::spawn_blocking(move || copier.cut_by_band().into_cut()).await?;
+            // The cut (no copy: writers copy a band the snapshot still holds before changing
+            // it) waits for batches being applied, so it is taken off the request loop.
+            let cutter = f.clone();
+            let cut = tokio::task::spawn_blocking(move || cutter.cut()).await?;
             // The encoding and writing at low priority: on a saturated machine they take the
             // cores that ingest leaves idle, and durability lags instead of ingest slowing.
             crate::renders::on_low_priority_thread("splatd-snapshot", move || {

@@ -4,15 +4,15 @@
 //! is kept as horizontal bands ([`FrameState::band`]); a batch is bucketed by band and each band is
 //! locked only while its own samples are added. A batch is still applied atomically as seen from
 //! a reader: writers hold a shared *gate* while they apply, and anything that needs a consistent
-//! cut (resolve, export) takes the gate exclusively for the moment it takes to copy the bands.
-//! So a resolve never sees half a batch, and an applied batch is never half-durable.
+//! cut (resolve, export, snapshots) takes the gate exclusively. So a resolve never sees half a
+//! batch, and an applied batch is never half-durable.
 //!
-//! A snapshot does not copy the bands under the gate ([`ShardedFrame::cut_by_band`]): at 4K they
-//! are 1.6 GB, and copying them stopped every writer for a second. It takes the gate only to
-//! mark every band *owed* (and to copy the small things: applied set, counters, AOV sums), then
-//! copies the bands one at a time under each band's own lock. A writer about to change a band
-//! that is still owed copies it first (copy on write), so each band is copied exactly as it was
-//! at the cut, while the other bands take samples.
+//! Nothing copies the frame under the gate: at 4K the bands are 1.6 GB, and copying them stopped
+//! every writer for a second (and every render did it). Each band (and the AOV sums) is behind
+//! an `Arc`; a cut takes the gate only to clone those pointers and copy the small things (the
+//! applied set, the counters). A writer about to change a band that a cut still holds copies it
+//! first (`Arc::make_mut`, copy on write, under that band's own lock), so the cut keeps the band
+//! as it was while the other bands take samples, and with no cut held nothing is copied at all.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
@@ -416,11 +416,16 @@ pub struct CounterValues {
     pub imports: u64,
 }
 
-/// A consistent copy of a frame: what resolve, export and snapshots work from.
+/// A consistent cut of a frame: what resolve, export and snapshots work from.
+///
+/// It shares the frame's bands and AOV sums instead of copying them ([`ShardedFrame::cut`]):
+/// a writer that changes a band while a cut holds it copies that band first (one band, under
+/// that band's own lock), so the cut stays the frame as it was and nobody waits for a copy of
+/// the whole frame.
 #[derive(Debug, Clone)]
 pub struct FrameCut {
     /// The bands, top to bottom.
-    pub bands: Vec<FrameState>,
+    pub bands: Vec<Arc<FrameState>>,
     /// Senders seen when the copy was taken.
     pub seen: Seen,
     /// Counters when the copy was taken.
@@ -428,7 +433,7 @@ pub struct FrameCut {
     /// The frame's version when the copy was taken (see [`ShardedFrame::version`]).
     pub version: u64,
     /// The AOV sums of the whole frame, if it has AOVs.
-    pub aovs: Option<AovSums>,
+    pub aovs: Option<Arc<AovSums>>,
 }
 
 impl FrameCut {
@@ -444,10 +449,14 @@ impl FrameCut {
         whole
     }
 
-    /// Resolves the copy on `threads` threads.
+    /// The bands, top to bottom, as the estimator takes them.
+    pub fn band_refs(&self) -> Vec<&FrameState> {
+        self.bands.iter().map(|b| &**b).collect()
+    }
+
+    /// Resolves the cut on `threads` threads.
     pub fn resolve(&self, params: &estimator::ResolveParams, threads: usize) -> Resolved {
-        let refs: Vec<&FrameState> = self.bands.iter().collect();
-        resolve_bands(&refs, params, threads).expect("a frame's bands tile it")
+        resolve_bands(&self.band_refs(), params, threads).expect("a frame's bands tile it")
     }
 
     /// `B_j / N` per cascade over the whole frame (raw layers for the EXR).
@@ -465,6 +474,14 @@ impl FrameCut {
     }
 }
 
+/// Samples per pixel over a frame.
+#[derive(Debug, Clone, Copy)]
+struct SppFigures {
+    min: u64,
+    mean: f64,
+    max: u64,
+}
+
 /// A frame being accumulated by the server.
 #[derive(Debug)]
 pub struct ShardedFrame {
@@ -472,10 +489,12 @@ pub struct ShardedFrame {
     /// Unique among the frames of this process, so that a frame deleted and created again
     /// under the same id is never taken for the old one by anything that remembers frames.
     serial: u64,
-    bands: Vec<Mutex<FrameState>>,
+    /// Shared with the cuts taken since the band last changed ([`ShardedFrame::cut`]).
+    bands: Vec<Mutex<Arc<FrameState>>>,
     /// Band index of each row.
     band_of_row: Vec<u16>,
-    /// Shared while a batch is applied, exclusive while a consistent copy is taken.
+    /// Shared while a batch is applied, exclusive while a consistent cut is taken (a handful
+    /// of reference counts and the applied set, never the cells).
     gate: RwLock<()>,
     /// Set (under the exclusive gate) when the frame is deleted: nothing is applied after.
     retired: AtomicBool,
@@ -484,8 +503,9 @@ pub struct ShardedFrame {
     /// it is answered only after every such answer.
     requests: Arc<tokio::sync::RwLock<()>>,
     seen: Mutex<Seen>,
-    /// The AOV sums of the whole frame (if it has AOVs), locked after the bands.
-    aovs: Option<Mutex<AovSums>>,
+    /// The AOV sums of the whole frame (if it has AOVs), locked after the bands; shared with
+    /// cuts like the bands.
+    aovs: Option<Mutex<Arc<AovSums>>>,
     counters: Counters,
     /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
     /// happened since they last looked.
@@ -496,92 +516,9 @@ pub struct ShardedFrame {
     durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
     /// Convergence figures of the frame's renders over time.
     history: Mutex<crate::converge::History>,
-    /// Copies of bands owed to a [`BandCut`] in progress.
-    copies: BandCopies,
-}
-
-/// The copy-on-write side of [`ShardedFrame::cut_by_band`].
-#[derive(Debug)]
-struct BandCopies {
-    /// Set while a cut is in progress (some band may still be owed): writers look at their
-    /// band's slot only then.
-    pending: AtomicBool,
-    /// Per band, locked after the band's own lock.
-    slots: Vec<Mutex<Slot>>,
-    /// One band-by-band cut at a time.
-    turn: Mutex<()>,
-}
-
-/// What a band owes the cut in progress.
-#[derive(Debug)]
-enum Slot {
-    /// Nothing: no cut in progress, or the cut has its copy already.
-    Idle,
-    /// The cut needs the band as it is now (it has not changed since the cut).
-    Owed,
-    /// A writer copied the band as it was at the cut before changing it.
-    Copied(FrameState),
-}
-
-/// A consistent cut of a frame taken band by band ([`ShardedFrame::cut_by_band`]): everything
-/// but the bands is copied already; [`BandCut::take`] hands each band over as it was at the
-/// cut. Dropping it ends the cut (bands not taken are forgotten).
-#[derive(Debug)]
-pub struct BandCut<'a> {
-    frame: &'a ShardedFrame,
-    _turn: MutexGuard<'a, ()>,
-    /// Senders seen at the cut.
-    pub seen: Seen,
-    /// Counters at the cut.
-    pub counters: CounterValues,
-    /// The frame's version at the cut.
-    pub version: u64,
-    /// The AOV sums of the whole frame at the cut, if it has AOVs.
-    pub aovs: Option<AovSums>,
-}
-
-impl BandCut<'_> {
-    /// How many bands the frame has.
-    pub fn bands(&self) -> usize {
-        self.frame.bands.len()
-    }
-
-    /// Band `i` as it was at the cut: the copy a writer made before changing it, or a copy made
-    /// now (under the band's lock, so writers of this band only wait for one band's copy).
-    ///
-    /// # Panics
-    /// If band `i` was taken before.
-    pub fn take(&mut self, i: usize) -> FrameState {
-        let band = lock(&self.frame.bands[i]);
-        let mut slot = lock(&self.frame.copies.slots[i]);
-        match std::mem::replace(&mut *slot, Slot::Idle) {
-            Slot::Copied(copy) => copy,
-            Slot::Owed => band.clone(),
-            Slot::Idle => panic!("band {i} of a cut taken twice"),
-        }
-    }
-
-    /// Takes every band, top to bottom: the whole cut, ended.
-    pub fn into_cut(mut self) -> FrameCut {
-        let bands = (0..self.bands()).map(|i| self.take(i)).collect();
-        FrameCut {
-            bands,
-            seen: std::mem::take(&mut self.seen),
-            counters: self.counters,
-            version: self.version,
-            aovs: self.aovs.take(),
-        }
-    }
-}
-
-impl Drop for BandCut<'_> {
-    fn drop(&mut self) {
-        let copies = &self.frame.copies;
-        for slot in &copies.slots {
-            *lock(slot) = Slot::Idle;
-        }
-        copies.pending.store(false, Ordering::Release);
-    }
+    /// The samples-per-pixel figures of [`ShardedFrame::info`] and the version they were
+    /// counted at: a frame polled but not changed is not read again.
+    spp_figures: Mutex<Option<(u64, SppFigures)>>,
 }
 
 /// Held by a request that changes a frame until its answer is ready (see
@@ -623,13 +560,15 @@ impl ShardedFrame {
         let frame = ShardedFrame::new(spec);
         frame.check_fits(state).map_err(|e| e.to_string())?;
         for band in &frame.bands {
-            lock(band).merge(state).map_err(|e| e.to_string())?;
+            Arc::make_mut(&mut lock(band))
+                .merge(state)
+                .map_err(|e| e.to_string())?;
         }
         if let Some(restored) = aovs {
             let Some(mine) = &frame.aovs else {
                 return Err("AOV sums for a frame that declares no AOVs".into());
             };
-            lock(mine)
+            Arc::make_mut(&mut lock(mine))
                 .merge_overlap(restored)
                 .map_err(|e| e.to_string())?;
         }
@@ -675,12 +614,14 @@ impl ShardedFrame {
             }
         }
         static NEXT_SERIAL: AtomicU64 = AtomicU64::new(1);
-        let aovs = spec.empty_aovs().map(Mutex::new);
-        let n_bands = bands.len();
+        let aovs = spec.empty_aovs().map(|a| Mutex::new(Arc::new(a)));
         let frame = ShardedFrame {
             spec,
             serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),
-            bands: bands.into_iter().map(Mutex::new).collect(),
+            bands: bands
+                .into_iter()
+                .map(|b| Mutex::new(Arc::new(b)))
+                .collect(),
             band_of_row,
             gate: RwLock::new(()),
             retired: AtomicBool::new(false),
@@ -692,11 +633,7 @@ impl ShardedFrame {
             durable_version: AtomicU64::new(0),
             durable_floors: Mutex::new(Default::default()),
             history: Mutex::new(Default::default()),
-            copies: BandCopies {
-                pending: AtomicBool::new(false),
-                slots: (0..n_bands).map(|_| Mutex::new(Slot::Idle)).collect(),
-                turn: Mutex::new(()),
-            },
+            spp_figures: Mutex::new(None),
         };
         frame.set_counters(counters);
         frame
@@ -913,7 +850,7 @@ impl ShardedFrame {
         }
         // The bands this batch touches, locked top to bottom (as every holder of several bands
         // locks them), so that the room check below and the additions see the same cells.
-        let mut guards: Vec<Option<MutexGuard<'_, FrameState>>> = self
+        let mut guards: Vec<Option<MutexGuard<'_, Arc<FrameState>>>> = self
             .bands
             .iter()
             .enumerate()
@@ -970,12 +907,12 @@ impl ShardedFrame {
         let n = parts.len();
         for (i, guard) in guards.iter_mut().enumerate() {
             if let Some(mut band) = guard.take() {
-                self.preserve(i, &band);
-                parts.splat(i, &mut band);
+                // Copies the band first if a cut holds it.
+                parts.splat(i, Arc::make_mut(&mut band));
             }
         }
         if let (Some(sums), Some(values)) = (aov_sums.as_mut(), aovs) {
-            sums.add_pass(values);
+            Arc::make_mut(sums).add_pass(values);
         }
         drop(aov_sums);
         self.counters.samples.fetch_add(n, Ordering::Relaxed);
@@ -1092,7 +1029,7 @@ impl ShardedFrame {
         // Every band, locked top to bottom (as every holder of several bands locks them), so
         // that the room check and the additions see the same cells; then the applied set, so
         // that no batch is recorded between the overlap check and the recording.
-        let mut bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
+        let mut bands: Vec<MutexGuard<'_, Arc<FrameState>>> = self.bands.iter().map(lock).collect();
         // The AOV sums after the bands and before the applied set, as ingest locks them.
         let mut aov_sums = match (aovs, &self.aovs) {
             (Some((_, theirs)), Some(mine)) => Some((lock(mine), theirs)),
@@ -1142,9 +1079,8 @@ impl ShardedFrame {
         drop(seen);
         // Every band has the frame's size and layout (checked above for band 0) and room; one
         // pass over the state adds each piece to the bands it falls in.
-        for (i, band) in bands.iter().enumerate() {
-            self.preserve(i, band);
-        }
+        // Copies of the bands cuts hold, made before anything changes.
+        let mut bands: Vec<&mut FrameState> = bands.iter_mut().map(|b| Arc::make_mut(b)).collect();
         let mut added = 0;
         state
             .pieces(&mut |first, cells| {
@@ -1156,7 +1092,8 @@ impl ShardedFrame {
             .expect("adding checked pieces refuses nothing");
         debug_assert_eq!(added, state.samples());
         if let Some((mine, theirs)) = aov_sums.as_mut() {
-            mine.merge_overlap(theirs)
+            Arc::make_mut(mine)
+                .merge_overlap(theirs)
                 .expect("AOV sums were checked for room above");
         }
         drop(aov_sums);
@@ -1210,8 +1147,10 @@ impl ShardedFrame {
         self.retired.load(Ordering::Acquire)
     }
 
-    /// A consistent copy of the whole frame. Writers wait only for the copy (a memcpy of the
-    /// cascades), not for whatever the copy is used for afterwards.
+    /// A consistent cut of the whole frame, taken under the exclusive gate (so no batch is
+    /// half in it) in the time of a few reference counts and a copy of the applied set: the
+    /// cut shares the bands and AOV sums; writers that change them afterwards copy what they
+    /// change first (see [`FrameCut`]).
     pub fn cut(&self) -> FrameCut {
         let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
         FrameCut {
@@ -1223,64 +1162,33 @@ impl ShardedFrame {
         }
     }
 
-    /// A consistent cut like [`ShardedFrame::cut`] whose bands are copied one at a time
-    /// ([`BandCut::take`]) instead of all under the exclusive gate: writers wait for the gate
-    /// only while the applied set, the counters and the AOV sums are copied. Until the cut is
-    /// dropped, a writer changing a band the cut has not taken yet copies it first. One such cut
-    /// at a time (a second call waits for the first to be dropped).
-    pub fn cut_by_band(&self) -> BandCut<'_> {
-        let turn = lock(&self.copies.turn);
-        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
-        for slot in &self.copies.slots {
-            *lock(slot) = Slot::Owed;
-        }
-        self.copies.pending.store(true, Ordering::Release);
-        BandCut {
-            frame: self,
-            _turn: turn,
-            seen: lock(&self.seen).clone(),
-            counters: self.counter_values(),
-            version: self.version(),
-            aovs: self.aovs.as_ref().map(|a| lock(a).clone()),
-        }
-    }
-
-    /// Before band `i` (locked by the caller, who holds the gate shared) changes: the copy a
-    /// cut in progress is owed, if it has not taken the band yet.
-    fn preserve(&self, i: usize, band: &FrameState) {
-        if !self.copies.pending.load(Ordering::Acquire) {
-            return;
-        }
-        let mut slot = lock(&self.copies.slots[i]);
-        if matches!(*slot, Slot::Owed) {
-            *slot = Slot::Copied(band.clone());
-        }
-    }
-
     /// Appends the frame's state with the batches it holds, in the state wire format, to `out`
-    /// (`GET .../state`): a consistent cut like [`ShardedFrame::cut`], encoded straight from
-    /// the bands instead of from a copy of them. Writers wait for the encoding, which reads the
-    /// bands once like the copy did; give it a buffer with room (already faulted in) so that it
-    /// is no slower.
+    /// (`GET .../state`), encoded from a [`ShardedFrame::cut`]: writers go on meanwhile.
     pub fn write_state(&self, out: &mut Vec<u8>) {
-        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
-        let bands: Vec<MutexGuard<'_, FrameState>> = self.bands.iter().map(lock).collect();
-        let bands: Vec<&FrameState> = bands.iter().map(|b| &**b).collect();
-        // The AOV sums after the bands and before the applied set, as ingest locks them.
-        let aov_sums = self.aovs.as_ref().map(lock);
-        let aovs = aov_sums
+        let cut = self.cut();
+        let bands: Vec<&FrameState> = cut.bands.iter().map(|b| &**b).collect();
+        let aovs = cut
+            .aovs
             .as_deref()
             .map(|sums| (self.spec.request.aovs.as_slice(), sums));
-        let applied = lock(&self.seen).applied();
-        crate::export::write_bands(&bands, aovs, self.id(), None, applied, out)
+        crate::export::write_bands(&bands, aovs, self.id(), None, cut.seen.applied(), out)
             .expect("writing into a Vec<u8> is infallible");
     }
 
-    /// What the frame looks like now, for `GET /v1/frames/{id}`.
-    pub fn info(&self) -> FrameInfo {
+    /// Fewest, mean and most samples of any pixel now: counted from the cells once per
+    /// version (a read of the whole state), then remembered.
+    fn spp_figures(&self) -> SppFigures {
+        let version = self.version();
+        if let Some((v, figures)) = *lock(&self.spp_figures) {
+            if v == version {
+                return figures;
+            }
+        }
         let k = self.spec.layout.cascades();
         let (mut min, mut max, mut sum, mut pixels) = (u64::MAX, 0u64, 0u128, 0u64);
         for band in &self.bands {
+            // Under the band's lock: its writers wait for the scan of one band (cheaper for
+            // them than copying it, which a cut would make them do).
             let band = lock(band);
             for cell in band.cells().chunks_exact(cell_len(k)) {
                 let n = cell_spp(cell);
@@ -1290,6 +1198,24 @@ impl ShardedFrame {
                 pixels += 1;
             }
         }
+        let figures = SppFigures {
+            min: if pixels == 0 { 0 } else { min },
+            mean: if pixels == 0 {
+                0.0
+            } else {
+                sum as f64 / pixels as f64
+            },
+            max,
+        };
+        // Counted at `version` or later: filed under `version`, it is never taken for a
+        // newer state than it saw.
+        *lock(&self.spp_figures) = Some((version, figures));
+        figures
+    }
+
+    /// What the frame looks like now, for `GET /v1/frames/{id}`.
+    pub fn info(&self) -> FrameInfo {
+        let spp = self.spp_figures();
         let c = self.counter_values();
         let r = &self.spec.request;
         FrameInfo {
@@ -1300,13 +1226,9 @@ impl ShardedFrame {
             resolve: r.resolve.clone(),
             samples: c.samples,
             batches: c.batches,
-            spp_min: if pixels == 0 { 0 } else { min },
-            spp_mean: if pixels == 0 {
-                0.0
-            } else {
-                sum as f64 / pixels as f64
-            },
-            spp_max: max,
+            spp_min: spp.min,
+            spp_mean: spp.mean,
+            spp_max: spp.max,
             rejected_samples: c.rejected_samples,
             rejected_batches: c.rejected_batches,
             memory_bytes: self.spec.memory_bytes(),
@@ -1607,11 +1529,11 @@ mod tests {
         assert_eq!(frame.cut().whole(), expected);
     }
 
-    /// A band-by-band cut holds every band as it was at the cut, however the batches and
-    /// imports applied while it is taken fall: before a band is taken (the writer copies it
-    /// first) or after. The frame itself loses nothing.
+    /// A cut holds every band as it was at the cut, whatever is applied while it is held
+    /// (a batch over every band, an import), and the frame itself loses nothing; only bands
+    /// changed while a cut holds them are copied.
     #[test]
-    fn a_band_by_band_cut_is_the_frame_at_the_cut() {
+    fn a_cut_is_the_frame_at_the_cut() {
         let scene = FireflyScene::new(9, 70, 3);
         let frame = ShardedFrame::new(spec(9, 70));
         assert!(frame.bands.len() >= 4, "the test needs several bands");
@@ -1620,41 +1542,38 @@ mod tests {
                 .ingest(&batch(1, pass, records(&scene, pass)))
                 .unwrap();
         }
-        let at_cut = frame.cut();
+        let cut = frame.cut();
+        let at_cut: Vec<FrameState> = cut.bands.iter().map(|b| (**b).clone()).collect();
+        let at_cut_seen = cut.seen.clone();
         let mut other = FrameState::new(9, 70, CascadeLayout::with_defaults());
         other.splat_all(scene.pass(7));
 
-        let mut cut = frame.cut_by_band();
-        let n = cut.bands();
-        let mut taken = vec![cut.take(0)];
-        // A batch over every band: band 0 is taken, the others are copied before they change.
+        // The cut shares the bands: taking it copied nothing.
+        for (band, held) in frame.bands.iter().zip(&cut.bands) {
+            assert!(Arc::ptr_eq(&lock(band), held));
+        }
         frame.ingest(&batch(1, 3, records(&scene, 3))).unwrap();
-        taken.push(cut.take(1));
         frame.import("f", &other, None, None, &[]).unwrap();
-        taken.extend((2..n).map(|i| cut.take(i)));
-        assert_eq!(taken, at_cut.bands);
-        assert_eq!(cut.seen, at_cut.seen);
-        assert_eq!(
-            (cut.version, cut.counters),
-            (at_cut.version, at_cut.counters)
-        );
-        drop(cut);
+        let held: Vec<FrameState> = cut.bands.iter().map(|b| (**b).clone()).collect();
+        assert_eq!(held, at_cut, "the cut is the frame as it was");
+        assert_eq!(cut.seen, at_cut_seen);
+        for (band, held) in frame.bands.iter().zip(&cut.bands) {
+            assert!(!Arc::ptr_eq(&lock(band), held), "changed bands were copied");
+        }
 
-        let mut expected = at_cut.whole();
+        let mut expected = cut.whole();
         expected.splat_all(scene.pass(3));
         expected.merge(&other).unwrap();
+        drop(cut);
         assert_eq!(frame.cut().whole(), expected);
 
-        // A cut dropped half-taken (a failed snapshot) leaves nothing owed: the next cut is of
-        // the frame as it is then.
-        let mut half = frame.cut_by_band();
-        let _ = half.take(0);
-        drop(half);
+        // With no cut held, a writer changes its band in place.
+        let before: Vec<*const FrameState> =
+            frame.bands.iter().map(|b| Arc::as_ptr(&lock(b))).collect();
         frame.ingest(&batch(1, 4, records(&scene, 4))).unwrap();
-        let now = frame.cut();
-        let cut = frame.cut_by_band().into_cut();
-        assert_eq!(cut.bands, now.bands);
-        assert_eq!((cut.seen, cut.version), (now.seen, now.version));
+        let after: Vec<*const FrameState> =
+            frame.bands.iter().map(|b| Arc::as_ptr(&lock(b))).collect();
+        assert_eq!(before, after, "no copy without a cut");
     }
 
     #[test]

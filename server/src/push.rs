@@ -414,7 +414,9 @@ async fn next_delta(frame: &Arc<ShardedFrame>, track: &mut Track, node: &str) ->
         let whole = Baseline {
             state: cut.whole(),
             seen: cut.seen,
-            aovs: cut.aovs,
+            // The baseline outlives the cut: it owns a copy (sharing the frame's sums would
+            // make every later pass copy them).
+            aovs: cut.aovs.as_deref().cloned(),
         };
         let (delta, batches, aov_delta) = match &baseline {
             Some(b) => (

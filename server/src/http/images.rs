@@ -9,7 +9,7 @@ use axum::response::IntoResponse;
 use bytes::Bytes;
 use serde::{Deserialize, Deserializer};
 use splatd_estimator::denoise::DenoisePlan;
-use splatd_estimator::{FrameState, ResolveParams};
+use splatd_estimator::ResolveParams;
 use splatd_proto::api::{Denoise, DenoiseQuality, ImageQuery};
 
 use crate::denoise;
@@ -258,7 +258,7 @@ fn denoise_cut(
     budget: &Arc<WorkBudget>,
     quality: DenoiseQuality,
 ) -> Result<denoise::DenoiseRun, ApiError> {
-    let bands: Vec<&FrameState> = cut.bands.iter().collect();
+    let bands = cut.band_refs();
     let plan = DenoisePlan::new(&bands, params, threads);
     drop(bands);
     drop(cut);

@@ -31,6 +31,8 @@ mod tests_budget;
 mod tests_need;
 #[cfg(test)]
 mod tests_overlap;
+#[cfg(test)]
+mod tests_watch;
 
 use axum::extract::Request;
 use axum::handler::Handler;

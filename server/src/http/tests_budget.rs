@@ -227,7 +227,7 @@ async fn imports_wait_for_working_memory_and_long_bodies_are_refused_from_their_
     let frame = app.store.get("f").unwrap();
     let mut state = Vec::new();
     let cut = frame.cut();
-    let bands: Vec<&splatd_estimator::FrameState> = cut.bands.iter().collect();
+    let bands = cut.band_refs();
     crate::export::write_bands(&bands, None, "f", None, vec![], &mut state).unwrap();
     let held = app.renders.budget().reserve(1 << 20).await.unwrap();
     let (status, _, error) = answer(
