@@ -10,7 +10,7 @@
 //! At the end the frame is fetched twice over HTTP, reweighted (the frame's default) and as the
 //! plain mean (`variant=off`), and written as `reweighted.exr`, `mean.exr` and
 //! `side_by_side.png`: mean | reweighted | removed energy, all tone-mapped with one exposure,
-//! the reweighted image's (see [`splatd_server::preview::auto_exposure`]), so that the panels compare
+//! the reweighted image's (see [`splatd_formats::preview::auto_exposure`]), so that the panels compare
 //! fairly.
 //!
 //! With `guided`, a quarter of the passes are rendered as above and the rest in rounds: each
@@ -32,9 +32,9 @@ use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Client, Record, Variant};
 use tokio::sync::oneshot;
 
+use splatd_formats::exr::decode_exr_channels;
+use splatd_formats::preview::{auto_exposure, encode_png, side_by_side, tonemap};
 use splatd_scenes::tracer::Tracer;
-use splatd_server::image::decode_exr_channels;
-use splatd_server::preview::{auto_exposure, encode_png, side_by_side, tonemap};
 use splatd_server::server::{shutdown_signal, Server};
 use splatd_server::Config;
 

@@ -10,12 +10,12 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Parser, Subcommand};
 
 use splatd_estimator::{CascadeLayout, FrameState};
+use splatd_formats::exr::{cascade_layers, encode_exr, Provenance};
+use splatd_formats::state::SparseState;
 use splatd_proto::batchfile::BatchReader;
 use splatd_proto::{Applied, DecodeLimits};
 use splatd_server::dedup::Seen;
-use splatd_server::export::SparseState;
 use splatd_server::frame::core_resolve_params;
-use splatd_server::image::{cascade_layers, encode_exr, Provenance};
 use splatd_server::server::{shutdown_signal, Server};
 
 #[derive(Parser)]
@@ -254,10 +254,10 @@ fn post(args: PostArgs) -> Result<()> {
         if args.create {
             let first = std::fs::read(&args.passes[0])
                 .with_context(|| format!("reading {}", args.passes[0].display()))?;
-            let pass = splatd_server::passes::decode_pass_with(
+            let pass = splatd_formats::passes::decode_pass_with(
                 &first,
                 args.layer.as_deref(),
-                splatd_server::passes::MAX_PASS_PIXELS,
+                splatd_formats::passes::MAX_PASS_PIXELS,
             )
             .with_context(|| format!("decoding {}", args.passes[0].display()))?;
             let request = splatd_proto::CreateFrame {
@@ -505,7 +505,7 @@ fn resolve(args: ResolveArgs) -> Result<()> {
     };
     let aov_planes = aovs
         .as_ref()
-        .map(|(specs, sums)| splatd_server::image::aov_planes(specs, sums))
+        .map(|(specs, sums)| splatd_formats::exr::aov_planes(specs, sums))
         .unwrap_or_default();
     let bytes = encode_exr(&resolved, &extra, &aov_planes, &provenance)?;
     std::fs::write(&args.output, bytes)

@@ -17,10 +17,10 @@ use std::time::Duration;
 
 use common::{runtime, Forwarder, Server, ServerProcess};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
+use splatd_formats::exr::{encode_exr, Provenance};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{BatchWriter, Client, Record, RetryPolicy};
 use splatd_scenes::synth::FireflyScene;
-use splatd_server::image::{encode_exr, Provenance};
 
 const W: u32 = 64;
 const H: u32 = 48;

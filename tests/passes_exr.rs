@@ -1,4 +1,4 @@
-//! `splatd_server::passes` against EXR files written by an independent writer: OpenEXR's own Python
+//! `splatd_formats::passes` against EXR files written by an independent writer: OpenEXR's own Python
 //! package (the reference C++ library), through `tests/py/write_passes.py`.
 //!
 //! Needs `python3` with numpy and OpenEXR (`tests/run.sh` installs `tests/requirements.txt`).
@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use exr::prelude::f16;
-use splatd_server::passes::{decode_pass, Pass, PassError};
+use splatd_formats::passes::{decode_pass, Pass, PassError};
 
 const WIDTH: u32 = 37;
 const HEIGHT: u32 = 23;

@@ -9,7 +9,7 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use splatd_server::passes::{decode_pass_with, PassError, MAX_PASS_PIXELS};
+use splatd_formats::passes::{decode_pass_with, PassError, MAX_PASS_PIXELS};
 
 fn write_layouts(dir: &Path) -> serde_json::Value {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/py/write_layouts.py");

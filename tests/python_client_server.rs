@@ -9,7 +9,7 @@ use std::process::Command;
 
 use common::{python_package_venv, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
-use splatd_server::image::{encode_exr, Provenance};
+use splatd_formats::exr::{encode_exr, Provenance};
 
 #[test]
 fn the_installed_python_client_posts_what_the_core_resolves() {

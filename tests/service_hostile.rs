@@ -9,10 +9,10 @@ use std::net::TcpStream;
 
 use common::{runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
+use splatd_formats::exr::{encode_exr, Provenance};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, DecodeLimits, Record, StateDump};
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
-use splatd_server::image::{encode_exr, Provenance};
 
 const W: u32 = 16;
 const H: u32 = 12;

@@ -8,10 +8,10 @@ use std::io::Write;
 use bytes::Bytes;
 use common::{read_exr_with_python, runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Resolved};
+use splatd_formats::exr::{decode_exr_channels, encode_exr, ExtraLayer, Provenance};
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery, Variant};
 use splatd_proto::{Batch, Client, ClientError, Record};
 use splatd_scenes::synth::FireflyScene;
-use splatd_server::image::{decode_exr_channels, encode_exr, ExtraLayer, Provenance};
 
 /// Records of one pass of the synthetic scene.
 fn pass_records(scene: &FireflyScene, pass: u64) -> Vec<Record> {

@@ -24,7 +24,7 @@ use splatd_estimator::denoise::DenoisePlan;
 use splatd_estimator::ParamError;
 use splatd_proto::api::{AovSpec, DenoiseGuides, DenoiseQuality};
 
-use crate::image::HeaderValue;
+use splatd_formats::exr::HeaderValue;
 
 /// How an operator gives a server OIDN, for the messages of [`DenoiseError::Unavailable`].
 pub const HOW: &str = "start the server with --oidn-lib PATH or SPLATD_OIDN_LIB naming \
@@ -186,7 +186,7 @@ impl Guides {
                     "denoise_guides",
                     format!(
                         "{role} {name:?} is not one of the frame's AOVs ({})",
-                        crate::frame::describe_aovs(aovs)
+                        splatd_formats::names::describe_aovs(aovs)
                     ),
                 )
             })?;

@@ -443,7 +443,7 @@ impl Durable {
                     .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
                 // Length-prefixed, so a reader can bound each band before decoding it.
                 w.write_all(&encoded_len(band, aovs, frame.id())?.to_le_bytes())?;
-                crate::export::write(band, aovs, frame.id(), None, &mut w)?;
+                splatd_formats::state::write(band, aovs, frame.id(), None, &mut w)?;
             }
             let crc = w.crc.clone().finalize();
             w.inner.write_all(&crc.to_le_bytes())
@@ -581,8 +581,12 @@ async fn run_blocking(
 }
 
 /// Bytes of a band's state encoding, without encoding it.
-fn encoded_len(band: &FrameState, aovs: crate::export::Aovs<'_>, frame: &str) -> io::Result<u64> {
-    Ok(crate::export::encoded_len(band, aovs, frame))
+fn encoded_len(
+    band: &FrameState,
+    aovs: splatd_formats::state::Aovs<'_>,
+    frame: &str,
+) -> io::Result<u64> {
+    Ok(splatd_formats::state::encoded_len(band, aovs, frame))
 }
 
 /// Counts a CRC-32 of everything written through it.
@@ -715,24 +719,24 @@ fn read_snapshot(path: &Path, spec: FrameSpec) -> Result<ShardedFrame, DurableEr
             let mut dump =
                 StateDump::decode(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
             let band_aovs =
-                crate::export::take_aovs(&mut dump).map_err(|e| damaged(e.to_string()))?;
+                splatd_formats::state::take_aovs(&mut dump).map_err(|e| damaged(e.to_string()))?;
             if let Some((specs, sums)) = band_aovs {
                 if specs != spec.request.aovs {
                     return Err(damaged(format!(
                         "a band holds AOVs {}, the frame declares {}",
-                        crate::frame::describe_aovs(&specs),
-                        crate::frame::describe_aovs(&spec.request.aovs)
+                        splatd_formats::names::describe_aovs(&specs),
+                        splatd_formats::names::describe_aovs(&spec.request.aovs)
                     )));
                 }
                 aovs.get_or_insert_with(|| spec.empty_aovs().expect("the frame declares AOVs"))
                     .merge_overlap(&sums)
                     .map_err(|e| damaged(e.to_string()))?;
             }
-            crate::export::load(dump)
+            splatd_formats::state::load(dump)
         } else {
             let dump =
                 StateDump::decode_v1(take(len)?, cells).map_err(|e| damaged(e.to_string()))?;
-            crate::export::load_v1(dump)
+            splatd_formats::state::load_v1(dump)
         }
         .map_err(|e| damaged(e.to_string()))?;
         whole.merge(&band).map_err(|e| damaged(e.to_string()))?;
@@ -872,7 +876,7 @@ mod tests {
         if let Some(pixel) = saturate {
             cells[pixel * 4 * k + 4 * (k - 1)] = u64::MAX;
         }
-        let mut dump = crate::export::dump(state, None, id, None, vec![]);
+        let mut dump = splatd_formats::state::dump(state, None, id, None, vec![]);
         dump.frac_bits = 32;
         dump.cells = cells;
         dump.encode_v1()
@@ -917,7 +921,7 @@ mod tests {
         // The snapshot a server of state format version 2 wrote: version 3, one band of a
         // version 2 state.
         let whole = f.cut().whole();
-        let v2 = crate::export::dump(&whole, None, "f", None, vec![]).encode_v2();
+        let v2 = splatd_formats::state::dump(&whole, None, "f", None, vec![]).encode_v2();
         fs::write(&path, old_snapshot(3, &snapshot_meta(&path), &[v2])).unwrap();
 
         let back = recover(dir.path()).get("f").unwrap();

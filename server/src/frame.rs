@@ -25,6 +25,9 @@ use splatd_estimator::{
     CascadeLayout, FrameState, MergeError, ParamError, Resolved, SampleError, MAX_PIXEL_SAMPLES,
 };
 
+use splatd_formats::names::{check_exr_name, describe_aovs, MAX_EXR_NAME_BYTES};
+use splatd_formats::state::Importable;
+
 use super::dedup::{BatchId, Seen};
 
 /// Most bands a frame is split into. Contention falls with the number of bands, and 32 is far
@@ -32,42 +35,6 @@ use super::dedup::{BatchId, Seen};
 const MAX_BANDS: u32 = 32;
 /// Fewest rows in a band, so tiny frames are not split into pointless slivers.
 const MIN_BAND_ROWS: u32 = 8;
-
-/// What [`Importable::pieces`] hands each piece to: the number of the piece's first pixel and
-/// its cells.
-pub type PieceVisitor<'a> = dyn FnMut(u64, &[u64]) -> Result<(), MergeError> + 'a;
-
-/// A state that [`ShardedFrame::import`] adds to a frame: held whole ([`FrameState`]) or as the
-/// runs of a body being decoded ([`crate::export::Decoded`]), whose cells are checked already.
-pub trait Importable {
-    /// Width, height and cascade layout of its frame.
-    fn geometry(&self) -> (u32, u32, &CascadeLayout);
-    /// The first row it holds: its pixels are numbered row-major from 0 there.
-    fn first_row(&self) -> u32;
-    /// The samples it holds.
-    fn samples(&self) -> u64;
-    /// Hands its cells to `f` in order, in pieces of consecutive whole pixels with the number of
-    /// each piece's first pixel; stops at `f`'s first error and returns it.
-    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError>;
-}
-
-impl Importable for FrameState {
-    fn geometry(&self) -> (u32, u32, &CascadeLayout) {
-        (self.width(), self.height(), self.layout())
-    }
-
-    fn first_row(&self) -> u32 {
-        self.rows().start
-    }
-
-    fn samples(&self) -> u64 {
-        self.total_samples()
-    }
-
-    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
-        f(0, self.cells())
-    }
-}
 
 /// A frame's parameters, checked and turned into the core's types.
 #[derive(Debug, Clone)]
@@ -141,10 +108,6 @@ pub const MAX_AOV_CHANNELS: usize = 64;
 /// Layer names of `image.exr` that an AOV may not take.
 const RESERVED_LAYERS: [&str; 4] = ["mean", "removed", "spp", crate::denoise::DENOISED_LAYER];
 
-/// Longest EXR channel name: OpenEXR reads and writes names (attribute names, type names and
-/// channel names) of at most 255 bytes, with the header's long-names flag set for those over 31.
-pub const MAX_EXR_NAME_BYTES: usize = 255;
-
 /// Checks a frame's AOV declarations: named, each name once and not one of the served layers'
 /// (`mean`, `removed`, `spp`, `cascadeN`, the unnamed beauty), channels named, each once, and
 /// every name one that can be written into a valid EXR ([`check_exr_name`]).
@@ -212,39 +175,6 @@ fn shown(name: &str) -> String {
     }
     let head: String = name.chars().take(SHOWN).collect();
     format!("{head:?}... ({} bytes)", name.len())
-}
-
-/// Why `name` (an AOV or channel name) cannot be written into an EXR as it is, if it cannot:
-/// names are printable ASCII, bytes 0x20 (space) to 0x7E (`~`).
-///
-/// OpenEXR stores names as NUL-terminated bytes, so a NUL (or any control character) cuts or
-/// garbles the header. Bytes above 0x7E have no one meaning: the `exr` crate that writes
-/// `image.exr` and reads passes takes them as Latin-1 characters, while OpenEXR's own tools
-/// (and Blender) read and write UTF-8, so a name such as `été` would be written in one encoding
-/// and looked for in the other. Such a name is refused rather than served as an unreadable file
-/// or matched against no layer of the passes.
-pub fn check_exr_name(name: &str) -> Result<(), String> {
-    if let Some((at, c)) = name.char_indices().find(|(_, c)| !c.is_ascii()) {
-        return Err(format!(
-            "encoding rule: names are printable ASCII (0x20 to 0x7E), but {c:?} (U+{:04X}) at \
-             byte {at} is not ASCII",
-            c as u32
-        ));
-    }
-    if let Some(at) = name.bytes().position(|b| !(0x20..=0x7E).contains(&b)) {
-        return Err(format!(
-            "characters rule: names are printable ASCII (0x20 to 0x7E), but byte {at} is the \
-             control character 0x{:02X}",
-            name.as_bytes()[at]
-        ));
-    }
-    if name.len() > MAX_EXR_NAME_BYTES {
-        return Err(format!(
-            "length rule: {} bytes, and OpenEXR names are at most {MAX_EXR_NAME_BYTES} bytes",
-            name.len()
-        ));
-    }
-    Ok(())
 }
 
 /// The core's resolve parameters from the API's.
@@ -618,10 +548,7 @@ impl ShardedFrame {
         let frame = ShardedFrame {
             spec,
             serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),
-            bands: bands
-                .into_iter()
-                .map(|b| Mutex::new(Arc::new(b)))
-                .collect(),
+            bands: bands.into_iter().map(|b| Mutex::new(Arc::new(b))).collect(),
             band_of_row,
             gate: RwLock::new(()),
             retired: AtomicBool::new(false),
@@ -1171,7 +1098,7 @@ impl ShardedFrame {
             .aovs
             .as_deref()
             .map(|sums| (self.spec.request.aovs.as_slice(), sums));
-        crate::export::write_bands(&bands, aovs, self.id(), None, cut.seen.applied(), out)
+        splatd_formats::state::write_bands(&bands, aovs, self.id(), None, cut.seen.applied(), out)
             .expect("writing into a Vec<u8> is infallible");
     }
 
@@ -1238,18 +1165,6 @@ impl ShardedFrame {
             convergence: None,
         }
     }
-}
-
-/// AOV declarations for a message: `"albedo" (R, G, B), "depth" (Z)`, or `none`.
-pub fn describe_aovs(aovs: &[AovSpec]) -> String {
-    if aovs.is_empty() {
-        return "none".into();
-    }
-    let all: Vec<String> = aovs
-        .iter()
-        .map(|a| format!("{:?} ({})", a.name, a.channels.join(", ")))
-        .collect();
-    all.join(", ")
 }
 
 /// The checked samples of one ingest.
@@ -1836,10 +1751,10 @@ mod tests {
     #[test]
     fn imports_from_runs_match_imports_of_states() {
         let import_runs = |frame: &ShardedFrame, state: &FrameState| {
-            let bytes = crate::export::dump(state, None, "f", None, vec![]).encode();
+            let bytes = splatd_formats::state::dump(state, None, "f", None, vec![]).encode();
             let (dump, runs, aov_runs) =
                 splatd_proto::StateDump::decode_runs(&bytes, u64::MAX).unwrap();
-            let decoded = crate::export::load_runs(dump, runs, aov_runs).unwrap();
+            let decoded = splatd_formats::state::load_runs(dump, runs, aov_runs).unwrap();
             assert_eq!(decoded.samples(), state.total_samples());
             frame.import("f", &decoded, decoded.aovs(), None, &[])
         };

@@ -20,14 +20,10 @@ pub mod converge;
 pub mod dedup;
 pub mod denoise;
 pub mod durable;
-pub mod export;
 pub mod failpoint;
 pub mod frame;
 pub mod http;
-pub mod image;
 pub mod memory;
-pub mod passes;
-pub mod preview;
 pub mod push;
 pub mod renders;
 pub mod server;
@@ -109,8 +105,8 @@ pub struct Shared {
     /// The open connections and their cap (used by the accept loop; in-process router calls
     /// bypass it).
     pub connections: Arc<connection::Connections>,
-    /// Decode buffers kept between passes (see [`passes::ScratchPool`]).
-    pub pass_scratch: passes::ScratchPool,
+    /// Decode buffers kept between passes (see [`splatd_formats::passes::ScratchPool`]).
+    pub pass_scratch: splatd_formats::passes::ScratchPool,
     /// Buffers kept for large request bodies (see [`http::extract::BodyPool`]).
     pub body_pool: Arc<http::extract::BodyPool>,
     /// Open Image Denoise, or why this server has none.
@@ -173,7 +169,7 @@ impl AppState {
         AppState(Arc::new(Shared {
             renders: renders::Renders::new(RENDERS_KEPT, budget),
             connections: Arc::new(connection::Connections::new(limits.max_connections)),
-            pass_scratch: passes::ScratchPool::new(resolve_threads),
+            pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
             body_pool: Arc::new(http::extract::BodyPool::new(resolve_threads)),
             store: FrameStore::new(limits),
             decode_limits,

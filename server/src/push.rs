@@ -444,7 +444,7 @@ async fn next_delta(frame: &Arc<ShardedFrame>, track: &mut Track, node: &str) ->
         let specs = frame2.spec().request.aovs.as_slice();
         let aovs = aov_delta.as_ref().map(|sums| (specs, sums));
         let body = (!empty).then(|| {
-            crate::export::dump(&delta, aovs, frame2.id(), Some(origin), batches).encode()
+            splatd_formats::state::dump(&delta, aovs, frame2.id(), Some(origin), batches).encode()
         });
         (baseline, whole, cut.version, samples, body)
     })

@@ -238,8 +238,8 @@ fn describe_difference(ours: &CreateFrame, theirs: &CreateFrame) -> String {
     if ours.aovs != theirs.aovs {
         diffs.push(format!(
             "aovs {} here, {} requested",
-            crate::frame::describe_aovs(&ours.aovs),
-            crate::frame::describe_aovs(&theirs.aovs)
+            splatd_formats::names::describe_aovs(&ours.aovs),
+            splatd_formats::names::describe_aovs(&theirs.aovs)
         ));
     }
     if ours.denoise != theirs.denoise {

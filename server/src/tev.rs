@@ -4,7 +4,7 @@
 //! protocol (start tev first; it listens on `127.0.0.1:14158` by default). Each frame becomes
 //! one tev image with nine channels: the reweighted estimate as `R`, `G`, `B` (tev shows it
 //! first) and the layers `mean.R/G/B` and `removed.R/G/B`, the same names as in the EXRs
-//! [`crate::image`] writes, so tev's layer list is the same for a live frame and a saved one.
+//! [`splatd_formats::exr`] writes, so tev's layer list is the same for a live frame and a saved one.
 //!
 //! The packets are written by the `tev_client` crate: a create-image packet the first time a
 //! name is shown (or when its size changed), then update-image packets on every call. Updates

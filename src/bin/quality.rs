@@ -300,7 +300,7 @@ fn energy(image: &[[f32; 3]]) -> f64 {
 /// truth's), and beside them a plot of the share of the mean's energy removed at 1, 2, 4, ..
 /// 256 spp: the default (orange) and `paper [kappa=4]` (blue), with a faint grid line every 5 %.
 fn picture(scene: &Scene, path: &Path) -> Result<()> {
-    use splatd_server::preview::{auto_exposure, encode_png, tonemap};
+    use splatd_formats::preview::{auto_exposure, encode_png, tonemap};
     const SCALE: usize = 3;
     const GAP: usize = 6;
     const BACKGROUND: [u8; 3] = [24, 24, 24];

@@ -417,7 +417,7 @@ async fn recreate(url: String, stop: Arc<AtomicBool>, figures: Arc<Figures>) -> 
 async fn compare(client: &Client, frame: &str, reference: &FrameState) -> Result<(u64, u64, bool)> {
     let bytes = patiently(|| client.export_state(frame)).await?;
     let dump = StateDump::decode(&bytes, u64::MAX)?;
-    let state = splatd_server::export::load(dump)?;
+    let state = splatd_formats::state::load(dump)?;
     let (mut lost, mut doubled) = (0, 0);
     for y in 0..SIZE {
         for x in 0..SIZE {

@@ -123,7 +123,7 @@ fn delta_len(state: &FrameState, scene: &FireflyScene, pass: u64) -> usize {
         node: "bench".into(),
         seq: 1,
     };
-    let len = splatd_server::export::dump(&delta, None, "bench.src", Some(origin), vec![])
+    let len = splatd_formats::state::dump(&delta, None, "bench.src", Some(origin), vec![])
         .encode()
         .len();
     assert_eq!(report.accepted, delta.total_samples());
@@ -157,7 +157,7 @@ fn main() -> Result<()> {
     for pass in 0..args.spp {
         fill.splat_all(scene.pass(pass));
     }
-    let fill_bytes = splatd_server::export::dump(&fill, None, "bench.src", None, vec![]).encode();
+    let fill_bytes = splatd_formats::state::dump(&fill, None, "bench.src", None, vec![]).encode();
     let delta_bytes = delta_len(&fill, &scene, args.spp);
     drop(fill);
 

@@ -12,10 +12,10 @@ use splatd_estimator::{MergeError, ParamError, SampleError};
 use splatd_proto::{ErrorBody, StateError, WireError};
 
 use crate::durable::DurabilityError;
-use crate::export::ImportError;
 use crate::frame::{ImportRefused, IngestError};
-use crate::passes::PassError;
 use crate::store::StoreError;
+use splatd_formats::passes::PassError;
+use splatd_formats::state::ImportError;
 
 /// An error answered to a client.
 #[derive(Debug, Clone, PartialEq, Eq)]

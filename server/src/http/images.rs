@@ -16,9 +16,9 @@ use crate::denoise;
 use crate::frame::{core_resolve_params, FrameCut, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
-use crate::image::{cascade_layers, encode_exr_with, ExtraLayer, Provenance};
 use crate::work::WorkBudget;
 use crate::AppState;
+use splatd_formats::exr::{cascade_layers, encode_exr_with, ExtraLayer, Provenance};
 
 /// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now, and denoises it when the
 /// query or the frame asks for it (`denoise=oidn`: the layer `denoised`).
@@ -76,7 +76,7 @@ pub async fn get_image(
             let aovs = cut
                 .aovs
                 .as_ref()
-                .map(|sums| crate::image::aov_planes(&frame.spec().request.aovs, sums))
+                .map(|sums| splatd_formats::exr::aov_planes(&frame.spec().request.aovs, sums))
                 .unwrap_or_default();
             let mut more_attributes = Vec::new();
             if let Some(oidn) = oidn {
@@ -197,42 +197,41 @@ pub async fn get_preview(
     let cost = frame.spec().memory_bytes() + px * (36 + 6) + denoise_bytes;
     let key = format!("png {:?} {:?} {}", query.layer, query.exposure, query.stops);
     let budget = app.renders.budget().clone();
-    let png = app
-        .renders
-        .get_or_render(&frame, key, cost, move |frame| {
-            let cut = frame.cut();
-            let resolved = cut.resolve(&params, threads);
-            let exposure = query
-                .exposure
-                .unwrap_or_else(|| crate::preview::auto_exposure(&resolved.reweighted))
-                * query.stops.exp2();
-            let denoised;
-            let layer = match query.layer {
-                PreviewLayer::Reweighted => &resolved.reweighted,
-                PreviewLayer::Mean => &resolved.mean,
-                PreviewLayer::Removed => &resolved.removed,
-                PreviewLayer::Denoised => {
-                    let oidn = oidn.expect("checked above");
-                    let aovs = cut
-                        .aovs
-                        .as_ref()
-                        .map(|sums| sums.means())
-                        .unwrap_or_default();
-                    let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
-                    let high = DenoiseQuality::High;
-                    denoised = denoise_cut(
-                        &oidn, frame, cut, &params, threads, &planes, px, &budget, high,
-                    )?
-                    .rgb;
-                    &denoised
-                }
-            };
-            let pixels = crate::preview::tonemap(layer, exposure);
-            crate::preview::encode_png(resolved.width, resolved.height, &pixels)
-                .map(Bytes::from)
-                .map_err(|e| ApiError::internal("PNG encoding", e))
-        })
-        .await?;
+    let png =
+        app.renders
+            .get_or_render(&frame, key, cost, move |frame| {
+                let cut = frame.cut();
+                let resolved = cut.resolve(&params, threads);
+                let exposure = query.exposure.unwrap_or_else(|| {
+                    splatd_formats::preview::auto_exposure(&resolved.reweighted)
+                }) * query.stops.exp2();
+                let denoised;
+                let layer = match query.layer {
+                    PreviewLayer::Reweighted => &resolved.reweighted,
+                    PreviewLayer::Mean => &resolved.mean,
+                    PreviewLayer::Removed => &resolved.removed,
+                    PreviewLayer::Denoised => {
+                        let oidn = oidn.expect("checked above");
+                        let aovs = cut
+                            .aovs
+                            .as_ref()
+                            .map(|sums| sums.means())
+                            .unwrap_or_default();
+                        let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
+                        let high = DenoiseQuality::High;
+                        denoised = denoise_cut(
+                            &oidn, frame, cut, &params, threads, &planes, px, &budget, high,
+                        )?
+                        .rgb;
+                        &denoised
+                    }
+                };
+                let pixels = splatd_formats::preview::tonemap(layer, exposure);
+                splatd_formats::preview::encode_png(resolved.width, resolved.height, &pixels)
+                    .map(Bytes::from)
+                    .map_err(|e| ApiError::internal("PNG encoding", e))
+            })
+            .await?;
     Ok((
         [
             (header::CONTENT_TYPE, "image/png"),

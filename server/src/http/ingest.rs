@@ -107,7 +107,7 @@ pub struct PassQuery {
     /// The worker's number for this pass (a retry resends the same number).
     pub seq: u64,
     /// The layer holding the beauty; when absent it is found automatically (see
-    /// [`crate::passes`]).
+    /// [`splatd_formats::passes`]).
     #[serde(default)]
     pub layer: Option<String>,
 }
@@ -143,17 +143,22 @@ fn apply_pass(
     frame: &ShardedFrame,
     query: &PassQuery,
     bytes: &[u8],
-    scratch: &mut crate::passes::Scratch,
+    scratch: &mut splatd_formats::passes::Scratch,
 ) -> Result<((u64, u64), crate::frame::Ingested), ApiError> {
-    let refuse = |e: crate::passes::PassError| {
+    let refuse = |e: splatd_formats::passes::PassError| {
         reject(frame, 0, "pass");
         ApiError::invalid_pass(frame.id(), &e)
     };
     let spec = &frame.spec().request;
     let layer = query.layer.as_deref();
-    let mut pass =
-        crate::passes::decode_pass_reusing(bytes, layer, pass_pixels(frame), &spec.aovs, scratch)
-            .map_err(refuse)?;
+    let mut pass = splatd_formats::passes::decode_pass_reusing(
+        bytes,
+        layer,
+        pass_pixels(frame),
+        &spec.aovs,
+        scratch,
+    )
+    .map_err(refuse)?;
     let result = (|| {
         pass.check(spec.width, spec.height).map_err(refuse)?;
         let aovs = pass.aovs.take();

@@ -63,7 +63,7 @@ pub fn encode_need_exr(map: &api::NeedMap) -> exr::error::Result<Vec<u8>> {
         software_name: Some(Text::from("splatd need map")),
         ..LayerAttributes::default()
     };
-    crate::image::write_one_part(
+    splatd_formats::exr::write_one_part(
         (map.tiles_x as usize, map.tiles_y as usize),
         attributes,
         channels,

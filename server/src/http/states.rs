@@ -11,12 +11,13 @@ use axum::response::IntoResponse;
 use splatd_proto::api::ImportAck;
 use splatd_proto::{StateDump, STATE_CONTENT_TYPE};
 
-use crate::frame::{Importable, ShardedFrame};
+use crate::frame::ShardedFrame;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, FrameBody, Json, Upload};
 use crate::work::Reservation;
 use crate::AppState;
+use splatd_formats::state::Importable;
 
 /// Room for the applied batches in a state body, beyond its cells: 32 MiB, about four million
 /// batches (a soak of a 64x64 frame reached 120 KB of them in three minutes).
@@ -131,7 +132,7 @@ pub async fn import(
         let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
         // Refused before its AOV words are expanded (at most the frame's, reserved above).
         target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
-        let state = crate::export::load_runs(dump, runs, aov_runs)?;
+        let state = splatd_formats::state::load_runs(dump, runs, aov_runs)?;
         let dump = &state.dump;
         let applied = target.import(
             &dump.frame,

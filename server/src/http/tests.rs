@@ -721,7 +721,9 @@ async fn aov_declarations_are_checked_compared_and_counted() {
 
 /// An uncompressed RGB float EXR of `w x h` pixels, pixel `i` = `(i, 2i, 3i) / 1000`.
 fn rgb_exr(w: usize, h: usize) -> Vec<u8> {
-    crate::passes::tests::uncompressed_rgb(w, h, |i| [1.0, 2.0, 3.0].map(|c| i as f32 * c / 1000.0))
+    splatd_formats::testing::uncompressed_rgb(w, h, |i| {
+        [1.0, 2.0, 3.0].map(|c| i as f32 * c / 1000.0)
+    })
 }
 
 /// Large pass bodies are read into buffers the server keeps, exactly their declared length, and

@@ -228,7 +228,7 @@ async fn imports_wait_for_working_memory_and_long_bodies_are_refused_from_their_
     let mut state = Vec::new();
     let cut = frame.cut();
     let bands = cut.band_refs();
-    crate::export::write_bands(&bands, None, "f", None, vec![], &mut state).unwrap();
+    splatd_formats::state::write_bands(&bands, None, "f", None, vec![], &mut state).unwrap();
     let held = app.renders.budget().reserve(1 << 20).await.unwrap();
     let (status, _, error) = answer(
         &app,

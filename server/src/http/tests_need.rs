@@ -12,8 +12,8 @@ use splatd_scenes::synth::FireflyScene;
 use tower::ServiceExt;
 
 use super::router;
-use crate::image::decode_exr_channels;
 use crate::{AppState, Limits};
+use splatd_formats::exr::decode_exr_channels;
 
 const W: u32 = 40;
 const H: u32 = 20;

@@ -47,7 +47,11 @@ async fn polling_unchanged_frames_renders_nothing() {
         let c = &info(&app, id).await["convergence"];
         assert_eq!(c["samples"], 16, "{id}: {c}");
     }
-    assert_eq!(app.renders.rendered(), FRAMES as u64, "one render per frame");
+    assert_eq!(
+        app.renders.rendered(),
+        FRAMES as u64,
+        "one render per frame"
+    );
 
     // A dashboard polling every frame, round after round: nothing changed, nothing renders.
     for _ in 0..3 {
@@ -58,7 +62,11 @@ async fn polling_unchanged_frames_renders_nothing() {
             crate::converge::convergence(&app, &frame).await.unwrap();
         }
     }
-    assert_eq!(app.renders.rendered(), FRAMES as u64, "unchanged frames render nothing");
+    assert_eq!(
+        app.renders.rendered(),
+        FRAMES as u64,
+        "unchanged frames render nothing"
+    );
 
     // One frame changes: the next round renders it, once.
     post(&app, "f7", 1);

@@ -22,7 +22,7 @@
 //! | `splatd:samples` | double | samples in the image (exact below 2^53) |
 //! | `splatd:sppMin`, `splatd:sppMean`, `splatd:sppMax` | double | samples per pixel |
 //!
-//! An image with the `denoised` layer adds how it was made (see [`crate::denoise`]):
+//! An image with the `denoised` layer adds how it was made (see the server's denoise module):
 //!
 //! | attribute | type | value |
 //! |-----------|------|-------|
@@ -246,7 +246,7 @@ pub fn encode_exr(
 }
 
 /// [`encode_exr`] with more header attributes (`splatd:` names; for example how the `denoised`
-/// layer was made, [`crate::denoise::DenoiseRun::attributes`]), written among the provenance's
+/// layer was made, the server's `DenoiseRun::attributes`), written among the provenance's
 /// in order of name.
 pub fn encode_exr_with(
     resolved: &Resolved,
@@ -270,7 +270,7 @@ pub fn encode_exr_with(
     for (name, plane) in aovs {
         // A frame's AOV names were checked at its creation; a state read offline was not, and
         // `exr` would panic on a character above U+00FF and garble a NUL.
-        crate::frame::check_exr_name(name)
+        crate::names::check_exr_name(name)
             .map_err(|rule| Error::Invalid(format!("AOV channel {name:?}: {rule}").into()))?;
         channels.push(AnyChannel::new(
             name.as_str(),

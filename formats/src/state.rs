@@ -13,7 +13,41 @@ use splatd_estimator::{
     MAX_PIXEL_SAMPLES,
 };
 
-use crate::frame::{Importable, PieceVisitor};
+/// What [`Importable::pieces`] hands each piece to: the number of the piece's first pixel and
+/// its cells.
+pub type PieceVisitor<'a> = dyn FnMut(u64, &[u64]) -> Result<(), MergeError> + 'a;
+
+/// A state that a server frame's import adds to the frame: held whole ([`FrameState`]) or as the
+/// runs of a body being decoded ([`Decoded`]), whose cells are checked already.
+pub trait Importable {
+    /// Width, height and cascade layout of its frame.
+    fn geometry(&self) -> (u32, u32, &CascadeLayout);
+    /// The first row it holds: its pixels are numbered row-major from 0 there.
+    fn first_row(&self) -> u32;
+    /// The samples it holds.
+    fn samples(&self) -> u64;
+    /// Hands its cells to `f` in order, in pieces of consecutive whole pixels with the number of
+    /// each piece's first pixel; stops at `f`'s first error and returns it.
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError>;
+}
+
+impl Importable for FrameState {
+    fn geometry(&self) -> (u32, u32, &CascadeLayout) {
+        (self.width(), self.height(), self.layout())
+    }
+
+    fn first_row(&self) -> u32 {
+        self.rows().start
+    }
+
+    fn samples(&self) -> u64 {
+        self.total_samples()
+    }
+
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+        f(0, self.cells())
+    }
+}
 
 /// A frame's AOVs as a state carries them: the declarations and the sums of the rows held.
 pub type Aovs<'a> = Option<(&'a [AovSpec], &'a AovSums)>;
@@ -195,7 +229,7 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
 /// A state body decoded for import without expanding its cells ([`StateDump::decode_runs`]):
 /// its header, its AOVs, and its runs read in place from the body, every pixel of them checked
 /// like [`load`] checks a whole state. Importing it adds the runs straight into the frame's bands
-/// ([`crate::frame::ShardedFrame::import`]), so the only full-size buffer of an import is the
+/// (the server frame's `import`), so the only full-size buffer of an import is the
 /// body itself (and the AOV sums of a state that has AOVs).
 pub struct Decoded<'a> {
     /// The header (no cells, no AOVs).
@@ -208,7 +242,7 @@ pub struct Decoded<'a> {
 }
 
 impl Decoded<'_> {
-    /// The AOVs, as [`crate::frame::ShardedFrame::import`] takes them.
+    /// The AOVs, as a server frame's `import` takes them.
     pub fn aovs(&self) -> Aovs<'_> {
         self.aovs
             .as_ref()
@@ -502,8 +536,8 @@ impl SparseState {
             && self.dump.aovs != other.dump.aovs
         {
             return Err(SparseMergeError::AovMismatch {
-                ours: crate::frame::describe_aovs(&self.dump.aovs),
-                theirs: crate::frame::describe_aovs(&other.dump.aovs),
+                ours: crate::names::describe_aovs(&self.dump.aovs),
+                theirs: crate::names::describe_aovs(&other.dump.aovs),
             });
         }
         let w = ours_w as u64;
