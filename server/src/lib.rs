@@ -17,11 +17,12 @@
 pub mod config;
 pub mod connection;
 pub mod converge;
-pub mod dedup;
 pub mod denoise;
 pub mod durable;
 pub mod failpoint;
 pub mod frame;
+// Until every user names it by its new place.
+pub use frame::dedup;
 pub mod http;
 pub mod memory;
 pub mod push;

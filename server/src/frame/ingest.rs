@@ -1,0 +1,367 @@
+//! Batches and passes into a frame: every record checked, then all applied or none.
+
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, MutexGuard};
+
+use splatd_proto::{records_digest_of, Batch, Record};
+
+use splatd_estimator::{self as estimator, FrameState, SampleError, MAX_PIXEL_SAMPLES};
+
+use super::dedup::BatchId;
+use super::{lock, IngestError, Ingested, ShardedFrame};
+
+impl ShardedFrame {
+    /// Counts a batch refused before it reached [`ShardedFrame::ingest`] (a decode error, say).
+    pub fn count_rejected(&self, samples: u64) {
+        self.counters
+            .rejected_batches
+            .fetch_add(1, Ordering::Relaxed);
+        self.counters
+            .rejected_samples
+            .fetch_add(samples, Ordering::Relaxed);
+    }
+
+    /// Checks every record of a batch, then applies all of them, or none.
+    ///
+    /// A batch whose `(worker, seq)` was applied before is recognised and not applied again.
+    /// Blocking (it may take tens of milliseconds for a large batch): call from a blocking thread.
+    pub fn ingest(&self, batch: &Batch) -> Result<Ingested, IngestError> {
+        self.ingest_with_aovs(batch, None)
+    }
+
+    /// [`ShardedFrame::ingest`] of a pass's samples with the values of its AOVs (every pixel,
+    /// row-major, the frame's AOV channels in order; checked with
+    /// [`AovSums::check_values`]), added with the samples or not at all.
+    ///
+    /// # Panics
+    /// If `aovs` is given for a frame without AOVs or has the wrong length.
+    pub fn ingest_with_aovs(
+        &self,
+        batch: &Batch,
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        let result = self.ingest_inner(batch, aovs);
+        if result.is_err() {
+            self.count_rejected(batch.records.len() as u64);
+        }
+        result
+    }
+
+    pub(super) fn ingest_inner(
+        &self,
+        batch: &Batch,
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        if batch.frame != self.id() {
+            return Err(IngestError::WrongFrame {
+                batch: batch.frame.clone(),
+                url: self.id().to_owned(),
+            });
+        }
+        let (w, h) = (self.spec.request.width, self.spec.request.height);
+        let mut buckets: Vec<Vec<(u32, u32, [f32; 3])>> = vec![Vec::new(); self.bands.len()];
+        let single = self.bands.len() == 1;
+        if single {
+            buckets[0].reserve_exact(batch.records.len());
+        }
+        for (index, r) in batch.records.iter().enumerate() {
+            if r.x >= w || r.y >= h {
+                return Err(IngestError::Sample {
+                    index,
+                    record: *r,
+                    error: SampleError::OutOfFrame {
+                        x: r.x,
+                        y: r.y,
+                        width: w,
+                        height: h,
+                    },
+                });
+            }
+            self.spec
+                .layout
+                .check_sample(r.rgb)
+                .map_err(|error| IngestError::Sample {
+                    index,
+                    record: *r,
+                    error,
+                })?;
+            let band = if single {
+                0
+            } else {
+                self.band_of_row[r.y as usize] as usize
+            };
+            buckets[band].push((r.x, r.y, r.rgb));
+        }
+
+        // Outside the gate: a pass over the records, as long as a copy of them.
+        let digest = batch.content_digest();
+        let parts = Parts::Records { batch, buckets };
+        self.apply(batch.worker, batch.seq, digest, parts, aovs)
+    }
+
+    /// [`ShardedFrame::ingest_with_aovs`] of a whole pass: `rgb` holds one sample per pixel of
+    /// the frame, row-major, top row first; `aovs` as there. The same checks, refusals, digest
+    /// and exactly-once as for the batch of the pass's records (pixel `(x, y)` is record
+    /// `y * width + x`), without making those records: each band splats its rows straight from
+    /// `rgb` ([`FrameState::splat_row`]).
+    ///
+    /// # Panics
+    /// If `rgb` does not have one sample per pixel, or as [`ShardedFrame::ingest_with_aovs`].
+    pub fn ingest_pass(
+        &self,
+        worker: u64,
+        seq: u64,
+        rgb: &[[f32; 3]],
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        let result = self.ingest_pass_inner(worker, seq, rgb, aovs);
+        if result.is_err() {
+            self.count_rejected(rgb.len() as u64);
+        }
+        result
+    }
+
+    pub(super) fn ingest_pass_inner(
+        &self,
+        worker: u64,
+        seq: u64,
+        rgb: &[[f32; 3]],
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        let w = self.spec.request.width as usize;
+        assert_eq!(
+            rgb.len(),
+            w * self.spec.request.height as usize,
+            "a pass has one sample per pixel"
+        );
+        let record = |index: usize| Record::new((index % w) as u32, (index / w) as u32, rgb[index]);
+        let valid = rgb
+            .iter()
+            .fold(true, |ok, &c| ok & self.spec.layout.check_sample(c).is_ok());
+        if !valid {
+            let (index, error) = rgb
+                .iter()
+                .enumerate()
+                .find_map(|(i, &c)| self.spec.layout.check_sample(c).err().map(|e| (i, e)))
+                .expect("an invalid sample");
+            return Err(IngestError::Sample {
+                index,
+                record: record(index),
+                error,
+            });
+        }
+        let digest = records_digest_of((0..rgb.len()).map(record));
+        self.apply(worker, seq, digest, Parts::Pass { rgb }, aovs)
+    }
+
+    /// Applies checked samples as batch `(worker, seq)` with content `digest`: all of them, or
+    /// none if the batch was applied before or a pixel cannot take them.
+    fn apply(
+        &self,
+        worker: u64,
+        seq: u64,
+        digest: u64,
+        parts: Parts<'_>,
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        // Tests kill the server here, between two acknowledgements (only `abort` applies).
+        let _ = crate::failpoint::hit("batch:before_apply");
+        let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
+        if self.retired.load(Ordering::Acquire) {
+            return Err(IngestError::Deleted {
+                frame: self.id().to_owned(),
+            });
+        }
+        // The bands this batch touches, locked top to bottom (as every holder of several bands
+        // locks them), so that the room check below and the additions see the same cells.
+        let mut guards: Vec<Option<MutexGuard<'_, Arc<FrameState>>>> = self
+            .bands
+            .iter()
+            .enumerate()
+            .map(|(i, band)| parts.touches(i).then(|| lock(band)))
+            .collect();
+        let mut aov_sums = aovs.map(|_| {
+            lock(
+                self.aovs
+                    .as_ref()
+                    .expect("AOV values only for a frame with AOVs"),
+            )
+        });
+        let id = lock(&self.seen).check_batch(worker, seq, digest);
+        if id == BatchId::New {
+            for (i, guard) in guards.iter().enumerate() {
+                if let Some(refusal) = guard.as_deref().and_then(|g| parts.first_full(i, g)) {
+                    return Err(refusal);
+                }
+            }
+            if let Some(sums) = &aov_sums {
+                if !sums.has_room_for_pass() {
+                    let (w, h) = (self.spec.request.width, self.spec.request.height);
+                    let (x, y) = (0..h)
+                        .flat_map(|y| (0..w).map(move |x| (x, y)))
+                        .find(|&(x, y)| sums.count(x, y) >= estimator::MAX_PIXEL_SAMPLES)
+                        .unwrap_or((0, 0));
+                    return Err(IngestError::AovFull { x, y });
+                }
+            }
+        }
+        // Checked again while recording: a batch with the same id may have been applied since.
+        let id = match id {
+            BatchId::New => lock(&self.seen).insert_batch(worker, seq, digest),
+            other => other,
+        };
+        match id {
+            BatchId::New => {}
+            BatchId::Retry => {
+                return Ok(Ingested {
+                    accepted: 0,
+                    duplicate: true,
+                })
+            }
+            BatchId::Conflict { applied } => {
+                return Err(IngestError::IdReused {
+                    worker,
+                    seq,
+                    applied,
+                    digest,
+                })
+            }
+            BatchId::Unverified => return Err(IngestError::IdUnverified { worker, seq }),
+        }
+        let n = parts.len();
+        for (i, guard) in guards.iter_mut().enumerate() {
+            if let Some(mut band) = guard.take() {
+                // Copies the band first if a cut holds it.
+                parts.splat(i, Arc::make_mut(&mut band));
+            }
+        }
+        if let (Some(sums), Some(values)) = (aov_sums.as_mut(), aovs) {
+            Arc::make_mut(sums).add_pass(values);
+        }
+        drop(aov_sums);
+        self.counters.samples.fetch_add(n, Ordering::Relaxed);
+        self.counters.batches.fetch_add(1, Ordering::Relaxed);
+        self.version.fetch_add(1, Ordering::AcqRel);
+        Ok(Ingested {
+            accepted: n,
+            duplicate: false,
+        })
+    }
+}
+
+/// The checked samples of one ingest.
+enum Parts<'a> {
+    /// A batch's records, sorted into one bucket per band.
+    Records {
+        batch: &'a Batch,
+        buckets: Vec<Vec<(u32, u32, [f32; 3])>>,
+    },
+    /// A whole pass: one sample per pixel of the frame, row-major.
+    Pass { rgb: &'a [[f32; 3]] },
+}
+
+impl Parts<'_> {
+    /// Samples in all.
+    fn len(&self) -> u64 {
+        match self {
+            Parts::Records { batch, .. } => batch.records.len() as u64,
+            Parts::Pass { rgb } => rgb.len() as u64,
+        }
+    }
+
+    /// Whether band `i` receives samples.
+    fn touches(&self, i: usize) -> bool {
+        match self {
+            Parts::Records { buckets, .. } => !buckets[i].is_empty(),
+            Parts::Pass { .. } => true,
+        }
+    }
+
+    /// The refusal for the first sample band `i` (`band`) cannot take, if any.
+    fn first_full(&self, i: usize, band: &FrameState) -> Option<IngestError> {
+        match self {
+            Parts::Records { batch, buckets } => first_full(band, &buckets[i]).map(|(x, y)| {
+                let spp = band.spp(x, y);
+                pixel_full(batch, x, y, spp)
+            }),
+            Parts::Pass { rgb } => {
+                // One sample per pixel of the band's rows.
+                let w = band.width();
+                let pixels = w as u64 * band.rows().len() as u64;
+                if band.total_samples().saturating_add(pixels) <= MAX_PIXEL_SAMPLES {
+                    return None;
+                }
+                let (x, y) = band
+                    .rows()
+                    .flat_map(|y| (0..w).map(move |x| (x, y)))
+                    .find(|&(x, y)| !band.has_room(x, y, 1))?;
+                let index = y as usize * w as usize + x as usize;
+                Some(IngestError::Sample {
+                    index,
+                    record: Record::new(x, y, rgb[index]),
+                    error: SampleError::PixelFull { x, y },
+                })
+            }
+        }
+    }
+
+    /// Adds band `i`'s samples to `band`.
+    fn splat(&self, i: usize, band: &mut FrameState) {
+        let report = match self {
+            Parts::Records { buckets, .. } => band.splat_records(&buckets[i]),
+            Parts::Pass { rgb } => {
+                let w = band.width() as usize;
+                let mut report = estimator::SplatReport::default();
+                for y in band.rows() {
+                    let row = &rgb[y as usize * w..(y as usize + 1) * w];
+                    let r = band.splat_row(0, y, row);
+                    report.accepted += r.accepted;
+                    report.pixel_full += r.rejected();
+                }
+                report
+            }
+        };
+        debug_assert_eq!(report.rejected(), 0, "samples were checked before");
+    }
+}
+
+/// The first pixel of `samples` (of one band) that cannot take all of its samples in `band`.
+fn first_full(band: &FrameState, samples: &[(u32, u32, [f32; 3])]) -> Option<(u32, u32)> {
+    let n = samples.len() as u64;
+    if band.total_samples().saturating_add(n) <= MAX_PIXEL_SAMPLES {
+        return None;
+    }
+    // Near the limit: count the samples of the pixels that could not take the whole batch.
+    let mut near: std::collections::HashMap<(u32, u32), u64> = Default::default();
+    for &(x, y, _) in samples {
+        if !band.has_room(x, y, n) {
+            *near.entry((x, y)).or_default() += 1;
+        }
+    }
+    samples
+        .iter()
+        .map(|&(x, y, _)| (x, y))
+        .find(|&(x, y)| near.get(&(x, y)).is_some_and(|&k| !band.has_room(x, y, k)))
+}
+
+/// The refusal of `batch` because pixel `(x, y)`, holding `spp` samples, cannot take them all:
+/// names the record that would go past the limit.
+#[cold]
+fn pixel_full(batch: &Batch, x: u32, y: u32, spp: u64) -> IngestError {
+    let mut held = spp;
+    let (index, record) = batch
+        .records
+        .iter()
+        .enumerate()
+        .filter(|(_, r)| (r.x, r.y) == (x, y))
+        .find(|_| {
+            held += 1;
+            held > MAX_PIXEL_SAMPLES
+        })
+        .expect("the pixel cannot take its records");
+    IngestError::Sample {
+        index,
+        record: *record,
+        error: SampleError::PixelFull { x, y },
+    }
+}

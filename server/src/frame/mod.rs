@@ -1,0 +1,379 @@
+//! One frame held by the server: the core's state split into row bands, each behind its own lock.
+//!
+//! Workers post batches concurrently. A single lock per frame would serialize them, so the state
+//! is kept as horizontal bands ([`FrameState::band`]); a batch is bucketed by band and each band is
+//! locked only while its own samples are added. A batch is still applied atomically as seen from
+//! a reader: writers hold a shared *gate* while they apply, and anything that needs a consistent
+//! cut (resolve, export, snapshots) takes the gate exclusively. So a resolve never sees half a
+//! batch, and an applied batch is never half-durable.
+//!
+//! Nothing copies the frame under the gate: at 4K the bands are 1.6 GB, and copying them stopped
+//! every writer for a second (and every render did it). Each band (and the AOV sums) is behind
+//! an `Arc`; a cut takes the gate only to clone those pointers and copy the small things (the
+//! applied set, the counters). A writer about to change a band that a cut still holds copies it
+//! first (`Arc::make_mut`, copy on write, under that band's own lock), so the cut keeps the band
+//! as it was while the other bands take samples, and with no cut held nothing is copied at all.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, RwLock};
+
+use splatd_proto::api::FrameInfo;
+
+use splatd_estimator::{cell_len, cell_spp, AovSums, FrameState};
+
+use dedup::Seen;
+
+mod cut;
+pub mod dedup;
+mod error;
+mod ingest;
+mod spec;
+mod transfer;
+
+use cut::Counters;
+pub use cut::{CounterValues, FrameCut};
+pub use error::{ImportRefused, IngestError, Ingested};
+pub use spec::{core_resolve_params, FrameSpec, MAX_AOV_CHANNELS};
+
+/// Most bands a frame is split into. Contention falls with the number of bands, and 32 is far
+/// more than the cores of any one render head; each band costs one lock and one `Vec`.
+const MAX_BANDS: u32 = 32;
+/// Fewest rows in a band, so tiny frames are not split into pointless slivers.
+const MIN_BAND_ROWS: u32 = 8;
+
+/// Samples per pixel over a frame.
+#[derive(Debug, Clone, Copy)]
+struct SppFigures {
+    min: u64,
+    mean: f64,
+    max: u64,
+}
+
+/// A frame being accumulated by the server.
+#[derive(Debug)]
+pub struct ShardedFrame {
+    spec: FrameSpec,
+    /// Unique among the frames of this process, so that a frame deleted and created again
+    /// under the same id is never taken for the old one by anything that remembers frames.
+    serial: u64,
+    /// Shared with the cuts taken since the band last changed ([`ShardedFrame::cut`]).
+    bands: Vec<Mutex<Arc<FrameState>>>,
+    /// Band index of each row.
+    band_of_row: Vec<u16>,
+    /// Shared while a batch is applied, exclusive while a consistent cut is taken (a handful
+    /// of reference counts and the applied set, never the cells).
+    gate: RwLock<()>,
+    /// Set (under the exclusive gate) when the frame is deleted: nothing is applied after.
+    retired: AtomicBool,
+    /// Held shared by every request that changes the frame, from before it looks at the frame
+    /// until its answer is ready ([`ShardedFrame::lease`]); a deletion takes it exclusively, so
+    /// it is answered only after every such answer.
+    requests: Arc<tokio::sync::RwLock<()>>,
+    seen: Mutex<Seen>,
+    /// The AOV sums of the whole frame (if it has AOVs), locked after the bands; shared with
+    /// cuts like the bands.
+    aovs: Option<Mutex<Arc<AovSums>>>,
+    counters: Counters,
+    /// Bumped after every change, so watchers (previews, tev, snapshots) can tell if anything
+    /// happened since they last looked.
+    version: AtomicU64,
+    /// The version of the latest snapshot on disk (durable servers only).
+    durable_version: AtomicU64,
+    /// Per worker, the sequence number below which every batch is in that snapshot.
+    durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
+    /// Convergence figures of the frame's renders over time.
+    history: Mutex<crate::converge::History>,
+    /// The samples-per-pixel figures of [`ShardedFrame::info`] and the version they were
+    /// counted at: a frame polled but not changed is not read again.
+    spp_figures: Mutex<Option<(u64, SppFigures)>>,
+}
+
+/// Held by a request that changes a frame until its answer is ready (see
+/// [`ShardedFrame::lease`]).
+#[derive(Debug)]
+pub struct Lease {
+    _guard: tokio::sync::OwnedRwLockReadGuard<()>,
+}
+
+/// Locks a mutex, ignoring poisoning: every mutation of the guarded values is a sequence of
+/// additions that cannot panic half-way, so a panic elsewhere leaves them consistent.
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(|e| e.into_inner())
+}
+
+impl ShardedFrame {
+    /// An empty frame.
+    pub fn new(spec: FrameSpec) -> ShardedFrame {
+        let (w, h) = (spec.request.width, spec.request.height);
+        let n = (h / MIN_BAND_ROWS).clamp(1, MAX_BANDS);
+        let bands = FrameState::bands(w, h, n, &spec.layout);
+        // Fresh cells are not touched yet: ask for huge pages before the first sample does.
+        for band in &bands {
+            crate::memory::advise_or_log(band.cells());
+        }
+        Self::from_bands(spec, bands, Seen::default(), CounterValues::default())
+    }
+
+    /// A frame restored from a snapshot: its spec, a whole-frame state, its AOV sums (`None`:
+    /// empty) and what it had seen.
+    pub fn restore(
+        spec: FrameSpec,
+        state: &FrameState,
+        aovs: Option<&AovSums>,
+        seen: Seen,
+        counters: CounterValues,
+        version: u64,
+    ) -> Result<ShardedFrame, String> {
+        let frame = ShardedFrame::new(spec);
+        frame.check_fits(state).map_err(|e| e.to_string())?;
+        for band in &frame.bands {
+            Arc::make_mut(&mut lock(band))
+                .merge(state)
+                .map_err(|e| e.to_string())?;
+        }
+        if let Some(restored) = aovs {
+            let Some(mine) = &frame.aovs else {
+                return Err("AOV sums for a frame that declares no AOVs".into());
+            };
+            Arc::make_mut(&mut lock(mine))
+                .merge_overlap(restored)
+                .map_err(|e| e.to_string())?;
+        }
+        *lock(&frame.seen) = seen;
+        frame.set_counters(counters);
+        frame.version.store(version, Ordering::Release);
+        Ok(frame)
+    }
+
+    /// Records that a snapshot holding everything up to `version`, and the batches in `seen`,
+    /// is on disk.
+    pub fn mark_durable(&self, seen: &Seen, version: u64) {
+        let mut floors = lock(&self.durable_floors);
+        for (&worker, set) in &seen.workers {
+            floors.insert(worker, set.floor());
+        }
+        self.durable_version.fetch_max(version, Ordering::AcqRel);
+    }
+
+    /// The version of the latest snapshot on disk.
+    pub fn durable_version(&self) -> u64 {
+        self.durable_version.load(Ordering::Acquire)
+    }
+
+    /// Every batch of `worker` numbered below this is on disk.
+    pub fn durable_floor(&self, worker: u64) -> u64 {
+        lock(&self.durable_floors)
+            .get(&worker)
+            .copied()
+            .unwrap_or(0)
+    }
+
+    fn from_bands(
+        spec: FrameSpec,
+        bands: Vec<FrameState>,
+        seen: Seen,
+        counters: CounterValues,
+    ) -> ShardedFrame {
+        let mut band_of_row = vec![0u16; spec.request.height as usize];
+        for (i, band) in bands.iter().enumerate() {
+            for y in band.rows() {
+                band_of_row[y as usize] = i as u16;
+            }
+        }
+        static NEXT_SERIAL: AtomicU64 = AtomicU64::new(1);
+        let aovs = spec.empty_aovs().map(|a| Mutex::new(Arc::new(a)));
+        let frame = ShardedFrame {
+            spec,
+            serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),
+            bands: bands.into_iter().map(|b| Mutex::new(Arc::new(b))).collect(),
+            band_of_row,
+            gate: RwLock::new(()),
+            retired: AtomicBool::new(false),
+            requests: Arc::new(tokio::sync::RwLock::new(())),
+            seen: Mutex::new(seen),
+            aovs,
+            counters: Counters::default(),
+            version: AtomicU64::new(0),
+            durable_version: AtomicU64::new(0),
+            durable_floors: Mutex::new(Default::default()),
+            history: Mutex::new(Default::default()),
+            spp_figures: Mutex::new(None),
+        };
+        frame.set_counters(counters);
+        frame
+    }
+
+    fn set_counters(&self, v: CounterValues) {
+        let c = &self.counters;
+        c.samples.store(v.samples, Ordering::Relaxed);
+        c.batches.store(v.batches, Ordering::Relaxed);
+        c.rejected_samples
+            .store(v.rejected_samples, Ordering::Relaxed);
+        c.rejected_batches
+            .store(v.rejected_batches, Ordering::Relaxed);
+        c.imports.store(v.imports, Ordering::Relaxed);
+    }
+
+    fn counter_values(&self) -> CounterValues {
+        let c = &self.counters;
+        CounterValues {
+            samples: c.samples.load(Ordering::Relaxed),
+            batches: c.batches.load(Ordering::Relaxed),
+            rejected_samples: c.rejected_samples.load(Ordering::Relaxed),
+            rejected_batches: c.rejected_batches.load(Ordering::Relaxed),
+            imports: c.imports.load(Ordering::Relaxed),
+        }
+    }
+
+    /// The frame id.
+    pub fn id(&self) -> &str {
+        &self.spec.request.id
+    }
+
+    /// This frame's serial number, unique in the process.
+    pub fn serial(&self) -> u64 {
+        self.serial
+    }
+
+    /// The frame's parameters.
+    pub fn spec(&self) -> &FrameSpec {
+        &self.spec
+    }
+
+    /// Samples accepted so far (records of applied batches and samples of imported states).
+    pub fn samples(&self) -> u64 {
+        self.counters.samples.load(Ordering::Relaxed)
+    }
+
+    /// The frame's convergence over time (see [`crate::converge`]).
+    pub fn history(&self) -> MutexGuard<'_, crate::converge::History> {
+        lock(&self.history)
+    }
+
+    /// Changes whenever samples are added; equal versions mean equal states.
+    pub fn version(&self) -> u64 {
+        self.version.load(Ordering::Acquire)
+    }
+    /// A lease for a request that will change the frame and answer for it; `None` once the frame
+    /// is retired. Hold it until the answer is ready.
+    pub async fn lease(&self) -> Option<Lease> {
+        // Checked first as well: a deletion queues for the lock only after retiring the frame,
+        // so this never waits behind one.
+        if self.is_retired() {
+            return None;
+        }
+        let lease = Lease {
+            _guard: self.requests.clone().read_owned().await,
+        };
+        (!self.is_retired()).then_some(lease)
+    }
+
+    /// Marks the frame deleted. Returns once no batch or import is being applied, and from then
+    /// on none is: whatever was acknowledged before is in the frame, and nothing is acknowledged
+    /// after.
+    pub fn retire(&self) {
+        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
+        self.retired.store(true, Ordering::Release);
+    }
+
+    /// [`ShardedFrame::retire`], then waits until every request holding a [`Lease`] has its
+    /// answer: after this returns, no request that changed the frame is still to be answered.
+    pub async fn retire_and_drain(self: &Arc<Self>) {
+        let frame = self.clone();
+        // The gate is a blocking lock, held by batches while they are applied.
+        let _ = tokio::task::spawn_blocking(move || frame.retire()).await;
+        drop(self.requests.write().await);
+    }
+
+    /// Undoes [`ShardedFrame::retire`], for a deletion that failed.
+    pub fn unretire(&self) {
+        self.retired.store(false, Ordering::Release);
+    }
+
+    /// Whether [`ShardedFrame::retire`] was called (and not undone).
+    pub fn is_retired(&self) -> bool {
+        self.retired.load(Ordering::Acquire)
+    }
+
+    /// A consistent cut of the whole frame, taken under the exclusive gate (so no batch is
+    /// half in it) in the time of a few reference counts and a copy of the applied set: the
+    /// cut shares the bands and AOV sums; writers that change them afterwards copy what they
+    /// change first (see [`FrameCut`]).
+    pub fn cut(&self) -> FrameCut {
+        let _gate = self.gate.write().unwrap_or_else(|e| e.into_inner());
+        FrameCut {
+            bands: self.bands.iter().map(|b| lock(b).clone()).collect(),
+            seen: lock(&self.seen).clone(),
+            counters: self.counter_values(),
+            version: self.version(),
+            aovs: self.aovs.as_ref().map(|a| lock(a).clone()),
+        }
+    }
+
+    /// Fewest, mean and most samples of any pixel now: counted from the cells once per
+    /// version (a read of the whole state), then remembered.
+    fn spp_figures(&self) -> SppFigures {
+        let version = self.version();
+        if let Some((v, figures)) = *lock(&self.spp_figures) {
+            if v == version {
+                return figures;
+            }
+        }
+        let k = self.spec.layout.cascades();
+        let (mut min, mut max, mut sum, mut pixels) = (u64::MAX, 0u64, 0u128, 0u64);
+        for band in &self.bands {
+            // Under the band's lock: its writers wait for the scan of one band (cheaper for
+            // them than copying it, which a cut would make them do).
+            let band = lock(band);
+            for cell in band.cells().chunks_exact(cell_len(k)) {
+                let n = cell_spp(cell);
+                min = min.min(n);
+                max = max.max(n);
+                sum += n as u128;
+                pixels += 1;
+            }
+        }
+        let figures = SppFigures {
+            min: if pixels == 0 { 0 } else { min },
+            mean: if pixels == 0 {
+                0.0
+            } else {
+                sum as f64 / pixels as f64
+            },
+            max,
+        };
+        // Counted at `version` or later: filed under `version`, it is never taken for a
+        // newer state than it saw.
+        *lock(&self.spp_figures) = Some((version, figures));
+        figures
+    }
+
+    /// What the frame looks like now, for `GET /v1/frames/{id}`.
+    pub fn info(&self) -> FrameInfo {
+        let spp = self.spp_figures();
+        let c = self.counter_values();
+        let r = &self.spec.request;
+        FrameInfo {
+            id: r.id.clone(),
+            width: r.width,
+            height: r.height,
+            cascades: r.cascades.clone(),
+            resolve: r.resolve.clone(),
+            samples: c.samples,
+            batches: c.batches,
+            spp_min: spp.min,
+            spp_mean: spp.mean,
+            spp_max: spp.max,
+            rejected_samples: c.rejected_samples,
+            rejected_batches: c.rejected_batches,
+            memory_bytes: self.spec.memory_bytes(),
+            aovs: r.aovs.clone(),
+            denoise: r.denoise,
+            denoise_guides: self.spec.guides.to_api(),
+            convergence: None,
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests;

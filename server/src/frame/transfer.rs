@@ -1,0 +1,212 @@
+//! States into and out of a frame: imports of other nodes' states and pushed deltas, and the
+//! frame's own state in the wire format.
+
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, MutexGuard};
+
+use splatd_proto::api::AovSpec;
+use splatd_proto::{Applied, Origin};
+
+use splatd_estimator::{AovCellsError, AovSums, FrameState, MergeError, MAX_PIXEL_SAMPLES};
+
+use splatd_formats::names::describe_aovs;
+use splatd_formats::state::Importable;
+
+use super::{lock, ImportRefused, ShardedFrame};
+
+impl ShardedFrame {
+    pub(super) fn check_fits(&self, state: &FrameState) -> Result<(), MergeError> {
+        // Every band has the frame's size and layout.
+        lock(&self.bands[0]).check_same_frame(state)
+    }
+
+    /// [`ShardedFrame::check_fits`] for any state being imported.
+    pub(super) fn check_fits_import(&self, state: &impl Importable) -> Result<(), MergeError> {
+        let (width, height, layout) = state.geometry();
+        lock(&self.bands[0]).check_same_geometry(width, height, layout)
+    }
+
+    /// Refuses a state declaring AOVs (`specs`, not empty) other than the frame's
+    /// ([`ImportRefused::Aovs`]).
+    pub(super) fn check_state_aovs(&self, specs: &[AovSpec]) -> Result<(), ImportRefused> {
+        if specs != self.spec.request.aovs.as_slice() {
+            return Err(ImportRefused::Aovs {
+                frame: self.id().to_owned(),
+                reason: format!(
+                    "the state has AOVs {}, the frame {}",
+                    describe_aovs(specs),
+                    describe_aovs(&self.spec.request.aovs)
+                ),
+            });
+        }
+        Ok(())
+    }
+
+    /// What a receiver checks of a state's header before it expands the state's AOV words
+    /// (which [`ShardedFrame::import`] checks again, in the same order): the frame's id, the
+    /// frame's size, and the frame's AOVs or none (`aovs` empty). So the AOV words of an
+    /// accepted state are at most the frame's.
+    pub fn check_state_header(
+        &self,
+        frame: &str,
+        width: u32,
+        height: u32,
+        aovs: &[AovSpec],
+    ) -> Result<(), ImportRefused> {
+        if frame != self.id() {
+            return Err(ImportRefused::WrongFrame {
+                state: frame.to_owned(),
+                url: self.id().to_owned(),
+            });
+        }
+        let r = &self.spec.request;
+        if (width, height) != (r.width, r.height) {
+            return Err(ImportRefused::Mismatch {
+                frame: self.id().to_owned(),
+                error: MergeError::Size {
+                    ours_w: r.width,
+                    ours_h: r.height,
+                    theirs_w: width,
+                    theirs_h: height,
+                },
+            });
+        }
+        if aovs.is_empty() {
+            return Ok(());
+        }
+        self.check_state_aovs(aovs)
+    }
+
+    /// Adds an exported state (or a pushed delta) holding the samples of `batches` to this
+    /// frame. A delta carrying an origin that was applied before is recognised and not applied
+    /// again (returns `Ok(false)`); a state holding a batch the frame has applied is refused
+    /// ([`ImportRefused::Overlap`]), since adding it would count that batch twice.
+    ///
+    /// All or nothing: everything that can refuse the state is checked before the origin and
+    /// the batches are recorded or any band changes. The state may hold any rows of the frame (a
+    /// band of another node's frame, say): each band adds the rows it shares with it.
+    ///
+    /// `aovs` are the state's AOVs: its declarations and sums. A state without AOVs (`None`, or
+    /// a version 2 state) adds to the cascades only; a state with AOVs must declare exactly the
+    /// frame's.
+    pub fn import(
+        &self,
+        frame: &str,
+        state: &impl Importable,
+        aovs: Option<(&[AovSpec], &AovSums)>,
+        origin: Option<&Origin>,
+        batches: &[Applied],
+    ) -> Result<bool, ImportRefused> {
+        if frame != self.id() {
+            return Err(ImportRefused::WrongFrame {
+                state: frame.to_owned(),
+                url: self.id().to_owned(),
+            });
+        }
+        let mismatch = |error| ImportRefused::Mismatch {
+            frame: self.id().to_owned(),
+            error,
+        };
+        self.check_fits_import(state).map_err(mismatch)?;
+        if let Some((specs, _)) = aovs {
+            self.check_state_aovs(specs)?;
+        }
+        let _gate = self.gate.read().unwrap_or_else(|e| e.into_inner());
+        if self.retired.load(Ordering::Acquire) {
+            return Err(ImportRefused::Deleted {
+                frame: self.id().to_owned(),
+            });
+        }
+        // Every band, locked top to bottom (as every holder of several bands locks them), so
+        // that the room check and the additions see the same cells; then the applied set, so
+        // that no batch is recorded between the overlap check and the recording.
+        let mut bands: Vec<MutexGuard<'_, Arc<FrameState>>> = self.bands.iter().map(lock).collect();
+        // The AOV sums after the bands and before the applied set, as ingest locks them.
+        let mut aov_sums = match (aovs, &self.aovs) {
+            (Some((_, theirs)), Some(mine)) => Some((lock(mine), theirs)),
+            _ => None,
+        };
+        let mut seen = lock(&self.seen);
+        if let Some(o) = origin {
+            if seen.nodes.get(&o.node).is_some_and(|s| s.contains(o.seq)) {
+                return Ok(false);
+            }
+        }
+        if let Some(o) = seen.overlap(batches) {
+            return Err(ImportRefused::Overlap {
+                frame: self.id().to_owned(),
+                worker: o.worker,
+                seq: o.seq,
+                count: o.count,
+            });
+        }
+        // No pixel holds more than a whole state: the cells need reading only near the limit.
+        let y0 = state.first_row();
+        let crowded: Vec<usize> = (0..bands.len())
+            .filter(|&i| {
+                bands[i].total_samples().saturating_add(state.samples()) > MAX_PIXEL_SAMPLES
+            })
+            .collect();
+        if !crowded.is_empty() {
+            state
+                .pieces(&mut |first, cells| {
+                    crowded
+                        .iter()
+                        .try_for_each(|&i| bands[i].check_room_for_pixels(y0, first, cells))
+                })
+                .map_err(mismatch)?;
+        }
+        if let Some((mine, theirs)) = &aov_sums {
+            mine.check_room_for(theirs)
+                .map_err(|e: AovCellsError| ImportRefused::Aovs {
+                    frame: self.id().to_owned(),
+                    reason: e.to_string(),
+                })?;
+        }
+        if let Some(o) = origin {
+            seen.insert_delta(&o.node, o.seq);
+        }
+        seen.insert_applied(batches);
+        drop(seen);
+        // Every band has the frame's size and layout (checked above for band 0) and room; one
+        // pass over the state adds each piece to the bands it falls in.
+        // Copies of the bands cuts hold, made before anything changes.
+        let mut bands: Vec<&mut FrameState> = bands.iter_mut().map(|b| Arc::make_mut(b)).collect();
+        let mut added = 0;
+        state
+            .pieces(&mut |first, cells| {
+                for band in bands.iter_mut() {
+                    added += band.add_pixels(y0, first, cells);
+                }
+                Ok(())
+            })
+            .expect("adding checked pieces refuses nothing");
+        debug_assert_eq!(added, state.samples());
+        if let Some((mine, theirs)) = aov_sums.as_mut() {
+            Arc::make_mut(mine)
+                .merge_overlap(theirs)
+                .expect("AOV sums were checked for room above");
+        }
+        drop(aov_sums);
+        drop(bands);
+        self.counters
+            .samples
+            .fetch_add(state.samples(), Ordering::Relaxed);
+        self.counters.imports.fetch_add(1, Ordering::Relaxed);
+        self.version.fetch_add(1, Ordering::AcqRel);
+        Ok(true)
+    }
+
+    /// Appends the frame's state with the batches it holds, in the state wire format, to `out`
+    /// (`GET .../state`), encoded from a [`ShardedFrame::cut`]: writers go on meanwhile.
+    pub fn write_state(&self, out: &mut Vec<u8>) {
+        let cut = self.cut();
+        let bands: Vec<&FrameState> = cut.bands.iter().map(|b| &**b).collect();
+        let aovs = cut
+            .aovs
+            .as_deref()
+            .map(|sums| (self.spec.request.aovs.as_slice(), sums));
+        splatd_formats::state::write_bands(&bands, aovs, self.id(), None, cut.seen.applied(), out)
+            .expect("writing into a Vec<u8> is infallible");
+    }
+}
