@@ -16,8 +16,46 @@ use splatd_estimator::{self as estimator, NeedMap};
 use splatd_proto::api::{self, ConvergencePoint};
 
 use crate::frame::ShardedFrame;
-use crate::http::error::ApiError;
+use crate::renders::RenderError;
+use crate::work::Busy;
 use crate::AppState;
+
+/// Why a need map or a frame's figures could not be computed.
+#[derive(Debug, thiserror::Error)]
+pub enum FiguresError {
+    /// A parameter of the request makes no sense (the tile size).
+    #[error(transparent)]
+    Param(#[from] estimator::ParamError),
+    /// The working memory stayed spent.
+    #[error(transparent)]
+    Busy(#[from] Busy),
+    /// Something that cannot fail did.
+    #[error("{what}: {detail}")]
+    Internal {
+        /// What was being done.
+        what: &'static str,
+        /// What went wrong.
+        detail: String,
+    },
+}
+
+impl FiguresError {
+    fn internal(what: &'static str, detail: impl std::fmt::Display) -> FiguresError {
+        FiguresError::Internal {
+            what,
+            detail: detail.to_string(),
+        }
+    }
+}
+
+impl From<RenderError<FiguresError>> for FiguresError {
+    fn from(e: RenderError<FiguresError>) -> FiguresError {
+        match e {
+            RenderError::Busy(busy) => FiguresError::Busy(busy),
+            RenderError::Failed(e) => e,
+        }
+    }
+}
 
 /// Most points a frame's history keeps; when full, every other point is dropped, so the
 /// history always spans the frame's whole life at a coarser and coarser step.
@@ -124,7 +162,7 @@ pub async fn need_map(
     app: &AppState,
     frame: &Arc<ShardedFrame>,
     tile: u32,
-) -> Result<Bytes, ApiError> {
+) -> Result<Bytes, FiguresError> {
     let tile = estimator::check_tile(tile)?;
     let params = frame.spec().resolve;
     let threads = app.resolve_threads;
@@ -139,7 +177,7 @@ pub async fn need_map(
             let resolved = cut.resolve(&params, threads);
             let bands = cut.band_refs();
             let map = NeedMap::build(&bands, &resolved, &params, tile)
-                .map_err(|e| ApiError::internal("need map", e))?;
+                .map_err(|e| FiguresError::internal("need map", e))?;
             {
                 let mut history = frame.history();
                 let seconds = history.seconds();
@@ -148,7 +186,7 @@ pub async fn need_map(
             let body = to_api(frame.id(), &map);
             serde_json::to_vec(&body)
                 .map(Bytes::from)
-                .map_err(|e| ApiError::internal("need map JSON", e))
+                .map_err(|e| FiguresError::internal("need map JSON", e))
         })
         .await?;
     Ok(bytes)
@@ -161,7 +199,7 @@ pub async fn need_map(
 pub async fn convergence(
     app: &AppState,
     frame: &Arc<ShardedFrame>,
-) -> Result<api::Convergence, ApiError> {
+) -> Result<api::Convergence, FiguresError> {
     let filed = frame.history().latest_version();
     if filed != Some(frame.version()) {
         need_map(app, frame, estimator::DEFAULT_NEED_TILE).await?;
@@ -171,7 +209,7 @@ pub async fn convergence(
     let history = frame.history();
     history
         .convergence(history.seconds(), samples, threshold)
-        .ok_or_else(|| ApiError::internal("convergence", "a render filed no figures"))
+        .ok_or_else(|| FiguresError::internal("convergence", "a render filed no figures"))
 }
 
 /// The wire form of a need map.

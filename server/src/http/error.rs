@@ -231,6 +231,19 @@ impl From<DurabilityError> for ApiError {
     }
 }
 
+/// A need map or figures that could not be computed: a bad tile is the query's fault (400), a
+/// spent working budget 503 with `Retry-After`.
+impl From<crate::converge::FiguresError> for ApiError {
+    fn from(e: crate::converge::FiguresError) -> ApiError {
+        use crate::converge::FiguresError;
+        match e {
+            FiguresError::Param(e) => e.into(),
+            FiguresError::Busy(busy) => ApiError::busy(&busy),
+            FiguresError::Internal { what, detail } => ApiError::internal(what, detail),
+        }
+    }
+}
+
 impl<E: Into<ApiError>> From<crate::renders::RenderError<E>> for ApiError {
     fn from(e: crate::renders::RenderError<E>) -> ApiError {
         match e {

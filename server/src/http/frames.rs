@@ -5,6 +5,7 @@ use axum::http::StatusCode;
 use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, PutFrame, QuarantinedFrame};
 
 use crate::http::blocking::blocking;
+use crate::converge::FiguresError;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
 use crate::store::Created;
@@ -92,15 +93,11 @@ pub async fn info(
 ) -> Result<Json<FrameInfo>, ApiError> {
     let convergence = match crate::converge::convergence(&app, &frame).await {
         Ok(c) => Some(c),
-        Err(e) if e.code == "busy" => {
-            tracing::warn!(
-                frame = frame.id(),
-                "frame info without convergence: {}",
-                e.message
-            );
+        Err(FiguresError::Busy(busy)) => {
+            tracing::warn!(frame = frame.id(), "frame info without convergence: {busy}");
             None
         }
-        Err(e) => return Err(e),
+        Err(e) => return Err(e.into()),
     };
     let mut info = blocking("frame info", move || Ok(frame.info())).await?;
     info.convergence = convergence;

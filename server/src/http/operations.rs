@@ -5,6 +5,7 @@ use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use splatd_proto::api::{Convergence, SyncAck};
 
+use crate::converge::FiguresError;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
 use crate::AppState;
@@ -55,10 +56,10 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
             Ok(c) => frames.push((frame.id().to_owned(), c)),
             // A frame deleted meanwhile has no figures; one that could not get working
             // memory is left out of this scrape, and the log says so.
-            Err(e) if e.code == "busy" => {
-                tracing::warn!(frame = frame.id(), "no convergence metrics: {}", e.message)
+            Err(FiguresError::Busy(busy)) => {
+                tracing::warn!(frame = frame.id(), "no convergence metrics: {busy}")
             }
-            Err(e) => return Err(e),
+            Err(e) => return Err(e.into()),
         }
     }
     text.push_str(&convergence_metrics(&frames));
