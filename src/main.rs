@@ -205,7 +205,7 @@ struct LogSink;
 impl std::io::Write for LogSink {
     fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
         if std::io::stderr().write_all(buf).is_err() {
-            metrics::counter!("splatd_log_lines_dropped_total").increment(1);
+            metrics::counter!(splatd_server::meters::LOG_LINES_DROPPED).increment(1);
         }
         Ok(buf.len())
     }

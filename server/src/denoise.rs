@@ -327,7 +327,7 @@ pub fn run(
             })?;
         outputs.push(out);
     }
-    metrics::histogram!("splatd_denoise_seconds").record(started.elapsed().as_secs_f64());
+    metrics::histogram!(crate::meters::DENOISE_SECONDS).record(started.elapsed().as_secs_f64());
     drop((albedo, normal));
     let input = plan.name();
     let images = plan.inputs().len();

@@ -25,6 +25,7 @@ pub mod frame;
 pub use frame::dedup;
 pub mod http;
 pub mod memory;
+pub mod meters;
 pub mod push;
 pub mod renders;
 pub mod server;

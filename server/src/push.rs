@@ -325,7 +325,7 @@ impl Pusher {
                         "refused"
                     }
                 };
-                metrics::counter!("splatd_pushes_total", "result" => label).increment(1);
+                metrics::counter!(crate::meters::PUSHES, "result" => label).increment(1);
                 if !acknowledged {
                     break;
                 }

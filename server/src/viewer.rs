@@ -52,7 +52,7 @@ pub async fn run(
                 Ok(Ok((s, Ok(())))) => {
                     sink = Some(s);
                     shown.insert(frame.id().to_owned(), version);
-                    metrics::counter!("splatd_tev_updates_total").increment(1);
+                    metrics::counter!(crate::meters::TEV_UPDATES).increment(1);
                     if down {
                         tracing::info!(%addr, "tev reachable again");
                         down = false;

@@ -253,7 +253,7 @@ pub async fn require_role(State(gate): State<Gate>, request: Request, next: Next
     {
         Ok(()) => next.run(request).await,
         Err(e) => {
-            metrics::counter!("splatd_auth_refused_total", "status" => e.status.as_str().to_owned())
+            metrics::counter!(crate::meters::AUTH_REFUSED, "status" => e.status.as_str().to_owned())
                 .increment(1);
             let mut response = e.into_response();
             if response.status() == StatusCode::UNAUTHORIZED {

@@ -4,8 +4,8 @@ use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, PutFrame, QuarantinedFrame};
 
-use crate::http::blocking::blocking;
 use crate::converge::FiguresError;
+use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
 use crate::store::Created;
@@ -117,5 +117,5 @@ pub async fn delete(
 }
 
 fn set_frames_gauge(app: &AppState) {
-    metrics::gauge!("splatd_frames").set(app.store.list().len() as f64);
+    metrics::gauge!(crate::meters::FRAMES).set(app.store.list().len() as f64);
 }

@@ -102,7 +102,7 @@ pub async fn get_image(
                 .map_err(|e| ApiError::internal("EXR encoding", e))
         })
         .await?;
-    metrics::histogram!("splatd_resolve_seconds").record(started.elapsed().as_secs_f64());
+    metrics::histogram!(crate::meters::RESOLVE_SECONDS).record(started.elapsed().as_secs_f64());
     Ok(([(header::CONTENT_TYPE, "image/x-exr")], exr))
 }
 

@@ -85,7 +85,7 @@ pub async fn post_samples(
         ..
     }: FrameBody<Samples>,
 ) -> Result<Json<BatchAck>, ApiError> {
-    metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    metrics::counter!(crate::meters::INGEST_BYTES).increment(bytes.len() as u64);
     let limits = app.decode_limits;
     ingest(&app, frame, reservation, move |frame| {
         let batch = Batch::decode(&bytes, &limits).map_err(|e| {
@@ -125,7 +125,7 @@ pub async fn post_pass(
         ..
     }: FrameBody<Pass>,
 ) -> Result<Json<BatchAck>, ApiError> {
-    metrics::counter!("splatd_ingest_bytes_total").increment(bytes.len() as u64);
+    metrics::counter!(crate::meters::INGEST_BYTES).increment(bytes.len() as u64);
     let pool = app.clone();
     ingest(&app, frame, reservation, move |frame| {
         // Decoded into buffers kept from earlier passes (counted in this request's reservation
@@ -209,10 +209,10 @@ async fn ingest(
     let (worker, seq) = batch_id;
     let durable_floor = app.durable.as_ref().map(|_| frame.durable_floor(worker));
     if ingested.duplicate {
-        metrics::counter!("splatd_batches_duplicate_total").increment(1);
+        metrics::counter!(crate::meters::BATCHES_DUPLICATE).increment(1);
     } else {
-        metrics::counter!("splatd_batches_ingested_total").increment(1);
-        metrics::counter!("splatd_samples_ingested_total").increment(ingested.accepted);
+        metrics::counter!(crate::meters::BATCHES_INGESTED).increment(1);
+        metrics::counter!(crate::meters::SAMPLES_INGESTED).increment(ingested.accepted);
     }
     Ok(Json(BatchAck {
         frame: frame.id().to_owned(),
@@ -270,6 +270,6 @@ fn reject(frame: &ShardedFrame, samples: u64, reason: &'static str) {
 }
 
 fn reject_counted(samples: u64, reason: &'static str) {
-    metrics::counter!("splatd_batches_rejected_total", "reason" => reason).increment(1);
-    metrics::counter!("splatd_samples_rejected_total").increment(samples);
+    metrics::counter!(crate::meters::BATCHES_REJECTED, "reason" => reason).increment(1);
+    metrics::counter!(crate::meters::SAMPLES_REJECTED).increment(samples);
 }

@@ -78,33 +78,37 @@ pub fn convergence_metrics(frames: &[(String, Convergence)]) -> String {
     type Gauge = (&'static str, &'static str, fn(&Convergence) -> f64);
     const GAUGES: [Gauge; 7] = [
         (
-            "splatd_frame_removed_fraction",
+            crate::meters::FRAME_REMOVED_FRACTION,
             "Luminance the resolve removes, as a fraction of the plain mean's.",
             |c| c.removed_fraction,
         ),
         (
-            "splatd_frame_spp_min",
+            crate::meters::FRAME_SPP_MIN,
             "Fewest samples of any pixel.",
             |c| c.spp_min as f64,
         ),
-        ("splatd_frame_spp_mean", "Mean samples per pixel.", |c| {
-            c.spp_mean
-        }),
-        ("splatd_frame_spp_max", "Most samples of any pixel.", |c| {
-            c.spp_max as f64
-        }),
         (
-            "splatd_frame_samples_per_second",
+            crate::meters::FRAME_SPP_MEAN,
+            "Mean samples per pixel.",
+            |c| c.spp_mean,
+        ),
+        (
+            crate::meters::FRAME_SPP_MAX,
+            "Most samples of any pixel.",
+            |c| c.spp_max as f64,
+        ),
+        (
+            crate::meters::FRAME_SAMPLES_PER_SECOND,
             "Samples accepted per second lately.",
             |c| c.samples_per_second,
         ),
         (
-            "splatd_frame_converged",
+            crate::meters::FRAME_CONVERGED,
             "1 when the frame is converged at its threshold, else 0.",
             |c| f64::from(u8::from(c.converged)),
         ),
         (
-            "splatd_frame_converged_below",
+            crate::meters::FRAME_CONVERGED_BELOW,
             "The frame's convergence threshold.",
             |c| c.converged_below,
         ),

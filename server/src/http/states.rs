@@ -71,7 +71,7 @@ pub async fn export(
         Ok((out, reservation))
     })
     .await?;
-    metrics::counter!("splatd_exports_total").increment(1);
+    metrics::counter!(crate::meters::EXPORTS).increment(1);
     reservation.shrink_to(bytes.len() as u64);
     // The encoded state stays reserved until the response is sent or dropped: a client that
     // reads slowly holds its share of the budget, not memory beside it.
@@ -146,7 +146,7 @@ pub async fn import(
     .await?;
     // A pusher forgets a delta once it is acknowledged, so make it durable first.
     app.sync(&frame).await?;
-    metrics::counter!("splatd_imports_total", "result" => if applied { "applied" } else { "duplicate" })
+    metrics::counter!(crate::meters::IMPORTS, "result" => if applied { "applied" } else { "duplicate" })
         .increment(1);
     Ok(Json(ImportAck {
         frame: frame.id().to_owned(),
