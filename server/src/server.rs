@@ -107,10 +107,10 @@ impl Server {
         } = self;
         tracing::info!(%local, "listening");
         let (stop_tasks, stop) = tokio::sync::watch::channel(false);
-        let snapshots = app
-            .durable
-            .clone()
-            .map(|d| tokio::spawn(d.run(app.clone(), stop.clone())));
+        let snapshots = app.durable.clone().map(|d| {
+            let app = app.clone();
+            tokio::spawn(d.run(move || app.store.list(), stop.clone()))
+        });
         let viewer = config.tev.clone().map(|addr| {
             tokio::spawn(super::viewer::run(
                 app.clone(),

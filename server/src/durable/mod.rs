@@ -281,9 +281,13 @@ impl Durable {
     /// if that is longer: a 1080p frame holds 400 MB of cascades, which take over a second to
     /// write and sync, and snapshots must not take more than a fifth of the machine from ingest.
     /// Durability lags ingest by at most one spacing plus one round.
+    ///
+    /// `frames` lists the frames to consider each round (the server's store): a lister rather
+    /// than the server's state, so durability depends on the frames alone, not on the HTTP
+    /// layer that holds them.
     pub async fn run(
         self: Arc<Self>,
-        app: super::AppState,
+        frames: impl Fn() -> Vec<Arc<ShardedFrame>>,
         mut stop: tokio::sync::watch::Receiver<bool>,
     ) {
         let mut wait = self.interval;
@@ -293,7 +297,7 @@ impl Durable {
                 _ = stop.changed() => return,
             }
             let started = std::time::Instant::now();
-            for frame in app.store.list() {
+            for frame in frames() {
                 // Each snapshot is a task of its own, so that nothing going wrong in one (an
                 // error, or a panic) can end this loop: durability must not stop for good
                 // because one write failed; the next round tries again.
