@@ -11,7 +11,7 @@ use splatd_proto::StateDump;
 
 use super::error::{io_err, DurableError};
 use crate::dedup::Seen;
-use crate::frame::{CounterValues, FrameSpec, ShardedFrame};
+use crate::frame::{CounterValues, FrameCut, FrameSpec, ShardedFrame};
 
 pub(super) const SNAPSHOT_MAGIC: [u8; 4] = *b"SPLC";
 /// 2 added the content digest of every applied batch (see `dedup`); version 1 snapshots are
@@ -61,23 +61,64 @@ impl From<SnapshotMetaV1> for SnapshotMeta {
     }
 }
 
+/// A snapshot of `cut` (taken of `frame`) ready to be written: its metadata is encoded, its
+/// bands are encoded as they are written, each straight to the file rather than through a copy
+/// of the whole snapshot in memory.
+pub(super) struct Snapshot<'a> {
+    frame: &'a ShardedFrame,
+    cut: &'a FrameCut,
+    meta: Vec<u8>,
+}
+
+impl<'a> Snapshot<'a> {
+    pub(super) fn new(frame: &'a ShardedFrame, cut: &'a FrameCut) -> Snapshot<'a> {
+        let meta = SnapshotMeta {
+            frame: frame.id().to_owned(),
+            version: cut.version,
+            counters: cut.counters,
+            seen: cut.seen.clone(),
+        };
+        let meta = bincode::serde::encode_to_vec(&meta, bincode::config::legacy())
+            .expect("snapshot metadata serialises");
+        Snapshot { frame, cut, meta }
+    }
+
+    /// Writes the snapshot file's bytes, its CRC-32 last.
+    pub(super) fn write_to(&self, w: impl Write) -> io::Result<()> {
+        let Snapshot { frame, cut, meta } = self;
+        let mut w = CrcWriter::new(w);
+        w.write_all(&SNAPSHOT_MAGIC)?;
+        w.write_all(&SNAPSHOT_VERSION.to_le_bytes())?;
+        w.write_all(&(meta.len() as u64).to_le_bytes())?;
+        w.write_all(meta)?;
+        w.write_all(&(cut.bands.len() as u32).to_le_bytes())?;
+        for band in &cut.bands {
+            let aov_rows = cut.aovs.as_ref().map(|a| a.rows_copy(band.rows()));
+            let aovs = aov_rows
+                .as_ref()
+                .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
+            // Length-prefixed, so a reader can bound each band before decoding it.
+            w.write_all(&encoded_len(band, aovs, frame.id())?.to_le_bytes())?;
+            crate::export::write(band, aovs, frame.id(), None, &mut w)?;
+        }
+        let crc = w.crc.clone().finalize();
+        w.inner.write_all(&crc.to_le_bytes())
+    }
+}
+
 /// Bytes of a band's state encoding, without encoding it.
-pub(super) fn encoded_len(
-    band: &FrameState,
-    aovs: crate::export::Aovs<'_>,
-    frame: &str,
-) -> io::Result<u64> {
+fn encoded_len(band: &FrameState, aovs: crate::export::Aovs<'_>, frame: &str) -> io::Result<u64> {
     Ok(crate::export::encoded_len(band, aovs, frame))
 }
 
 /// Counts a CRC-32 of everything written through it.
-pub(super) struct CrcWriter<W> {
-    pub(super) inner: W,
-    pub(super) crc: crc32fast::Hasher,
+struct CrcWriter<W> {
+    inner: W,
+    crc: crc32fast::Hasher,
 }
 
 impl<W: Write> CrcWriter<W> {
-    pub(super) fn new(inner: W) -> Self {
+    fn new(inner: W) -> Self {
         CrcWriter {
             inner,
             crc: crc32fast::Hasher::new(),

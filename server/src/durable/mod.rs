@@ -55,7 +55,6 @@ use files::{
     remove_frame_dir, run_blocking, sync_dir, write_atomically, FRAME_FILE, SNAPSHOT_FILE,
     SNAPSHOT_MARKER, SNAPSHOT_TMP,
 };
-use format::{encoded_len, CrcWriter, SnapshotMeta, SNAPSHOT_MAGIC, SNAPSHOT_VERSION};
 
 /// The data directory of a durable server.
 #[derive(Debug)]
@@ -234,33 +233,8 @@ impl Durable {
 
     fn write_snapshot(&self, frame: &ShardedFrame, cut: &FrameCut) -> Result<(), DurableError> {
         let dir = self.frame_dir(frame.id());
-        let meta = SnapshotMeta {
-            frame: frame.id().to_owned(),
-            version: cut.version,
-            counters: cut.counters,
-            seen: cut.seen.clone(),
-        };
-        let meta = bincode::serde::encode_to_vec(&meta, bincode::config::legacy())
-            .expect("snapshot metadata serialises");
-        write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, |w| {
-            let mut w = CrcWriter::new(w);
-            w.write_all(&SNAPSHOT_MAGIC)?;
-            w.write_all(&SNAPSHOT_VERSION.to_le_bytes())?;
-            w.write_all(&(meta.len() as u64).to_le_bytes())?;
-            w.write_all(&meta)?;
-            w.write_all(&(cut.bands.len() as u32).to_le_bytes())?;
-            for band in &cut.bands {
-                let aov_rows = cut.aovs.as_ref().map(|a| a.rows_copy(band.rows()));
-                let aovs = aov_rows
-                    .as_ref()
-                    .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
-                // Length-prefixed, so a reader can bound each band before decoding it.
-                w.write_all(&encoded_len(band, aovs, frame.id())?.to_le_bytes())?;
-                crate::export::write(band, aovs, frame.id(), None, &mut w)?;
-            }
-            let crc = w.crc.clone().finalize();
-            w.inner.write_all(&crc.to_le_bytes())
-        })?;
+        let snapshot = format::Snapshot::new(frame, cut);
+        write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, |w| snapshot.write_to(w))?;
         // From now on a missing snapshot is damage, not a frame that never had one. Marked only
         // after a snapshot exists: a first snapshot that failed (a full disk) leaves the frame
         // as it was, legitimately empty after a restart, not quarantined.

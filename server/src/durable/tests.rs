@@ -6,7 +6,7 @@ use splatd_estimator::FrameState;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
 
-use super::format::SnapshotMetaV1;
+use super::format::{SnapshotMeta, SnapshotMetaV1, SNAPSHOT_MAGIC, SNAPSHOT_VERSION};
 use super::*;
 use crate::frame::FrameSpec;
 use crate::store::FrameStore;
