@@ -16,8 +16,7 @@ use bytes::Bytes;
 use tokio::sync::Notify;
 use tokio::time::Instant;
 
-use super::head::STAND_IN_METHOD;
-use crate::http::error::ApiError;
+use super::head::{HeadError, STAND_IN_METHOD};
 
 /// The time limits of a connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -47,7 +46,7 @@ pub struct Conn {
     /// Tells the connection's task to close (the cap needs its place).
     pub(super) evict: Notify,
     /// A request head the gate refused, to be answered by the service in its place.
-    pub(super) refusal: Mutex<Option<ApiError>>,
+    pub(super) refusal: Mutex<Option<HeadError>>,
     /// The request whose response body has ended but may still sit in hyper's buffer: it
     /// ends when the socket next reports everything flushed.
     pub(super) finishing: Mutex<Option<RequestGuard>>,
@@ -108,7 +107,7 @@ impl Conn {
             .take()
     }
 
-    pub(super) fn take_refusal(&self) -> Option<ApiError> {
+    pub(super) fn take_refusal(&self) -> Option<HeadError> {
         self.refusal
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -199,6 +198,10 @@ impl http_body::Body for ResponseBody {
 
 /// Serves one connection's requests with `router`: answers a head the gate refused in its
 /// place, and tracks each request from its call to its response's last byte.
+///
+/// A refused head is answered with its [`HeadError`]'s `IntoResponse`, which the HTTP layer
+/// implements (`http::error`): the transport knows why a head was refused, not which status or
+/// error code says so.
 pub fn service(
     router: axum::Router,
     conn: Arc<Conn>,

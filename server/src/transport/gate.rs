@@ -12,8 +12,7 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 use tokio::time::{Instant, Sleep};
 
 use super::conn::{Conn, Deadlines};
-use super::head::{check_head, Framing, STAND_IN};
-use crate::http::error::ApiError;
+use super::head::{check_head, Framing, HeadError, STAND_IN};
 
 #[derive(Debug)]
 enum Mode {
@@ -63,12 +62,8 @@ impl<T> HeadGate<T> {
         self.timer.as_mut().reset(Instant::now() + after);
     }
 
-    fn refuse(&mut self, refusal: ApiError) {
-        tracing::debug!(
-            status = refusal.status.as_u16(),
-            code = refusal.code,
-            "request head refused"
-        );
+    fn refuse(&mut self, refusal: HeadError) {
+        tracing::debug!(error = %refusal, "request head refused");
         *self.conn.refusal.lock().unwrap_or_else(|e| e.into_inner()) = Some(refusal);
         self.buf.clear();
         self.mode = Mode::StandIn { at: 0 };

@@ -12,9 +12,9 @@
 //!   the first request, from its first byte for the next ones on a keep-alive connection, which
 //!   may idle for `--idle-timeout` before that byte), within [`MAX_HEAD_BYTES`], with a request
 //!   line within [`MAX_REQUEST_LINE_BYTES`] and at most [`MAX_HEADERS`] headers, and parse. A head
-//!   that breaks a rule is answered 400, 414 or 431 with a JSON `ErrorBody` and
-//!   `Connection: close` (hyper's own answers to such heads have no body), through the same
-//!   service as every other answer, so responses stay in order.
+//!   that breaks a rule is refused with a [`HeadError`], answered as `http::error` maps it (a
+//!   JSON `ErrorBody`) with `Connection: close` (hyper's own answers to such heads have no
+//!   body), through the same service as every other answer, so responses stay in order.
 //! * A response must be handed to the socket within `--response-timeout` from its first byte:
 //!   a client that stops reading is disconnected and the response's memory freed.
 //!
@@ -32,5 +32,5 @@ mod rlimit;
 pub use admission::{Connections, Refused, Registered};
 pub use conn::{service, Conn, Deadlines, Ended, ResponseBody};
 pub use gate::HeadGate;
-pub use head::{MAX_HEADERS, MAX_HEAD_BYTES, MAX_REQUEST_LINE_BYTES};
+pub use head::{HeadError, MAX_HEADERS, MAX_HEAD_BYTES, MAX_REQUEST_LINE_BYTES};
 pub use rlimit::{cap_for, raise_descriptor_limit};
