@@ -1,7 +1,7 @@
 //! The splatd server: an axum shell around the estimator core.
 //!
 //! * [`config`]: every flag and default; [`server`]: the [`server::Server`] lifecycle (listener,
-//!   background tasks, graceful shutdown with a final snapshot); [`connection`]: the cap on
+//!   background tasks, graceful shutdown with a final snapshot); [`transport`]: the cap on
 //!   connections, their deadlines, and the check of every request head;
 //! * [`frame`]: one frame as row bands under separate locks, with all-or-nothing batches and
 //!   duplicate detection ([`dedup`]);
@@ -15,7 +15,6 @@
 //!   [`viewer`]: pushing frames to tev; [`memory`]: huge pages for large buffers.
 
 pub mod config;
-pub mod connection;
 pub mod converge;
 pub mod denoise;
 pub mod durable;
@@ -31,6 +30,7 @@ pub mod renders;
 pub mod server;
 pub mod store;
 pub mod tev;
+pub mod transport;
 pub mod viewer;
 pub mod work;
 
@@ -68,7 +68,7 @@ pub struct Limits {
     pub head_timeout: Duration,
     /// Longest from the first byte of a response to its last.
     pub response_timeout: Duration,
-    /// Most connections open at once ([`connection::Connections`]).
+    /// Most connections open at once ([`transport::Connections`]).
     pub max_connections: usize,
     /// Bytes that requests may hold at once beyond the frames themselves: copies being
     /// resolved or exported, encoded images, imported states ([`work::WorkBudget`]).
@@ -106,7 +106,7 @@ pub struct Shared {
     pub renders: renders::Renders,
     /// The open connections and their cap (used by the accept loop; in-process router calls
     /// bypass it).
-    pub connections: Arc<connection::Connections>,
+    pub connections: Arc<transport::Connections>,
     /// Decode buffers kept between passes (see [`splatd_formats::passes::ScratchPool`]).
     pub pass_scratch: splatd_formats::passes::ScratchPool,
     /// Buffers kept for large request bodies (see [`http::extract::BodyPool`]).
@@ -170,7 +170,7 @@ impl AppState {
         let budget = work::WorkBudget::new(limits.work_memory_bytes, limits.work_wait);
         AppState(Arc::new(Shared {
             renders: renders::Renders::new(RENDERS_KEPT, budget),
-            connections: Arc::new(connection::Connections::new(limits.max_connections)),
+            connections: Arc::new(transport::Connections::new(limits.max_connections)),
             pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
             body_pool: Arc::new(http::extract::BodyPool::new(resolve_threads)),
             store: FrameStore::new(limits),

@@ -5,7 +5,7 @@
 //! The accept loop is ours (hyper's HTTP/1 connections) rather than `axum::serve`, so that every
 //! connection is admitted under the cap, its request heads are read and checked within the head
 //! deadline before hyper sees them, and a response that a client does not take in time is
-//! dropped (see [`crate::connection`]). Request bodies are bounded by the request timeout layer.
+//! dropped (see [`crate::transport`]). Request bodies are bounded by the request timeout layer.
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -18,8 +18,8 @@ use tokio::net::TcpListener;
 
 use anyhow::Context;
 
-use super::connection::{service, Deadlines, Ended, HeadGate};
 use super::push::PushConfig;
+use super::transport::{service, Deadlines, Ended, HeadGate};
 use super::{AppState, Config};
 
 /// A bound server, ready to run.
@@ -37,8 +37,8 @@ impl Server {
     /// and binds the listener. Nothing is served until [`Server::run`].
     pub async fn bind(mut config: Config) -> anyhow::Result<Server> {
         return_large_buffers_to_the_system();
-        let nofile = super::connection::raise_descriptor_limit();
-        let cap = super::connection::cap_for(config.max_connections, nofile);
+        let nofile = super::transport::raise_descriptor_limit();
+        let cap = super::transport::cap_for(config.max_connections, nofile);
         if cap < config.max_connections {
             tracing::warn!(
                 max_connections = cap,
@@ -107,10 +107,10 @@ impl Server {
         } = self;
         tracing::info!(%local, "listening");
         let (stop_tasks, stop) = tokio::sync::watch::channel(false);
-        let snapshots = app
-            .durable
-            .clone()
-            .map(|d| tokio::spawn(d.run(app.clone(), stop.clone())));
+        let snapshots = app.durable.clone().map(|d| {
+            let app = app.clone();
+            tokio::spawn(d.run(move || app.store.list(), stop.clone()))
+        });
         let viewer = config.tev.clone().map(|addr| {
             tokio::spawn(super::viewer::run(
                 app.clone(),

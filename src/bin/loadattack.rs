@@ -79,7 +79,7 @@ type Answers = BTreeMap<String, u64>;
 fn main() -> Result<()> {
     let args = Args::parse();
     // Thousands of sockets on this side too.
-    splatd_server::connection::raise_descriptor_limit();
+    splatd_server::transport::raise_descriptor_limit();
     let binary = sibling_binary().map_err(anyhow::Error::msg)?;
     let flags: Vec<&str> = args.serve.split_whitespace().collect();
     let server = ServerProcess::launch(&Options {

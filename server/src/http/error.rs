@@ -14,6 +14,7 @@ use splatd_proto::{ErrorBody, StateError, WireError};
 use crate::durable::DurabilityError;
 use crate::frame::{ImportRefused, IngestError};
 use crate::store::StoreError;
+use crate::transport::HeadError;
 use splatd_formats::passes::PassError;
 use splatd_formats::state::ImportError;
 
@@ -295,5 +296,76 @@ impl From<WireError> for ApiError {
 impl From<StateError> for ApiError {
     fn from(e: StateError) -> ApiError {
         ApiError::from(&e)
+    }
+}
+
+/// A request head the transport refused: 400 for one that cannot be read, 414 for a request
+/// line too long, 431 for too many or too large headers (hyper's own statuses for them, with a
+/// JSON body hyper would not give).
+impl From<HeadError> for ApiError {
+    fn from(e: HeadError) -> ApiError {
+        let (status, code) = match e {
+            HeadError::Malformed(_) => (StatusCode::BAD_REQUEST, "malformed_request"),
+            HeadError::UriTooLong => (StatusCode::URI_TOO_LONG, "uri_too_long"),
+            HeadError::HeadTooLarge | HeadError::TooManyHeaders => (
+                StatusCode::REQUEST_HEADER_FIELDS_TOO_LARGE,
+                "headers_too_large",
+            ),
+        };
+        ApiError::new(status, code, e.to_string())
+    }
+}
+
+/// How the transport's service answers a head it refused, in place of the request.
+impl IntoResponse for HeadError {
+    fn into_response(self) -> Response {
+        ApiError::from(self).into_response()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transport::{MAX_HEADERS, MAX_HEAD_BYTES, MAX_REQUEST_LINE_BYTES};
+
+    /// The statuses, codes and messages of refused heads are the ones clients have always read.
+    #[test]
+    fn refused_heads_keep_their_statuses_codes_and_messages() {
+        let answer = |e: HeadError| {
+            let e = ApiError::from(e);
+            (e.status.as_u16(), e.code, e.message)
+        };
+        assert_eq!(
+            answer(HeadError::Malformed("invalid Content-Length".into())),
+            (
+                400,
+                "malformed_request",
+                "the request head could not be read: invalid Content-Length".to_owned()
+            )
+        );
+        assert_eq!(
+            answer(HeadError::UriTooLong),
+            (
+                414,
+                "uri_too_long",
+                format!("the request line exceeds {MAX_REQUEST_LINE_BYTES} bytes")
+            )
+        );
+        assert_eq!(
+            answer(HeadError::HeadTooLarge),
+            (
+                431,
+                "headers_too_large",
+                format!("the request head exceeds {MAX_HEAD_BYTES} bytes")
+            )
+        );
+        assert_eq!(
+            answer(HeadError::TooManyHeaders),
+            (
+                431,
+                "headers_too_large",
+                format!("the request has more than {MAX_HEADERS} headers")
+            )
+        );
     }
 }

@@ -8,7 +8,7 @@
 //! With `Connection: close` on the response the client knows to open a new connection.
 //!
 //! Chunked request bodies are answered with `Connection: close` too: the accept loop's head
-//! check cannot tell where the next request starts after one (see `crate::connection`).
+//! check cannot tell where the next request starts after one (see `crate::transport`).
 //!
 //! This also keeps `Expect: 100-continue` honest: hyper sends `100 Continue` only when a
 //! handler starts reading the body, so a request refused before that (authentication, the
