@@ -27,8 +27,10 @@ mod matches_reference;
 mod reference;
 #[cfg(test)]
 mod reference_spread;
+mod region;
 mod rows;
 
+pub use region::{dependency_radius, resolve_region_into, resolve_region_with, Rect};
 use rows::{Consts, Part, Rows};
 
 /// Which weight formula to use.

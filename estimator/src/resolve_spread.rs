@@ -27,7 +27,10 @@
 //! * it is consistent: as `N` grows every band of positive probability is fully trusted by the
 //!   paper's weights, `r_j -> 0`, and the estimate converges to the mean like the paper's;
 //! * it reads only the state: bit-identical for any arrival order or merge, and the same `f64`
-//!   sums in the same order whatever the resolve's thread count (see [`spread`]).
+//!   sums in the same order whatever the resolve's thread count (see [`spread`]);
+//! * it is local, to the last bit: a pixel's result depends only on the state within
+//!   `2 max_radius` of its give-back tile ([`Grid`]), so a part of the frame can be resolved
+//!   again on its own (`resolve_region_into`; the derivation is in `resolve/region.rs`).
 
 use super::layout::{ParamError, COUNT_ONE};
 use super::resolve::{ResolveParams, Resolved};
@@ -304,16 +307,17 @@ impl std::fmt::Debug for Scratch {
 }
 
 /// Gives removed energy back. `scratch` holds the paper stage's support words and sources
-/// (lists each in row-major order); `out` holds the paper's images, updated in place. `threads` share the bands' window searches, then the
-/// columns of the give-back.
+/// (lists each in row-major order); `out` holds the paper's images, updated in place;
+/// `threads` share the bands' window searches, then the columns of the give-back; `grid`
+/// places the give-back's tiles (a crop's own, see [`Grid`]).
 ///
 /// The numbers are those of the plain dense computation (one summed-area table of the frame per
-/// band, one 2D difference array of the give-back of every band in band and source order, then
-/// its prefix sums; `resolve/reference_spread.rs` keeps it for the tests), bit for bit: the
-/// summed-area table is kept as a ring of the rows the widest window spans, the difference array
-/// as each row's events, applied to one row at a time in the same order, and the prefix sums run
-/// down columns split between threads (each thread's running sum along a row starts from the
-/// row's cells left of its columns).
+/// band, exact; one 2D difference array of the give-back of every band in band and source
+/// order, each window cut into the tiles it covers, then its prefix sums within each tile;
+/// `resolve/reference_spread.rs` keeps it for the tests), bit for bit: the summed-area table is
+/// kept as a ring of the rows the widest window spans, the difference array as each row's
+/// events, applied to one row at a time in the same order, and the prefix sums run down
+/// columns of whole tiles split between threads.
 pub(crate) fn spread(
     k: usize,
     scratch: &mut Scratch,

@@ -80,10 +80,13 @@ pub(super) fn spread(
                 sat[y1 * stride + x0],
                 sat[y0 * stride + x0],
             ];
-            [
-                units_to_samples(a[0] - b[0] - c[0] + d[0]),
-                (a[1] - b[1] - c[1] + d[1]) as f64,
-            ]
+            // (In this order an intermediate may be negative: wrapping, exact at the end.)
+            let exact = |i: usize| {
+                a[i].wrapping_sub(b[i])
+                    .wrapping_sub(c[i])
+                    .wrapping_add(d[i])
+            };
+            [units_to_samples(exact(0)), exact(1) as f64]
         };
         for (p, band) in plane.chunks_exact(BAND_FLOATS).enumerate() {
             if band[..3] == [0.0; 3] {
