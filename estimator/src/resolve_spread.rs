@@ -364,14 +364,25 @@ pub(crate) fn spread(
                 .filter(|(j, _)| busy[*j])
                 .map(|(j, band)| (band, &lists[j], &support[j * pixels..(j + 1) * pixels])),
         );
+        // Support sums in `u64` where they cannot overflow a box (see `SatRing`).
+        let narrow = spp.iter().all(|&n| n < NARROW_SAT_SPP);
         let search = || {
-            let mut ring = SatRing::new(w, params.spread().max_radius());
+            let max_radius = params.spread().max_radius();
+            let (mut ring64, mut ring128) = if narrow {
+                (Some(SatRing::<u64>::new(w, max_radius)), None)
+            } else {
+                (None, Some(SatRing::<u128>::new(w, max_radius)))
+            };
             loop {
                 let next = queue.lock().unwrap_or_else(|e| e.into_inner()).next();
                 let Some((band, lists, plane)) = next else {
                     return;
                 };
-                windows(plane, lists, spp, w, h, params, &mut ring, band, grid);
+                if let Some(ring) = &mut ring64 {
+                    windows(plane, lists, spp, w, h, params, ring, band, grid);
+                } else if let Some(ring) = &mut ring128 {
+                    windows(plane, lists, spp, w, h, params, ring, band, grid);
+                }
             }
         };
         std::thread::scope(|scope| {
@@ -435,15 +446,67 @@ pub(crate) fn spread(
 /// first written) rounds once its sums pass `2^(53 - FRAC_BITS) = 2^27` samples (a 1080p frame
 /// at 64 spp), and a box's sum then depended on the rest of the frame (a window of exactly 64
 /// samples could fail a support of 64). The exact box sum rounded once to `f64` is what the
-/// `f64` table gave wherever that was exact. `u128`: a box of 33x33 pixels of `2^32` samples
-/// each is past `2^64` units.
-struct SatRing {
+/// `f64` table gave wherever that was exact. The sums wrap (`T`, [`Units`]): a box's sum is
+/// exact if it fits in `T`, so `u64` serves frames whose pixels hold fewer than `2^27` samples
+/// each (a 33x33 box of them is below `2^64` units), `u128` any frame; either gives the same
+/// box sums, so the choice (per resolve) changes no bit.
+struct SatRing<T> {
     mask: usize,
     stride: usize,
     /// Table rows computed so far (`0 ..= built`).
     built: usize,
-    n: Vec<u128>,
+    n: Vec<T>,
     solid: Vec<u64>,
+}
+
+/// Pixels with fewer samples than this (each) let [`SatRing`] sum in `u64`.
+const NARROW_SAT_SPP: u64 = 1 << 27;
+
+/// The integers [`SatRing`] sums support in (wrapping).
+trait Units: Copy + Default {
+    fn of(word: f32) -> Self;
+    fn add(self, other: Self) -> Self;
+    fn sub(self, other: Self) -> Self;
+    /// The sum in samples, rounded once.
+    fn samples(self) -> f64;
+}
+
+impl Units for u64 {
+    #[inline(always)]
+    fn of(word: f32) -> Self {
+        support_units(word) as u64
+    }
+    #[inline(always)]
+    fn add(self, other: Self) -> Self {
+        self.wrapping_add(other)
+    }
+    #[inline(always)]
+    fn sub(self, other: Self) -> Self {
+        self.wrapping_sub(other)
+    }
+    #[inline(always)]
+    fn samples(self) -> f64 {
+        units_to_samples(self as u128)
+    }
+}
+
+impl Units for u128 {
+    #[inline(always)]
+    fn of(word: f32) -> Self {
+        support_units(word)
+    }
+    #[inline(always)]
+    fn add(self, other: Self) -> Self {
+        self.wrapping_add(other)
+    }
+    #[inline(always)]
+    fn sub(self, other: Self) -> Self {
+        self.wrapping_sub(other)
+    }
+    #[inline(always)]
+    fn samples(self) -> f64 {
+        units_to_samples(self)
+    }
 }
 
 /// A support word's support in units of `2^-FRAC_BITS` samples, exactly: a support is the sum
@@ -457,7 +520,8 @@ pub(crate) fn support_units(word: f32) -> u128 {
         own.fract() == 0.0,
         "a support is a multiple of 2^-FRAC_BITS"
     );
-    own as u64 as u128
+    // Below 2^63: `as i64` is one instruction.
+    own as i64 as u128
 }
 
 /// An exact support sum in units, rounded once to `f64` samples.
@@ -472,20 +536,20 @@ pub(crate) fn units_to_samples(units: u128) -> f64 {
     n * (1.0 / COUNT_ONE as f64)
 }
 
-impl SatRing {
+impl<T: Units> SatRing<T> {
     fn new(w: usize, max_radius: usize) -> Self {
         let rows = (2 * max_radius + 2).next_power_of_two();
         Self {
             mask: rows - 1,
             stride: w + 1,
             built: 0,
-            n: vec![0; rows * (w + 1)],
+            n: vec![T::default(); rows * (w + 1)],
             solid: vec![0; rows * (w + 1)],
         }
     }
 
     fn reset(&mut self) {
-        self.n.fill(0);
+        self.n.fill(T::default());
         self.solid.fill(0);
         self.built = 0;
     }
@@ -498,12 +562,12 @@ impl SatRing {
             let cells = &plane[y * w..(y + 1) * w];
             let (n_above, n_here) = two_rows(&mut self.n, above, here, self.stride);
             let (s_above, s_here) = two_rows(&mut self.solid, above, here, self.stride);
-            let mut row = 0u128;
+            let mut row = T::default();
             let mut solid = 0u64;
             for (x, &word) in cells.iter().enumerate() {
-                row += support_units(word);
+                row = row.add(T::of(word));
                 solid += (word.to_bits() >> 31) as u64;
-                n_here[x + 1] = n_above[x + 1] + row;
+                n_here[x + 1] = n_above[x + 1].add(row);
                 s_here[x + 1] = s_above[x + 1] + solid;
             }
             self.built += 1;
@@ -518,10 +582,10 @@ impl SatRing {
             (y1 & self.mask) * self.stride,
         );
         let n = self.n[r1 + x1]
-            .wrapping_sub(self.n[r0 + x1])
-            .wrapping_sub(self.n[r1 + x0])
-            .wrapping_add(self.n[r0 + x0]);
-        let n = units_to_samples(n);
+            .sub(self.n[r0 + x1])
+            .sub(self.n[r1 + x0])
+            .add(self.n[r0 + x0])
+            .samples();
         let solid = self.solid[r1 + x1]
             .wrapping_sub(self.solid[r0 + x1])
             .wrapping_sub(self.solid[r1 + x0])
@@ -559,14 +623,14 @@ fn merged<'l, 's>(lists: &'l [&'s [Source]]) -> impl Iterator<Item = &'s Source>
 /// One band's windows (the smallest supported one around each source, see the module docs) as
 /// events of a difference array, bucketed by row.
 #[allow(clippy::too_many_arguments)]
-fn windows(
+fn windows<T: Units>(
     plane: &[f32],
     sources: &[&[Source]],
     spp: &[u64],
     w: usize,
     h: usize,
     params: &ResolveParams,
-    sat: &mut SatRing,
+    sat: &mut SatRing<T>,
     band: &mut BandEvents,
     grid: Grid,
 ) {
