@@ -6,7 +6,9 @@
 //!   around it ([`CascadeLayout::split`]) and counted in its pixel;
 //! * **merge** ([`FrameState::merge`]): two partial states of the same frame add up exactly;
 //! * **resolve** ([`FrameState::resolve`], [`resolve_bands`]): cascades in, the reweighted image,
-//!   the plain mean and the removed energy out;
+//!   the plain mean and the removed energy out; after a batch changed a few pixels, an earlier
+//!   resolve is brought up to date by resolving only around them ([`resolve_region_into`]), to
+//!   the same bits;
 //! * and from a resolve, **need** ([`NeedMap`]): which tiles would gain most from more samples,
 //!   and how far the frame is from converged ([`Convergence`]).
 //!
