@@ -6,7 +6,9 @@
 //!   around it ([`CascadeLayout::split`]) and counted in its pixel;
 //! * **merge** ([`FrameState::merge`]): two partial states of the same frame add up exactly;
 //! * **resolve** ([`FrameState::resolve`], [`resolve_bands`]): cascades in, the reweighted image,
-//!   the plain mean and the removed energy out;
+//!   the plain mean and the removed energy out; after a batch changed a few pixels, an earlier
+//!   resolve is brought up to date by resolving only around them ([`resolve_region_into`]), to
+//!   the same bits;
 //! * and from a resolve, **need** ([`NeedMap`]): which tiles would gain most from more samples,
 //!   and how far the frame is from converged ([`Convergence`]).
 //!
@@ -38,9 +40,9 @@ pub use need::{
     MAX_NEED_TILE,
 };
 pub use resolve::{
-    resolve_bands, resolve_bands_into, resolve_bands_with, ResolveParams, Resolved, TilingError,
-    Variant, DEFAULT_KAPPA, DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT,
-    SHADER_E_MIN_FLOOR,
+    dependency_radius, resolve_bands, resolve_bands_into, resolve_bands_with, resolve_region_into,
+    resolve_region_with, Rect, ResolveParams, Resolved, TilingError, Variant, DEFAULT_KAPPA,
+    DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
 pub use resolve_spread::{
     SpreadParams, DEFAULT_SPREAD_EDGE_SHARE, DEFAULT_SPREAD_MAX_RADIUS, DEFAULT_SPREAD_SOLID_SHARE,

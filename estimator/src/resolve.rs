@@ -18,7 +18,7 @@
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
 use super::layout::ParamError;
-use super::resolve_spread::{spread, Scratch, SpreadParams};
+use super::resolve_spread::{spread, Grid, Scratch, SpreadParams};
 use super::state::{FrameState, Kernel};
 
 #[cfg(test)]
@@ -27,8 +27,10 @@ mod matches_reference;
 mod reference;
 #[cfg(test)]
 mod reference_spread;
+mod region;
 mod rows;
 
+pub use region::{dependency_radius, resolve_region_into, resolve_region_with, Rect};
 use rows::{Consts, Part, Rows};
 
 /// Which weight formula to use.
@@ -235,8 +237,11 @@ pub fn resolve_bands(
 ) -> Result<Resolved, TilingError> {
     let mut out = Resolved::default();
     resolve_bands_with(Kernel::detect(), bands, params, threads, &mut out)?;
-    // A result on its own holds no working memory.
+    // A result on its own holds no working memory (but remembers what it was resolved with,
+    // for `resolve_region_into`).
+    let resolved_with = out.scratch.resolved_with;
     out.scratch = Scratch::default();
+    out.scratch.resolved_with = resolved_with;
     Ok(out)
 }
 
@@ -269,6 +274,40 @@ pub fn resolve_bands_with(
     out: &mut Resolved,
 ) -> Result<(), TilingError> {
     assert!(kernel.available(), "{kernel:?} kernel on a CPU without it");
+    let (width, height, rows) = frame_rows(bands)?;
+    let (w, h) = (width as usize, height as usize);
+    let pixels = w * h;
+    (out.width, out.height) = (width, height);
+    // Every pixel is written below; new buffers come zeroed from the allocator (and are faulted
+    // in by the threads that fill them).
+    let lens = [
+        out.reweighted.len(),
+        out.mean.len(),
+        out.removed.len(),
+        out.spp.len(),
+    ];
+    if lens != [pixels; 4] {
+        out.reweighted = vec![[0.0; 3]; pixels];
+        out.mean = vec![[0.0; 3]; pixels];
+        out.removed = vec![[0.0; 3]; pixels];
+        out.spp = vec![0; pixels];
+    }
+    resolve_rows(
+        kernel,
+        bands[0].layout(),
+        &rows,
+        params,
+        threads,
+        (0, 0),
+        out,
+    );
+    out.scratch.resolved_with = Some(*params);
+    Ok(())
+}
+
+/// The rows of the frame that `bands` tile (checked: same size and layout, in order, every
+/// row once), and the frame's size.
+fn frame_rows<'s>(bands: &[&'s FrameState]) -> Result<(u32, u32, Vec<&'s [u64]>), TilingError> {
     let first = bands
         .first()
         .ok_or_else(|| TilingError("no bands".into()))?;
@@ -296,27 +335,28 @@ pub fn resolve_bands_with(
             rows.len()
         )));
     }
-    let (w, h) = (width as usize, height as usize);
+    Ok((width, height, rows))
+}
+
+/// Resolves the pixels whose cells `rows` holds (each row the same number of cells, `out`'s
+/// buffers already that many pixels long) as if they were a whole frame: a frame, or a crop of
+/// one whose top-left pixel is the frame's `origin` (which places the spread stage's tiles).
+fn resolve_rows(
+    kernel: Kernel,
+    layout: &crate::layout::CascadeLayout,
+    rows: &[&[u64]],
+    params: &ResolveParams,
+    threads: usize,
+    origin: (usize, usize),
+    out: &mut Resolved,
+) {
+    let (w, h) = (out.width as usize, out.height as usize);
     let pixels = w * h;
-    (out.width, out.height) = (width, height);
-    // Every pixel is written below; new buffers come zeroed from the allocator (and are faulted
-    // in by the threads that fill them).
-    let lens = [
-        out.reweighted.len(),
-        out.mean.len(),
-        out.removed.len(),
-        out.spp.len(),
-    ];
-    if lens != [pixels; 4] {
-        out.reweighted = vec![[0.0; 3]; pixels];
-        out.mean = vec![[0.0; 3]; pixels];
-        out.removed = vec![[0.0; 3]; pixels];
-        out.spp = vec![0; pixels];
-    }
+    debug_assert!(rows.len() == h && out.spp.len() == pixels);
     if pixels == 0 {
-        return Ok(());
+        return;
     }
-    let k = first.layout().cascades();
+    let k = layout.cascades();
     let spreading = params.variant == Variant::Spread;
     let mut scratch = std::mem::take(&mut out.scratch);
     // For the spread stage: one plane of support words per band (band-major, so that the
@@ -329,9 +369,7 @@ pub fn resolve_bands_with(
     let chunk = h.div_ceil(threads) * w;
     let parts = pixels.div_ceil(chunk);
     scratch.sources.resize_with(parts, Vec::new);
-    let layout = first.layout();
     let consts = &Consts::new(layout, params);
-    let rows = &rows;
     std::thread::scope(|scope| {
         let mut planes: Vec<_> = scratch
             .support
@@ -369,10 +407,9 @@ pub fn resolve_bands_with(
         }
     });
     if spreading {
-        spread(k, &mut scratch, params, out, threads);
+        spread(k, &mut scratch, params, out, threads, Grid::at(origin));
     }
     out.scratch = scratch;
-    Ok(())
 }
 
 #[cfg(test)]

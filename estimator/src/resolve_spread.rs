@@ -27,9 +27,12 @@
 //! * it is consistent: as `N` grows every band of positive probability is fully trusted by the
 //!   paper's weights, `r_j -> 0`, and the estimate converges to the mean like the paper's;
 //! * it reads only the state: bit-identical for any arrival order or merge, and the same `f64`
-//!   sums in the same order whatever the resolve's thread count (see [`spread`]).
+//!   sums in the same order whatever the resolve's thread count (see [`spread`]);
+//! * it is local, to the last bit: a pixel's result depends only on the state within
+//!   `2 max_radius` of its give-back tile ([`Grid`]), so a part of the frame can be resolved
+//!   again on its own (`resolve_region_into`; the derivation is in `resolve/region.rs`).
 
-use super::layout::ParamError;
+use super::layout::{ParamError, COUNT_ONE};
 use super::resolve::{ResolveParams, Resolved};
 
 /// Window radii tried, smallest first: 3x3 up to 33x33 (those up to
@@ -174,6 +177,61 @@ struct Event {
 /// Largest window: 33x33 pixels.
 const MAX_AREA: usize = (2 * SPREAD_RADII[SPREAD_RADII.len() - 1] + 1).pow(2);
 
+/// Side of the give-back's tiles, in pixels (see [`Grid`]).
+pub(crate) const GIVE_BACK_TILE: usize = 32;
+
+/// The give-back's tiles: squares of [`GIVE_BACK_TILE`] pixels on a grid fixed to the frame's
+/// top-left corner, held here relative to the pixels being resolved (a whole frame, or a crop
+/// of it whose top-left pixel is `origin`).
+///
+/// The difference array's prefix sums restart at every tile's top-left pixel, each window's
+/// event cut into the tiles it covers, so a pixel's given-back energy, to its last bit, is a
+/// function of the events whose windows meet its tile, added in band and source order: it
+/// does not depend on anything far away in the frame. With prefix sums over the whole frame
+/// (as first written) the rounding of the running sums carried every earlier event's residue
+/// (`(a + v) - v != a`) to the right and down to the frame's far edge, so no part of the frame
+/// could be resolved on its own to the same bits (`resolve_region_into` needs that). The cost:
+/// an event is added once more per tile boundary its window crosses (a window is at most 33
+/// pixels wide, so at most two more per row), and the sums restart at a boundary.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Grid {
+    /// `origin % GIVE_BACK_TILE`, per axis.
+    ox: usize,
+    oy: usize,
+}
+
+impl Grid {
+    /// The grid of pixels whose top-left one is the frame's pixel `origin`.
+    pub(crate) fn at(origin: (usize, usize)) -> Self {
+        Self {
+            ox: origin.0 % GIVE_BACK_TILE,
+            oy: origin.1 % GIVE_BACK_TILE,
+        }
+    }
+
+    /// The first tile column boundary after column `x`.
+    #[inline(always)]
+    fn next_x(self, x: usize) -> usize {
+        x + GIVE_BACK_TILE - (x + self.ox) % GIVE_BACK_TILE
+    }
+
+    /// The first tile row boundary after row `y`.
+    #[inline(always)]
+    fn next_y(self, y: usize) -> usize {
+        y + GIVE_BACK_TILE - (y + self.oy) % GIVE_BACK_TILE
+    }
+
+    #[inline(always)]
+    fn column_starts_tile(self, x: usize) -> bool {
+        (x + self.ox) % GIVE_BACK_TILE == 0
+    }
+
+    #[inline(always)]
+    fn row_starts_tile(self, y: usize) -> bool {
+        (y + self.oy) % GIVE_BACK_TILE == 0
+    }
+}
+
 /// One band's events per row of the difference array (in source order within a row).
 #[derive(Default)]
 struct BandEvents {
@@ -190,6 +248,12 @@ pub(crate) struct Scratch {
     /// Per part of the paper stage, per column of strips, per band: the sources.
     pub(crate) sources: Vec<Vec<Vec<Vec<Source>>>>,
     bands: Vec<BandEvents>,
+    /// The parameters of the resolve these buffers hold (`None`: unknown, as in a clone), so
+    /// that `resolve_region_into` resolves the whole frame rather than patch a resolve made
+    /// with other parameters.
+    pub(crate) resolved_with: Option<ResolveParams>,
+    /// The buffers that `resolve_region_into` resolves crops into.
+    pub(crate) crop: Option<Box<Resolved>>,
 }
 
 impl Scratch {
@@ -211,7 +275,14 @@ impl Scratch {
                     + b.rows.iter().map(Vec::capacity).sum::<usize>() * size_of::<Event>()
             })
             .sum();
-        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + bands) as u64
+        let crop = self.crop.as_ref().map_or(0, |c| {
+            (c.reweighted.capacity() + c.mean.capacity() + c.removed.capacity())
+                * size_of::<[f32; 3]>()
+                + c.spp.capacity() * size_of::<u64>()
+                + c.scratch.bytes() as usize
+        });
+        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + bands + crop)
+            as u64
     }
 }
 
@@ -236,22 +307,24 @@ impl std::fmt::Debug for Scratch {
 }
 
 /// Gives removed energy back. `scratch` holds the paper stage's support words and sources
-/// (lists each in row-major order); `out` holds the paper's images, updated in place. `threads` share the bands' window searches, then the
-/// columns of the give-back.
+/// (lists each in row-major order); `out` holds the paper's images, updated in place;
+/// `threads` share the bands' window searches, then the columns of the give-back; `grid`
+/// places the give-back's tiles (a crop's own, see [`Grid`]).
 ///
 /// The numbers are those of the plain dense computation (one summed-area table of the frame per
-/// band, one 2D difference array of the give-back of every band in band and source order, then
-/// its prefix sums; `resolve/reference_spread.rs` keeps it for the tests), bit for bit: the
-/// summed-area table is kept as a ring of the rows the widest window spans, the difference array
-/// as each row's events, applied to one row at a time in the same order, and the prefix sums run
-/// down columns split between threads (each thread's running sum along a row starts from the
-/// row's cells left of its columns).
+/// band, exact; one 2D difference array of the give-back of every band in band and source
+/// order, each window cut into the tiles it covers, then its prefix sums within each tile;
+/// `resolve/reference_spread.rs` keeps it for the tests), bit for bit: the summed-area table is
+/// kept as a ring of the rows the widest window spans, the difference array as each row's
+/// events, applied to one row at a time in the same order, and the prefix sums run down
+/// columns of whole tiles split between threads.
 pub(crate) fn spread(
     k: usize,
     scratch: &mut Scratch,
     params: &ResolveParams,
     out: &mut Resolved,
     threads: usize,
+    grid: Grid,
 ) {
     let (w, h) = (out.width as usize, out.height as usize);
     let pixels = w * h;
@@ -259,6 +332,7 @@ pub(crate) fn spread(
         support,
         sources,
         bands,
+        ..
     } = scratch;
     debug_assert!(support.len() == k * pixels);
     // Per band, its lists of sources (parts top to bottom, each part's columns left to right).
@@ -290,14 +364,25 @@ pub(crate) fn spread(
                 .filter(|(j, _)| busy[*j])
                 .map(|(j, band)| (band, &lists[j], &support[j * pixels..(j + 1) * pixels])),
         );
+        // Support sums in `u64` where they cannot overflow a box (see `SatRing`).
+        let narrow = spp.iter().all(|&n| n < NARROW_SAT_SPP);
         let search = || {
-            let mut ring = SatRing::new(w, params.spread().max_radius());
+            let max_radius = params.spread().max_radius();
+            let (mut ring64, mut ring128) = if narrow {
+                (Some(SatRing::<u64>::new(w, max_radius)), None)
+            } else {
+                (None, Some(SatRing::<u128>::new(w, max_radius)))
+            };
             loop {
                 let next = queue.lock().unwrap_or_else(|e| e.into_inner()).next();
                 let Some((band, lists, plane)) = next else {
                     return;
                 };
-                windows(plane, lists, spp, w, h, params, &mut ring, band);
+                if let Some(ring) = &mut ring64 {
+                    windows(plane, lists, spp, w, h, params, ring, band, grid);
+                } else if let Some(ring) = &mut ring128 {
+                    windows(plane, lists, spp, w, h, params, ring, band, grid);
+                }
             }
         };
         std::thread::scope(|scope| {
@@ -312,63 +397,159 @@ pub(crate) fn spread(
         .zip(&busy)
         .filter_map(|(band, &busy)| busy.then_some(band))
         .collect();
-    // 2. The prefix sums of the difference array, a range of columns per thread.
-    let per = w.div_ceil(threads.clamp(1, w));
+    // 2. The prefix sums of the difference array, a range of whole tile columns per thread
+    //    (each thread's sums start at its first column, as at every tile boundary).
+    let mut starts = vec![0];
+    while let Some(&x) = starts.last().filter(|&&x| x < w) {
+        starts.push(grid.next_x(x).min(w));
+    }
+    let tiles = starts.len() - 1;
+    let per = tiles.div_ceil(threads.clamp(1, tiles));
+    let cuts: Vec<usize> = starts.iter().copied().step_by(per).chain([w]).collect();
     let bands = &bands;
     std::thread::scope(|scope| {
         let mut f = out.reweighted.as_mut_slice();
         let mut r = out.removed.as_mut_slice();
         // Each thread's columns of every row.
-        let mut parts: Vec<Vec<RowSlices>> = (0..w.div_ceil(per))
-            .map(|_| Vec::with_capacity(h))
+        let ranges: Vec<(usize, usize)> = cuts
+            .windows(2)
+            .map(|c| (c[0], c[1]))
+            .filter(|(a, b)| a < b)
             .collect();
+        let mut parts: Vec<Vec<RowSlices>> = ranges.iter().map(|_| Vec::with_capacity(h)).collect();
         for _ in 0..h {
             let (mut frow, rest) = f.split_at_mut(w);
             let (mut rrow, rrest) = r.split_at_mut(w);
             (f, r) = (rest, rrest);
-            for part in parts.iter_mut() {
-                let n = per.min(frow.len());
-                let (fa, fb) = frow.split_at_mut(n);
-                let (ra, rb) = rrow.split_at_mut(n);
+            for (part, (a, b)) in parts.iter_mut().zip(&ranges) {
+                let (fa, fb) = frow.split_at_mut(b - a);
+                let (ra, rb) = rrow.split_at_mut(b - a);
                 (frow, rrow) = (fb, rb);
                 part.push((fa, ra));
             }
         }
-        let mut parts = parts.into_iter().enumerate();
-        let (_, first) = parts.next().expect("one column range at least");
-        for (t, rows) in parts {
-            scope.spawn(move || give_back(bands, w, t * per, rows));
+        let mut parts = parts.into_iter().zip(ranges);
+        let (first, _) = parts.next().expect("one column range at least");
+        for (rows, (xa, _)) in parts {
+            scope.spawn(move || give_back(bands, grid, xa, rows));
         }
-        give_back(bands, w, 0, first);
+        give_back(bands, grid, 0, first);
     });
 }
 
 /// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
 /// the widest window around the current source row spans: row `i` (the sums over rows `0..i`)
 /// in slot `i & mask` (the ring's length a power of two), column 0 always zero.
-struct SatRing {
+///
+/// The support is summed in integers, in units of `2^-FRAC_BITS` samples ([`support_units`]),
+/// so that a box sum is exact whatever lies above and left of the box: an `f64` table (as
+/// first written) rounds once its sums pass `2^(53 - FRAC_BITS) = 2^27` samples (a 1080p frame
+/// at 64 spp), and a box's sum then depended on the rest of the frame (a window of exactly 64
+/// samples could fail a support of 64). The exact box sum rounded once to `f64` is what the
+/// `f64` table gave wherever that was exact. The sums wrap (`T`, [`Units`]): a box's sum is
+/// exact if it fits in `T`, so `u64` serves frames whose pixels hold fewer than `2^27` samples
+/// each (a 33x33 box of them is below `2^64` units), `u128` any frame; either gives the same
+/// box sums, so the choice (per resolve) changes no bit.
+struct SatRing<T> {
     mask: usize,
     stride: usize,
     /// Table rows computed so far (`0 ..= built`).
     built: usize,
-    n: Vec<f64>,
+    n: Vec<T>,
     solid: Vec<u64>,
 }
 
-impl SatRing {
+/// Pixels with fewer samples than this (each) let [`SatRing`] sum in `u64`.
+const NARROW_SAT_SPP: u64 = 1 << 27;
+
+/// The integers [`SatRing`] sums support in (wrapping).
+trait Units: Copy + Default {
+    fn of(word: f32) -> Self;
+    fn add(self, other: Self) -> Self;
+    fn sub(self, other: Self) -> Self;
+    /// The sum in samples, rounded once.
+    fn samples(self) -> f64;
+}
+
+impl Units for u64 {
+    #[inline(always)]
+    fn of(word: f32) -> Self {
+        support_units(word) as u64
+    }
+    #[inline(always)]
+    fn add(self, other: Self) -> Self {
+        self.wrapping_add(other)
+    }
+    #[inline(always)]
+    fn sub(self, other: Self) -> Self {
+        self.wrapping_sub(other)
+    }
+    #[inline(always)]
+    fn samples(self) -> f64 {
+        units_to_samples(self as u128)
+    }
+}
+
+impl Units for u128 {
+    #[inline(always)]
+    fn of(word: f32) -> Self {
+        support_units(word)
+    }
+    #[inline(always)]
+    fn add(self, other: Self) -> Self {
+        self.wrapping_add(other)
+    }
+    #[inline(always)]
+    fn sub(self, other: Self) -> Self {
+        self.wrapping_sub(other)
+    }
+    #[inline(always)]
+    fn samples(self) -> f64 {
+        units_to_samples(self)
+    }
+}
+
+/// A support word's support in units of `2^-FRAC_BITS` samples, exactly: a support is the sum
+/// of three fixed-point counts (each a multiple of `2^-FRAC_BITS`), rounded to `f64` and then
+/// to `f32`, and rounding a multiple of a power of two to a coarser power-of-two grid keeps it
+/// a multiple; at most `2^58` units (a pixel's counts) plus `f32` rounding.
+#[inline(always)]
+pub(crate) fn support_units(word: f32) -> u128 {
+    let own = f32::from_bits(word.to_bits() & !SIGN) as f64 * COUNT_ONE as f64;
+    debug_assert!(
+        own.fract() == 0.0,
+        "a support is a multiple of 2^-FRAC_BITS"
+    );
+    // Below 2^63: `as i64` is one instruction.
+    own as i64 as u128
+}
+
+/// An exact support sum in units, rounded once to `f64` samples.
+#[inline(always)]
+pub(crate) fn units_to_samples(units: u128) -> f64 {
+    // `u64 as f64` is a few instructions, `u128 as f64` a library call: the same rounding.
+    let n = if units >> 64 == 0 {
+        units as u64 as f64
+    } else {
+        units as f64
+    };
+    n * (1.0 / COUNT_ONE as f64)
+}
+
+impl<T: Units> SatRing<T> {
     fn new(w: usize, max_radius: usize) -> Self {
         let rows = (2 * max_radius + 2).next_power_of_two();
         Self {
             mask: rows - 1,
             stride: w + 1,
             built: 0,
-            n: vec![0.0; rows * (w + 1)],
+            n: vec![T::default(); rows * (w + 1)],
             solid: vec![0; rows * (w + 1)],
         }
     }
 
     fn reset(&mut self) {
-        self.n.fill(0.0);
+        self.n.fill(T::default());
         self.solid.fill(0);
         self.built = 0;
     }
@@ -381,12 +562,12 @@ impl SatRing {
             let cells = &plane[y * w..(y + 1) * w];
             let (n_above, n_here) = two_rows(&mut self.n, above, here, self.stride);
             let (s_above, s_here) = two_rows(&mut self.solid, above, here, self.stride);
-            let mut row = 0.0f64;
+            let mut row = T::default();
             let mut solid = 0u64;
             for (x, &word) in cells.iter().enumerate() {
-                row += f32::from_bits(word.to_bits() & !SIGN) as f64;
+                row = row.add(T::of(word));
                 solid += (word.to_bits() >> 31) as u64;
-                n_here[x + 1] = n_above[x + 1] + row;
+                n_here[x + 1] = n_above[x + 1].add(row);
                 s_here[x + 1] = s_above[x + 1] + solid;
             }
             self.built += 1;
@@ -400,7 +581,11 @@ impl SatRing {
             (y0 & self.mask) * self.stride,
             (y1 & self.mask) * self.stride,
         );
-        let n = self.n[r1 + x1] - self.n[r0 + x1] - self.n[r1 + x0] + self.n[r0 + x0];
+        let n = self.n[r1 + x1]
+            .sub(self.n[r0 + x1])
+            .sub(self.n[r1 + x0])
+            .add(self.n[r0 + x0])
+            .samples();
         let solid = self.solid[r1 + x1]
             .wrapping_sub(self.solid[r0 + x1])
             .wrapping_sub(self.solid[r1 + x0])
@@ -438,15 +623,16 @@ fn merged<'l, 's>(lists: &'l [&'s [Source]]) -> impl Iterator<Item = &'s Source>
 /// One band's windows (the smallest supported one around each source, see the module docs) as
 /// events of a difference array, bucketed by row.
 #[allow(clippy::too_many_arguments)]
-fn windows(
+fn windows<T: Units>(
     plane: &[f32],
     sources: &[&[Source]],
     spp: &[u64],
     w: usize,
     h: usize,
     params: &ResolveParams,
-    sat: &mut SatRing,
+    sat: &mut SatRing<T>,
     band: &mut BandEvents,
+    grid: Grid,
 ) {
     let SpreadParams {
         support,
@@ -493,8 +679,15 @@ fn windows(
             area,
             removed: source.removed,
         };
+        // Added at its top row and again at every tile row boundary it crosses, taken off
+        // below its bottom row unless a tile boundary restarts the sums there ([`Grid`]).
         band.rows[y0].push(event);
-        if y1 < h {
+        let mut restart = grid.next_y(y0);
+        while restart < y1 {
+            band.rows[restart].push(event);
+            restart = grid.next_y(restart);
+        }
+        if y1 < h && !grid.row_starts_tile(y1) {
             band.rows[y1].push(Event {
                 area: -area,
                 ..event
@@ -507,39 +700,59 @@ fn windows(
 type RowSlices<'o> = (&'o mut [[f32; 3]], &'o mut [[f32; 3]]);
 
 /// Adds the given-back energy to the columns `xa ..` of every row (`rows[y]`, the row's
-/// reweighted and removed pixels in those columns): the difference array's prefix sums, along
-/// each row, then down each column.
-fn give_back(bands: &[&BandEvents], w: usize, xa: usize, rows: Vec<RowSlices>) {
+/// reweighted and removed pixels in those columns; `xa` is 0 or a tile boundary): the
+/// difference array's prefix sums, along each row, then down each column, both restarted at
+/// every tile boundary ([`Grid`]).
+fn give_back(bands: &[&BandEvents], grid: Grid, xa: usize, rows: Vec<RowSlices>) {
     let xb = xa + rows.first().map_or(0, |r| r.0.len());
-    let mut diff = vec![[0.0f64; 3]; w];
+    let mut diff = vec![[0.0f64; 3]; xb - xa];
     let mut col = vec![[0.0f64; 3]; xb - xa];
     let mut col_zero = true;
     // `1 / area`, as the plain computation divides.
     let shares: Vec<f64> = (0..=MAX_AREA).map(|a| 1.0 / a as f64).collect();
+    // The tiles' columns within `xa..xb`.
+    let mut segments = Vec::new();
+    let mut s = xa;
+    while s < xb {
+        let e = grid.next_x(s).min(xb);
+        segments.push((s - xa, e - xa));
+        s = e;
+    }
     for (y, (f, r)) in rows.into_iter().enumerate() {
+        if grid.row_starts_tile(y) && !col_zero {
+            // A new row of tiles: its sums start from nothing.
+            col.fill([0.0; 3]);
+            col_zero = true;
+        }
         // This row of the difference array: every band's events in band and source order
-        // (each cell's additions in the order of the dense computation).
+        // (each cell's additions in the order of the dense computation), each cut into the
+        // tiles it covers: added at its first column and again at every tile boundary inside
+        // it, taken off after its last column unless a tile boundary restarts the sum there.
         let mut touched = false;
         for band in bands {
             for e in &band.rows[y] {
-                let (x0, x1) = (e.x0 as usize, e.x1 as usize);
-                if x0 >= xb {
+                let (x0, x1) = ((e.x0 as usize).max(xa), (e.x1 as usize).min(xb));
+                if x0 >= x1 {
                     continue;
                 }
                 touched = true;
                 let share = shares[e.area.unsigned_abs() as usize];
-                let v = [
-                    e.removed[0] as f64 * share,
-                    e.removed[1] as f64 * share,
-                    e.removed[2] as f64 * share,
-                ];
                 let sign = e.area.signum() as f64;
-                for c in 0..3 {
-                    diff[x0][c] += sign * v[c];
-                }
-                if x1 < xb {
+                let sv = [
+                    sign * (e.removed[0] as f64 * share),
+                    sign * (e.removed[1] as f64 * share),
+                    sign * (e.removed[2] as f64 * share),
+                ];
+                let mut at = x0;
+                while at < x1 {
                     for c in 0..3 {
-                        diff[x1][c] -= sign * v[c];
+                        diff[at - xa][c] += sv[c];
+                    }
+                    at = grid.next_x(at);
+                }
+                if x1 < xb && !grid.column_starts_tile(x1) {
+                    for c in 0..3 {
+                        diff[x1 - xa][c] -= sv[c];
                     }
                 }
             }
@@ -547,37 +760,33 @@ fn give_back(bands: &[&BandEvents], w: usize, xa: usize, rows: Vec<RowSlices>) {
         if !touched && col_zero {
             continue;
         }
-        // The running sum along the row up to `xa` (cells no event touched hold +0, which
-        // changes no sum).
-        let mut run = [0.0f64; 3];
-        for d in &diff[..xa] {
-            for c in 0..3 {
-                run[c] += d[c];
-            }
-        }
         col_zero = false;
-        for (i, ((f, r), col)) in f.iter_mut().zip(r.iter_mut()).zip(&mut col).enumerate() {
-            let d = &diff[xa + i];
-            let mut given = [0.0f64; 3];
-            for c in 0..3 {
-                run[c] += d[c];
-                col[c] += run[c];
-                // Rounding of the running sums may leave a hair below 0 where nothing was
-                // given; nothing is ever taken.
-                given[c] = col[c].max(0.0);
-            }
-            if given != [0.0; 3] {
+        for &(s, e) in &segments {
+            let mut run = [0.0f64; 3];
+            let cells = f[s..e].iter_mut().zip(&mut r[s..e]);
+            for (((f, r), col), d) in cells.zip(&mut col[s..e]).zip(&diff[s..e]) {
+                let mut given = [0.0f64; 3];
                 for c in 0..3 {
-                    f[c] = (f[c] as f64 + given[c]) as f32;
-                    r[c] = (r[c] as f64 - given[c]) as f32;
+                    run[c] += d[c];
+                    col[c] += run[c];
+                    // Rounding of the running sums may leave a hair below 0 where nothing was
+                    // given; nothing is ever taken.
+                    given[c] = col[c].max(0.0);
+                }
+                if given != [0.0; 3] {
+                    for c in 0..3 {
+                        f[c] = (f[c] as f64 + given[c]) as f32;
+                        r[c] = (r[c] as f64 - given[c]) as f32;
+                    }
                 }
             }
         }
         if touched {
-            diff[..xb].fill([0.0; 3]);
+            diff.fill([0.0; 3]);
         }
     }
 }
+
 #[cfg(test)]
 mod tests {
     use crate::{

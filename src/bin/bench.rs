@@ -6,7 +6,8 @@
 //!   traffic they cannot avoid (a loop reading and writing the same cascade slots of the same
 //!   cells in the same order, no arithmetic; plain RGB + count accumulation for reference),
 //!   resolve against one read of the state (into new output buffers, as `resolve_bands` returns,
-//!   and into buffers reused from the previous resolve) and its scaling with threads, merge
+//!   and into buffers reused from the previous resolve) and its scaling with threads, an
+//!   incremental resolve after a batch in 1 % of the pixels against a whole one, merge
 //!   against memcpy, and the state size. Default size 1920x1080. The cells (and the baselines'
 //!   buffers) ask for transparent huge pages, as the server's frames do; `--pages 4k` leaves
 //!   them on 4 KiB pages to measure what the TLB costs.
@@ -19,9 +20,9 @@ use std::time::Instant;
 
 use anyhow::{bail, Context, Result};
 use splatd_estimator::{
-    cell_len, resolve_bands, resolve_bands_into, CascadeLayout, FrameState, Kernel, NeedMap,
-    ResolveParams, Resolved, Variant, DEFAULT_BASE_DOUBT, DEFAULT_LOWEST_SCALE,
-    DEFAULT_UNIFORM_SHARE, REC709_LUMINANCE,
+    cell_len, resolve_bands, resolve_bands_into, resolve_region_into, CascadeLayout, FrameState,
+    Kernel, NeedMap, Rect, ResolveParams, Resolved, Variant, DEFAULT_BASE_DOUBT,
+    DEFAULT_LOWEST_SCALE, DEFAULT_UNIFORM_SHARE, REC709_LUMINANCE,
 };
 use splatd_scenes::quality::rel_mse;
 use splatd_scenes::synth::{FireflyScene, SplitMix64};
@@ -601,6 +602,62 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
             ));
         }
     }
+
+    // 3b. An incremental resolve after a batch touched 1 % of the pixels (one contiguous square
+    //     in the middle of the frame) into the buffers of the resolve before it, against a
+    //     resolve of the whole frame into them; one thread, this thread's CPU time. The patched
+    //     result is checked against a whole resolve, bit for bit.
+    let side = ((pixels as f64 * 0.01).sqrt().round() as u32).clamp(1, w.min(h));
+    let (x0, y0) = ((w - side) / 2, (h - side) / 2);
+    let tile = Rect::new(x0, y0, x0 + side, y0 + side);
+    let mut patched = Resolved::default();
+    let t_whole = best_of(3, || {
+        resolve_bands_into(&[&state8], &params, 1, &mut patched).expect("whole frame");
+        black_box(&patched);
+    });
+    let mut batch_rng = SplitMix64::new(2);
+    let mut t_region = f64::INFINITY;
+    for _ in 0..3 {
+        // The batch (not timed): one sample in every pixel of the square.
+        for y in tile.y0..tile.y1 {
+            let row: Vec<[f32; 3]> = (tile.x0..tile.x1)
+                .map(|_| {
+                    let z = 0.2 * batch_rng.next_f64().powf(-1.0 / 1.3);
+                    [z as f32, (z * 0.8) as f32, (z * 0.5) as f32]
+                })
+                .collect();
+            state8.splat_row(tile.x0, y, &row);
+        }
+        t_region = t_region.min(best_of(1, || {
+            resolve_region_into(&[&state8], &params, 1, &[tile], &mut patched)
+                .expect("whole frame");
+            black_box(&patched);
+        }));
+    }
+    let whole = resolve_bands(&[&state8], &params, 1).expect("whole frame");
+    let bits = |r: &Resolved| -> Vec<u32> {
+        [&r.reweighted, &r.mean, &r.removed]
+            .iter()
+            .flat_map(|layer| layer.iter().flatten().map(|v| v.to_bits()))
+            .collect()
+    };
+    assert!(
+        bits(&patched) == bits(&whole) && patched.spp == whole.spp,
+        "the incremental resolve is the whole resolve, bit for bit"
+    );
+    println!(
+        "incremental resolve {t_region:.4} s after a batch in {side}x{side} pixels ({:.2} % of \
+         the frame); whole resolve into the same buffers {t_whole:.3} s; same bits",
+        100.0 * tile.area() as f64 / pixels as f64
+    );
+    let r = t_region / t_whole;
+    report.push(ratio_line(
+        "incremental resolve after 1 % of pixels changed (one contiguous tile of 1 %) / full \
+         resolve, 1 thread",
+        r,
+        "<= 0.05",
+        r <= 0.05,
+    ));
 
     // 4. Merge of two states vs a memcpy of one.
     let other = state8.clone();

@@ -1,11 +1,18 @@
 //! The spread stage as it was first written (dense per-band planes, one summed-area table of
-//! the whole frame per band, one 2D difference array, all on one thread), kept unchanged as the
+//! the whole frame per band, one 2D difference array, all on one thread), kept as the
 //! reference the sparse, threaded stage (`resolve_spread::spread`) must match bit for bit.
 //! Test-only; the reference resolve (`reference.rs`) runs it after its paper stage.
+//!
+//! Changed twice since, with the stage, so that a part of the frame resolves on its own to the
+//! same bits (`resolve_region_into`): the summed-area table sums supports in integers (exact
+//! box sums), and the difference array's prefix sums restart at every tile of
+//! `GIVE_BACK_TILE` pixels (each window cut into the tiles it covers).
 
 use crate::layout::CascadeLayout;
 use crate::resolve::{ResolveParams, Resolved};
-use crate::resolve_spread::{SpreadParams, SPREAD_RADII};
+use crate::resolve_spread::{
+    support_units, units_to_samples, SpreadParams, GIVE_BACK_TILE, SPREAD_RADII,
+};
 
 /// Per pixel and band, what the first (paper) stage leaves for the spread stage: the removed
 /// energy in pixel-value units (RGB) and the band's support count.
@@ -48,21 +55,21 @@ pub(super) fn spread(
     // Summed-area table of one band's `[support, solid pixels]`, and one 2D difference array of
     // the give-back of every band (box sums are linear, so one set of prefix sums at the end
     // serves all bands).
-    let mut sat = vec![[0.0f64; 2]; stride * (h + 1)];
+    let mut sat = vec![[0u128; 2]; stride * (h + 1)];
     let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
     for plane in bands {
         if plane.chunks_exact(BAND_FLOATS).all(|b| b[..3] == [0.0; 3]) {
             continue;
         }
         for y in 0..h {
-            let mut row = [0.0, 0.0];
+            let mut row = [0u128, 0];
             let (above, here) = sat[y * stride..(y + 2) * stride].split_at_mut(stride);
             let cells = &plane[y * w * BAND_FLOATS..(y + 1) * w * BAND_FLOATS];
             let solid = &solid_from[y * w..(y + 1) * w];
             for x in 0..w {
                 let n = cells[x * BAND_FLOATS + 3];
-                row[0] += n as f64;
-                row[1] += if n >= solid[x] { 1.0 } else { 0.0 };
+                row[0] += support_units(n);
+                row[1] += (n >= solid[x]) as u128;
                 here[x + 1] = [above[x + 1][0] + row[0], above[x + 1][1] + row[1]];
             }
         }
@@ -73,7 +80,13 @@ pub(super) fn spread(
                 sat[y1 * stride + x0],
                 sat[y0 * stride + x0],
             ];
-            [a[0] - b[0] - c[0] + d[0], a[1] - b[1] - c[1] + d[1]]
+            // (In this order an intermediate may be negative: wrapping, exact at the end.)
+            let exact = |i: usize| {
+                a[i].wrapping_sub(b[i])
+                    .wrapping_sub(c[i])
+                    .wrapping_add(d[i])
+            };
+            [units_to_samples(exact(0)), exact(1) as f64]
         };
         for (p, band) in plane.chunks_exact(BAND_FLOATS).enumerate() {
             if band[..3] == [0.0; 3] {
@@ -109,19 +122,39 @@ pub(super) fn spread(
             };
             // Every pixel of the window (clamped to the frame) gets an equal share.
             let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
-            for c in 0..3 {
-                let v = band[c] as f64 * share;
-                diff[y0 * stride + x0][c] += v;
-                diff[y0 * stride + x1][c] -= v;
-                diff[y1 * stride + x0][c] -= v;
-                diff[y1 * stride + x1][c] += v;
+            // Its part in each tile it covers, as corners of a box of that tile's own
+            // difference array (corners past the tile's right or bottom edge are not needed).
+            let t = GIVE_BACK_TILE;
+            for ty in y0 / t..=(y1 - 1) / t {
+                for tx in x0 / t..=(x1 - 1) / t {
+                    let (a0, a1) = (x0.max(tx * t), x1.min(tx * t + t));
+                    let (b0, b1) = (y0.max(ty * t), y1.min(ty * t + t));
+                    let (inner_x, inner_y) = (a1 < (tx * t + t).min(w), b1 < (ty * t + t).min(h));
+                    for c in 0..3 {
+                        let v = band[c] as f64 * share;
+                        diff[b0 * stride + a0][c] += v;
+                        if inner_x {
+                            diff[b0 * stride + a1][c] -= v;
+                        }
+                        if inner_y {
+                            diff[b1 * stride + a0][c] -= v;
+                        }
+                        if inner_x && inner_y {
+                            diff[b1 * stride + a1][c] += v;
+                        }
+                    }
+                }
             }
         }
     }
     // Prefix sums turn the corners into boxes: along each row, then down each column (kept as
-    // one running sum per column, so the frame is read in memory order).
+    // one running sum per column, so the frame is read in memory order), both from each tile's
+    // top-left pixel.
     let mut col = vec![[0.0f64; 3]; w];
     for y in 0..h {
+        if y % GIVE_BACK_TILE == 0 {
+            col.fill([0.0; 3]);
+        }
         let mut run = [0.0; 3];
         let row = y * w..(y + 1) * w;
         let pixels = out.reweighted[row.clone()]
@@ -129,6 +162,9 @@ pub(super) fn spread(
             .zip(&mut out.removed[row]);
         for ((x, (f, r)), col) in pixels.enumerate().zip(&mut col) {
             let d = &diff[y * stride + x];
+            if x % GIVE_BACK_TILE == 0 {
+                run = [0.0; 3];
+            }
             for c in 0..3 {
                 run[c] += d[c];
                 col[c] += run[c];
