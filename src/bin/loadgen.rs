@@ -28,8 +28,12 @@ use clap::Parser;
 use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_harness::{sibling_binary, Options, ServerProcess};
 use splatd_proto::api::CreateFrame;
-use splatd_proto::{Batch, Record, BATCH_CONTENT_TYPE};
+use splatd_proto::BATCH_CONTENT_TYPE;
 use splatd_scenes::synth::SplitMix64;
+
+#[path = "common/load.rs"]
+mod load;
+use load::{encode_pass, heavy_tailed};
 
 #[derive(Parser)]
 #[command(about = "HTTP ingest throughput against in-process splatting, in one run")]
@@ -154,7 +158,15 @@ fn in_process(args: &Args, samples: usize, mut splat: impl FnMut(&mut FrameState
 
 /// Batches of records, and the in-process rate of the same records.
 fn records_load(args: &Args) -> (Load, f64) {
-    let batches = make_batches(args);
+    let batches = load::make_batches(
+        "bench",
+        args.width,
+        args.height,
+        args.batch,
+        args.records.div_ceil(args.batch),
+        args.connections,
+        7,
+    );
     let samples: usize = batches.iter().map(|b| b.records.len()).sum();
     let bodies: Vec<Bytes> = batches.iter().map(|b| Bytes::from(b.encode())).collect();
     let bytes: usize = bodies.iter().map(|b| b.len()).sum();
@@ -197,7 +209,9 @@ fn passes_load(args: &Args) -> Result<(Load, f64)> {
         .collect();
     let bodies = passes
         .iter()
-        .map(|pass| encode_pass(w, h, pass).map(Bytes::from))
+        .map(|pass| {
+            encode_pass(w, h, pass, exr::compression::Compression::Uncompressed).map(Bytes::from)
+        })
         .collect::<Result<Vec<_>>>()?;
     let bytes: usize = bodies.iter().map(|b| b.len()).sum();
     let samples = n * w * h;
@@ -221,63 +235,6 @@ fn passes_load(args: &Args) -> Result<(Load, f64)> {
         bytes,
     };
     Ok((load, rate))
-}
-
-/// One pass as an OpenEXR file: channels R, G, B as 32-bit floats, no compression.
-fn encode_pass(w: usize, h: usize, pass: &[[f32; 3]]) -> Result<Vec<u8>> {
-    use exr::prelude::*;
-    let channel = |name: &str, c: usize| {
-        AnyChannel::new(
-            name,
-            FlatSamples::F32(pass.iter().map(|rgb| rgb[c]).collect()),
-        )
-    };
-    let layer = Layer::new(
-        (w, h),
-        LayerAttributes::default(),
-        Encoding::UNCOMPRESSED,
-        AnyChannels::sort(SmallVec::from_vec(vec![
-            channel("R", 0),
-            channel("G", 1),
-            channel("B", 2),
-        ])),
-    );
-    let mut bytes = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .to_buffered(std::io::Cursor::new(&mut bytes))?;
-    Ok(bytes)
-}
-
-/// A heavy-tailed colour, so that every cascade is used.
-fn heavy_tailed(rng: &mut SplitMix64) -> [f32; 3] {
-    let z = (rng.next_f64().powf(-1.0 / 1.5) - 1.0) as f32;
-    [z * 0.8, z, z * 0.6]
-}
-
-/// Batches of scan-line runs with heavy-tailed RGB.
-fn make_batches(args: &Args) -> Vec<Batch> {
-    let mut rng = SplitMix64::new(7);
-    let pixels = args.width as usize * args.height as usize;
-    let mut at = 0usize;
-    let n_batches = args.records.div_ceil(args.batch);
-    (0..n_batches)
-        .map(|i| {
-            let records = (0..args.batch)
-                .map(|_| {
-                    let p = at % pixels;
-                    at += 1;
-                    Record::new(
-                        (p % args.width as usize) as u32,
-                        (p / args.width as usize) as u32,
-                        heavy_tailed(&mut rng),
-                    )
-                })
-                .collect();
-            Batch::new("bench", (i % args.connections) as u64, i as u64, records)
-                .expect("valid frame id")
-        })
-        .collect()
 }
 
 /// Creates the frame and posts every body from `connections` tasks; returns the seconds taken.
