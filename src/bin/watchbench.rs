@@ -70,6 +70,9 @@ struct Args {
     /// Frames whose info one round fetches.
     #[arg(long, default_value_t = 20)]
     info_frames: usize,
+    /// Only the scrape-cost lines (no ingest phases), e.g. to profile them.
+    #[arg(long)]
+    scrape_only: bool,
 }
 
 /// Ingest with watchers / without.
@@ -552,6 +555,14 @@ fn main() -> Result<()> {
         .worker_threads(2)
         .enable_all()
         .build()?;
+    if args.scrape_only {
+        let scrape = runtime.block_on(scrape_cost(&args, tick))?;
+        println!("\ngoals ({} at the end):", uptime());
+        for line in scrape {
+            println!("  {line}");
+        }
+        return Ok(());
+    }
     let pool = Arc::new(make_pool(&args)?);
     let server = start_server()?;
     let pid = server.pid();
