@@ -329,7 +329,11 @@ fn bench(args: &Args, dir: &Path, tick: f64) -> Result<()> {
     let bench = Bench {
         splatd,
         server: &server,
-        http: reqwest::Client::new(),
+        // No idle connections: between requests the runtime does not run, so a connection the
+        // server closed meanwhile would only be noticed by the next request, which would fail.
+        http: reqwest::Client::builder()
+            .pool_max_idle_per_host(0)
+            .build()?,
         runtime: tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()?,
@@ -343,7 +347,7 @@ fn bench(args: &Args, dir: &Path, tick: f64) -> Result<()> {
     let mut goals = Vec::new();
     if !args.no_pairs {
         let mut ratios = Vec::new();
-        let (mut posts, mut fetches) = (Vec::new(), Vec::new());
+        let (mut posts, mut fetches, mut cpu_ratios) = (Vec::new(), Vec::new(), Vec::new());
         for pair in 0..args.pairs {
             let mut a = None;
             let mut b = None;
@@ -375,6 +379,7 @@ fn bench(args: &Args, dir: &Path, tick: f64) -> Result<()> {
                 uptime()
             );
             ratios.push(total / b);
+            cpu_ratios.push((a.server_cpu + a.cli_cpu) / b_cpu);
             posts.push(a.post);
             fetches.push(a.fetch);
         }
@@ -383,6 +388,11 @@ fn bench(args: &Args, dir: &Path, tick: f64) -> Result<()> {
             "splatd split (medians): post {:.2} s, resolve + fetch {:.2} s",
             median(posts),
             median(fetches)
+        );
+        println!(
+            "CPU seconds, splatd (server + post CLI) / oiiotool: median {:.2} (no goal; what \
+             the load disturbs less)",
+            median(cpu_ratios)
         );
         goals.push(format!(
             "{} passes {}x{} posted + image.exr fetched / oiiotool --add ... --mulc: median \

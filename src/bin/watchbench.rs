@@ -546,7 +546,7 @@ async fn scrape_cost(args: &Args, tick: f64) -> Result<Vec<String>> {
 
 fn main() -> Result<()> {
     let args = Args::parse();
-    if !(args.seconds > 0.0) || args.rounds == 0 || args.writers == 0 {
+    if args.seconds.is_nan() || args.seconds <= 0.0 || args.rounds == 0 || args.writers == 0 {
         bail!("--seconds, --rounds and --writers must be positive");
     }
     let tick = clock_tick();
