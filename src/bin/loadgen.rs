@@ -16,7 +16,8 @@
 //! with a heavy-tailed brightness so every cascade is used; passes are the same samples, one
 //! uncompressed RGB float EXR per pass (`POST .../passes`). The in-process reference is what the
 //! server does with the decoded samples: `splat_records` of each batch, `splat_row` of each row
-//! of a pass, on one thread.
+//! of a pass, on one thread, run before each HTTP run (in-process and HTTP alternate, so that
+//! the machine's load weighs on both; the best of each is compared).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -28,8 +29,12 @@ use clap::Parser;
 use splatd_estimator::{CascadeLayout, FrameState};
 use splatd_harness::{sibling_binary, Options, ServerProcess};
 use splatd_proto::api::CreateFrame;
-use splatd_proto::{Batch, Record, BATCH_CONTENT_TYPE};
+use splatd_proto::BATCH_CONTENT_TYPE;
 use splatd_scenes::synth::SplitMix64;
+
+#[path = "common/load.rs"]
+mod load;
+use load::{encode_pass, heavy_tailed};
 
 #[derive(Parser)]
 #[command(about = "HTTP ingest throughput against in-process splatting, in one run")]
@@ -81,14 +86,16 @@ fn main() -> Result<()> {
         .build()?;
     let mut goals = Vec::new();
     for kind in &kinds {
-        let (load, in_rate) = if kind == "records" {
+        let (load, mut splat) = if kind == "records" {
             records_load(&args)
         } else {
             passes_load(&args)?
         };
         for config in &configs {
-            let mut best = f64::MAX;
+            // In-process and HTTP runs alternate, so that the machine's load weighs on both.
+            let (mut best, mut best_in) = (f64::MAX, f64::MAX);
             for round in 0..2 {
+                best_in = best_in.min(in_process(&args, &mut splat));
                 let tmp =
                     std::env::temp_dir().join(format!("loadgen-{}-{round}", std::process::id()));
                 let extra: Vec<String> = config
@@ -102,6 +109,12 @@ fn main() -> Result<()> {
                 drop(server);
                 let _ = std::fs::remove_dir_all(&tmp);
             }
+            let in_rate = load.samples as f64 / best_in;
+            println!(
+                "in-process splat (best of 2, alternating with the HTTP runs): {:.1} M \
+                 samples/s ({best_in:.3} s)",
+                in_rate / 1e6
+            );
             let rate = load.samples as f64 / best;
             let ratio = rate / in_rate;
             println!(
@@ -135,26 +148,30 @@ struct Load {
     bytes: usize,
 }
 
-/// Best of three in-process runs of `splat` on a fresh state, in samples per second.
-fn in_process(args: &Args, samples: usize, mut splat: impl FnMut(&mut FrameState)) -> f64 {
-    let mut best = f64::MAX;
-    for _ in 0..3 {
-        let mut state = FrameState::new(args.width, args.height, CascadeLayout::with_defaults());
-        let t = Instant::now();
-        splat(&mut state);
-        best = best.min(t.elapsed().as_secs_f64());
-        std::hint::black_box(&state);
-    }
-    println!(
-        "in-process splat: {:.1} M samples/s ({best:.3} s)",
-        samples as f64 / best / 1e6
-    );
-    samples as f64 / best
+/// The in-process splat callback of a load: what the server does with the decoded samples.
+type Splat = Box<dyn FnMut(&mut FrameState)>;
+
+/// Seconds of one in-process run of `splat` on a fresh state.
+fn in_process(args: &Args, splat: &mut Splat) -> f64 {
+    let mut state = FrameState::new(args.width, args.height, CascadeLayout::with_defaults());
+    let t = Instant::now();
+    splat(&mut state);
+    let seconds = t.elapsed().as_secs_f64();
+    std::hint::black_box(&state);
+    seconds
 }
 
-/// Batches of records, and the in-process rate of the same records.
-fn records_load(args: &Args) -> (Load, f64) {
-    let batches = make_batches(args);
+/// Batches of records, and the in-process splat of the same records.
+fn records_load(args: &Args) -> (Load, Splat) {
+    let batches = load::make_batches(
+        "bench",
+        args.width,
+        args.height,
+        args.batch,
+        args.records.div_ceil(args.batch),
+        args.connections,
+        7,
+    );
     let samples: usize = batches.iter().map(|b| b.records.len()).sum();
     let bodies: Vec<Bytes> = batches.iter().map(|b| Bytes::from(b.encode())).collect();
     let bytes: usize = bodies.iter().map(|b| b.len()).sum();
@@ -172,7 +189,7 @@ fn records_load(args: &Args) -> (Load, f64) {
         .iter()
         .map(|b| b.records.iter().map(|r| (r.x, r.y, r.rgb)).collect())
         .collect();
-    let rate = in_process(args, samples, |state| {
+    let splat: Splat = Box::new(move |state| {
         for b in &decoded {
             state.splat_records(b);
         }
@@ -184,11 +201,11 @@ fn records_load(args: &Args) -> (Load, f64) {
         samples,
         bytes,
     };
-    (load, rate)
+    (load, splat)
 }
 
-/// Whole passes (one sample per pixel) as EXR files, and the in-process rate of their samples.
-fn passes_load(args: &Args) -> Result<(Load, f64)> {
+/// Whole passes (one sample per pixel) as EXR files, and the in-process splat of their samples.
+fn passes_load(args: &Args) -> Result<(Load, Splat)> {
     let (w, h) = (args.width as usize, args.height as usize);
     let n = args.records.div_ceil(w * h).max(1);
     let mut rng = SplitMix64::new(11);
@@ -197,7 +214,9 @@ fn passes_load(args: &Args) -> Result<(Load, f64)> {
         .collect();
     let bodies = passes
         .iter()
-        .map(|pass| encode_pass(w, h, pass).map(Bytes::from))
+        .map(|pass| {
+            encode_pass(w, h, pass, exr::compression::Compression::Uncompressed).map(Bytes::from)
+        })
         .collect::<Result<Vec<_>>>()?;
     let bytes: usize = bodies.iter().map(|b| b.len()).sum();
     let samples = n * w * h;
@@ -206,7 +225,7 @@ fn passes_load(args: &Args) -> Result<(Load, f64)> {
         bytes as f64 / 1e6,
         args.connections
     );
-    let rate = in_process(args, samples, |state| {
+    let splat: Splat = Box::new(move |state| {
         for pass in &passes {
             for (y, row) in pass.chunks_exact(w).enumerate() {
                 state.splat_row(0, y as u32, row);
@@ -220,64 +239,7 @@ fn passes_load(args: &Args) -> Result<(Load, f64)> {
         samples,
         bytes,
     };
-    Ok((load, rate))
-}
-
-/// One pass as an OpenEXR file: channels R, G, B as 32-bit floats, no compression.
-fn encode_pass(w: usize, h: usize, pass: &[[f32; 3]]) -> Result<Vec<u8>> {
-    use exr::prelude::*;
-    let channel = |name: &str, c: usize| {
-        AnyChannel::new(
-            name,
-            FlatSamples::F32(pass.iter().map(|rgb| rgb[c]).collect()),
-        )
-    };
-    let layer = Layer::new(
-        (w, h),
-        LayerAttributes::default(),
-        Encoding::UNCOMPRESSED,
-        AnyChannels::sort(SmallVec::from_vec(vec![
-            channel("R", 0),
-            channel("G", 1),
-            channel("B", 2),
-        ])),
-    );
-    let mut bytes = Vec::new();
-    Image::from_layer(layer)
-        .write()
-        .to_buffered(std::io::Cursor::new(&mut bytes))?;
-    Ok(bytes)
-}
-
-/// A heavy-tailed colour, so that every cascade is used.
-fn heavy_tailed(rng: &mut SplitMix64) -> [f32; 3] {
-    let z = (rng.next_f64().powf(-1.0 / 1.5) - 1.0) as f32;
-    [z * 0.8, z, z * 0.6]
-}
-
-/// Batches of scan-line runs with heavy-tailed RGB.
-fn make_batches(args: &Args) -> Vec<Batch> {
-    let mut rng = SplitMix64::new(7);
-    let pixels = args.width as usize * args.height as usize;
-    let mut at = 0usize;
-    let n_batches = args.records.div_ceil(args.batch);
-    (0..n_batches)
-        .map(|i| {
-            let records = (0..args.batch)
-                .map(|_| {
-                    let p = at % pixels;
-                    at += 1;
-                    Record::new(
-                        (p % args.width as usize) as u32,
-                        (p / args.width as usize) as u32,
-                        heavy_tailed(&mut rng),
-                    )
-                })
-                .collect();
-            Batch::new("bench", (i % args.connections) as u64, i as u64, records)
-                .expect("valid frame id")
-        })
-        .collect()
+    Ok((load, splat))
 }
 
 /// Creates the frame and posts every body from `connections` tasks; returns the seconds taken.
