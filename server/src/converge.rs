@@ -170,14 +170,16 @@ pub async fn need_map(
     let pixels = u64::from(r.width) * u64::from(r.height);
     // The copy of the state and the resolved layers (three RGB layers and the counts).
     let cost = frame.spec().memory_bytes() + pixels * 44;
+    let kept = app.renders.kept().clone();
     let bytes = app
         .renders
         .get_or_render(frame, format!("need {tile}"), cost, move |frame| {
             let cut = frame.cut();
-            let resolved = cut.resolve(&params, threads);
             let bands = cut.band_refs();
-            let map = NeedMap::build(&bands, &resolved, &params, tile)
-                .map_err(|e| FiguresError::internal("need map", e))?;
+            let map = kept.with_resolved(frame, &cut, &params, threads, |resolved, _| {
+                NeedMap::build(&bands, resolved, &params, tile)
+            });
+            let map = map.map_err(|e| FiguresError::internal("need map", e))?;
             {
                 let mut history = frame.history();
                 let seconds = history.seconds();

@@ -23,6 +23,9 @@ use tokio::sync::OnceCell;
 use crate::frame::ShardedFrame;
 use crate::work::{Busy, WorkBudget};
 
+mod kept;
+pub use kept::{KeptResolves, Made, MAX_KEPT};
+
 /// Which render of a frame: the frame's serial (so a deleted and re-created frame never hits
 /// the old one's renders), its version, and the query in a canonical form.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -103,6 +106,8 @@ pub struct Renders {
     budget: Arc<WorkBudget>,
     /// Renders run so far (shared ones count once).
     rendered: std::sync::atomic::AtomicU64,
+    /// The latest resolve of the frames rendered last, which renders patch.
+    kept: Arc<KeptResolves>,
 }
 
 impl Renders {
@@ -113,12 +118,18 @@ impl Renders {
             max_slots: max_slots.max(1),
             budget,
             rendered: Default::default(),
+            kept: Arc::default(),
         }
     }
 
     /// How many renders ran so far; requests that shared one count once.
     pub fn rendered(&self) -> u64 {
         self.rendered.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// The kept resolves that renders patch (see [`KeptResolves`]).
+    pub fn kept(&self) -> &Arc<KeptResolves> {
+        &self.kept
     }
 
     /// The budget renders reserve from.
@@ -146,6 +157,8 @@ impl Renders {
         let serial = frame.serial();
         let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
         slots.retain(|(k, _)| k.frame != serial);
+        drop(slots);
+        self.kept.forget(frame);
     }
 
     /// The bytes of `query` rendered from `frame` as it is now: shared with every concurrent or

@@ -5,7 +5,7 @@ use std::sync::{Arc, MutexGuard};
 
 use splatd_proto::{records_digest_of, Batch, Record};
 
-use splatd_estimator::{self as estimator, FrameState, SampleError, MAX_PIXEL_SAMPLES};
+use splatd_estimator::{self as estimator, FrameState, Rect, SampleError, MAX_PIXEL_SAMPLES};
 
 use super::dedup::BatchId;
 use super::{lock, IngestError, Ingested, ShardedFrame};
@@ -241,7 +241,7 @@ impl ShardedFrame {
         drop(aov_sums);
         self.counters.samples.fetch_add(n, Ordering::Relaxed);
         self.counters.batches.fetch_add(1, Ordering::Relaxed);
-        self.version.fetch_add(1, Ordering::AcqRel);
+        self.next_version(parts.bounds(self));
         Ok(Ingested {
             accepted: n,
             duplicate: false,
@@ -266,6 +266,28 @@ impl Parts<'_> {
         match self {
             Parts::Records { batch, .. } => batch.records.len() as u64,
             Parts::Pass { rgb } => rgb.len() as u64,
+        }
+    }
+
+    /// The pixels the samples fall in (a bounding box: cheap to keep, and for a worker's tile
+    /// or a few rows it is the tile or the rows).
+    fn bounds(&self, frame: &ShardedFrame) -> Rect {
+        match self {
+            Parts::Records { batch, .. } => {
+                let mut r = Rect::new(u32::MAX, u32::MAX, 0, 0);
+                for rec in &batch.records {
+                    r.x0 = r.x0.min(rec.x);
+                    r.y0 = r.y0.min(rec.y);
+                    r.x1 = r.x1.max(rec.x + 1);
+                    r.y1 = r.y1.max(rec.y + 1);
+                }
+                if r.x0 > r.x1 {
+                    Rect::new(0, 0, 0, 0)
+                } else {
+                    r
+                }
+            }
+            Parts::Pass { .. } => frame.everywhere(),
         }
     }
 

@@ -19,10 +19,11 @@ use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
 use splatd_proto::api::FrameInfo;
 
-use splatd_estimator::{cell_len, cell_spp, AovSums, FrameState};
+use splatd_estimator::{cell_len, cell_spp, AovSums, FrameState, Rect};
 
 use dedup::Seen;
 
+mod changes;
 mod cut;
 pub mod dedup;
 mod error;
@@ -86,6 +87,9 @@ pub struct ShardedFrame {
     /// The samples-per-pixel figures of [`ShardedFrame::info`] and the version they were
     /// counted at: a frame polled but not changed is not read again.
     spp_figures: Mutex<Option<(u64, SppFigures)>>,
+    /// Where each recent version changed the frame, written with the version under the shared
+    /// gate (so a cut sees every change up to its version).
+    changes: Mutex<changes::Changes>,
 }
 
 /// Held by a request that changes a frame until its answer is ready (see
@@ -142,6 +146,7 @@ impl ShardedFrame {
         *lock(&frame.seen) = seen;
         frame.set_counters(counters);
         frame.version.store(version, Ordering::Release);
+        *lock(&frame.changes) = changes::Changes::starting_at(version);
         Ok(frame)
     }
 
@@ -198,6 +203,7 @@ impl ShardedFrame {
             durable_floors: Mutex::new(Default::default()),
             history: Mutex::new(Default::default()),
             spp_figures: Mutex::new(None),
+            changes: Mutex::new(changes::Changes::starting_at(0)),
         };
         frame.set_counters(counters);
         frame
@@ -253,6 +259,25 @@ impl ShardedFrame {
     /// Changes whenever samples are added; equal versions mean equal states.
     pub fn version(&self) -> u64 {
         self.version.load(Ordering::Acquire)
+    }
+
+    /// Makes the next version, which changed the pixels in `rect`. Called with the gate held
+    /// shared, after the change is in the bands.
+    fn next_version(&self, rect: Rect) {
+        let mut changes = lock(&self.changes);
+        let version = self.version.fetch_add(1, Ordering::AcqRel) + 1;
+        changes.record(version, rect);
+    }
+
+    /// The pixels the versions after `from` up to `to` changed, or `None` when they are not
+    /// all remembered (then anything kept of version `from` must be made again whole).
+    pub fn changes_between(&self, from: u64, to: u64) -> Option<Vec<Rect>> {
+        lock(&self.changes).between(from, to)
+    }
+
+    /// The whole frame, as a change.
+    fn everywhere(&self) -> Rect {
+        Rect::new(0, 0, self.spec.request.width, self.spec.request.height)
     }
     /// A lease for a request that will change the frame and answer for it; `None` once the frame
     /// is retired. Hold it until the answer is ready.

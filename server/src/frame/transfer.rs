@@ -193,7 +193,7 @@ impl ShardedFrame {
             .samples
             .fetch_add(state.samples(), Ordering::Relaxed);
         self.counters.imports.fetch_add(1, Ordering::Relaxed);
-        self.version.fetch_add(1, Ordering::AcqRel);
+        self.next_version(self.everywhere());
         Ok(true)
     }
 

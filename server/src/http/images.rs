@@ -63,43 +63,43 @@ pub async fn get_image(
         frame.spec().memory_bytes() + px * 12 * (6 + 2 * extra_layers) + aov_bytes + denoise_bytes;
     let key = format!("exr {params:?} {query:?}");
     let budget = app.renders.budget().clone();
+    let kept = app.renders.kept().clone();
     let exr = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
             let cut = frame.cut();
-            let resolved = cut.resolve(&params, threads);
-            let mut extra = if query.cascades {
-                cascade_layers(cut.cascade_means())
-            } else {
-                Vec::new()
-            };
-            let aovs = cut
-                .aovs
-                .as_ref()
-                .map(|sums| splatd_formats::exr::aov_planes(&frame.spec().request.aovs, sums))
-                .unwrap_or_default();
-            let mut more_attributes = Vec::new();
-            if let Some(oidn) = oidn {
-                let planes: Vec<&[f32]> = aovs.iter().map(|(_, p)| p.as_slice()).collect();
-                let quality = query.denoise_quality.unwrap_or_default();
-                let run = denoise_cut(
-                    &oidn, frame, cut, &params, threads, &planes, px, &budget, quality,
-                )?;
-                more_attributes = run.attributes();
-                extra.push(ExtraLayer {
-                    name: denoise::DENOISED_LAYER.to_owned(),
-                    rgb: run.rgb,
-                });
-            } else {
-                drop(cut);
-            }
-            let provenance = Provenance {
-                layout: &frame.spec().layout,
-                params: &params,
-            };
-            encode_exr_with(&resolved, &extra, &aovs, &provenance, more_attributes)
-                .map(Bytes::from)
-                .map_err(|e| ApiError::internal("EXR encoding", e))
+            kept.with_resolved(frame, &cut, &params, threads, |resolved, _| {
+                let mut extra = if query.cascades {
+                    cascade_layers(cut.cascade_means())
+                } else {
+                    Vec::new()
+                };
+                let aovs = cut
+                    .aovs
+                    .as_ref()
+                    .map(|sums| splatd_formats::exr::aov_planes(&frame.spec().request.aovs, sums))
+                    .unwrap_or_default();
+                let mut more_attributes = Vec::new();
+                if let Some(oidn) = oidn {
+                    let planes: Vec<&[f32]> = aovs.iter().map(|(_, p)| p.as_slice()).collect();
+                    let quality = query.denoise_quality.unwrap_or_default();
+                    let run = denoise_cut(
+                        &oidn, frame, &cut, &params, threads, &planes, px, &budget, quality,
+                    )?;
+                    more_attributes = run.attributes();
+                    extra.push(ExtraLayer {
+                        name: denoise::DENOISED_LAYER.to_owned(),
+                        rgb: run.rgb,
+                    });
+                }
+                let provenance = Provenance {
+                    layout: &frame.spec().layout,
+                    params: &params,
+                };
+                encode_exr_with(resolved, &extra, &aovs, &provenance, more_attributes)
+                    .map(Bytes::from)
+                    .map_err(|e| ApiError::internal("EXR encoding", e))
+            })
         })
         .await?;
     metrics::histogram!(crate::meters::RESOLVE_SECONDS).record(started.elapsed().as_secs_f64());
@@ -197,11 +197,12 @@ pub async fn get_preview(
     let cost = frame.spec().memory_bytes() + px * (36 + 6) + denoise_bytes;
     let key = format!("png {:?} {:?} {}", query.layer, query.exposure, query.stops);
     let budget = app.renders.budget().clone();
-    let png =
-        app.renders
-            .get_or_render(&frame, key, cost, move |frame| {
-                let cut = frame.cut();
-                let resolved = cut.resolve(&params, threads);
+    let kept = app.renders.kept().clone();
+    let png = app
+        .renders
+        .get_or_render(&frame, key, cost, move |frame| {
+            let cut = frame.cut();
+            kept.with_resolved(frame, &cut, &params, threads, |resolved, _| {
                 let exposure = query.exposure.unwrap_or_else(|| {
                     splatd_formats::preview::auto_exposure(&resolved.reweighted)
                 }) * query.stops.exp2();
@@ -220,7 +221,7 @@ pub async fn get_preview(
                         let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
                         let high = DenoiseQuality::High;
                         denoised = denoise_cut(
-                            &oidn, frame, cut, &params, threads, &planes, px, &budget, high,
+                            &oidn, frame, &cut, &params, threads, &planes, px, &budget, high,
                         )?
                         .rgb;
                         &denoised
@@ -231,7 +232,8 @@ pub async fn get_preview(
                     .map(Bytes::from)
                     .map_err(|e| ApiError::internal("PNG encoding", e))
             })
-            .await?;
+        })
+        .await?;
     Ok((
         [
             (header::CONTENT_TYPE, "image/png"),
@@ -249,7 +251,7 @@ pub async fn get_preview(
 fn denoise_cut(
     oidn: &splatd_denoise::Oidn,
     frame: &ShardedFrame,
-    cut: FrameCut,
+    cut: &FrameCut,
     params: &ResolveParams,
     threads: usize,
     aov_planes: &[&[f32]],
@@ -260,7 +262,6 @@ fn denoise_cut(
     let bands = cut.band_refs();
     let plan = DenoisePlan::new(&bands, params, threads);
     drop(bands);
-    drop(cut);
     let inputs = plan.inputs().len() as u64;
     let _more_memory = if inputs > 1 {
         let more = denoise::image_bytes(px, inputs) - denoise::image_bytes(px, 1);
