@@ -20,8 +20,6 @@ pub mod denoise;
 pub mod durable;
 pub mod failpoint;
 pub mod frame;
-// Until every user names it by its new place.
-pub use frame::dedup;
 pub mod http;
 pub mod memory;
 pub mod meters;

@@ -64,7 +64,7 @@ use bytes::Bytes;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Client, ClientError, Origin, RetryPolicy};
 
-use super::dedup::Seen;
+use crate::frame::dedup::Seen;
 use super::frame::ShardedFrame;
 use super::AppState;
 use splatd_estimator::FrameState;

@@ -121,8 +121,8 @@ impl Durable {
     fn note_failure(&self, frame: &str) {
         let mut failing = self.failing_set();
         failing.insert(frame.to_owned());
-        metrics::gauge!("splatd_frames_snapshot_failing").set(failing.len() as f64);
-        metrics::counter!("splatd_snapshot_failures_total").increment(1);
+        metrics::gauge!(crate::meters::FRAMES_SNAPSHOT_FAILING).set(failing.len() as f64);
+        metrics::counter!(crate::meters::SNAPSHOT_FAILURES).increment(1);
     }
 
     fn failing_set(&self) -> std::sync::MutexGuard<'_, std::collections::BTreeSet<String>> {
@@ -224,10 +224,10 @@ impl Durable {
         {
             let mut failing = self.failing_set();
             failing.remove(frame.id());
-            metrics::gauge!("splatd_frames_snapshot_failing").set(failing.len() as f64);
+            metrics::gauge!(crate::meters::FRAMES_SNAPSHOT_FAILING).set(failing.len() as f64);
         }
         frame.mark_durable(&seen, version);
-        metrics::counter!("splatd_snapshots_total").increment(1);
+        metrics::counter!(crate::meters::SNAPSHOTS).increment(1);
         Ok(())
     }
 

@@ -46,7 +46,7 @@ impl Durable {
                 Err(e) => self.quarantine(&dir, e)?,
             }
         }
-        metrics::gauge!("splatd_frames_quarantined").set(self.quarantined().len() as f64);
+        metrics::gauge!(crate::meters::FRAMES_QUARANTINED).set(self.quarantined().len() as f64);
         Ok(recovered)
     }
 

@@ -97,7 +97,7 @@ impl Connections {
         if open.len() >= self.max {
             if self.closing.load(Ordering::Acquire) >= self.closing_allowance() {
                 self.refused.fetch_add(1, Ordering::Relaxed);
-                metrics::counter!("splatd_connections_closed_total", "reason" => "full")
+                metrics::counter!(crate::meters::CONNECTIONS_CLOSED, "reason" => "full")
                     .increment(1);
                 return Err(Refused::Full);
             }
@@ -116,12 +116,12 @@ impl Connections {
                     self.closing.fetch_add(1, Ordering::AcqRel);
                     conn.evict.notify_one();
                     self.evicted.fetch_add(1, Ordering::Relaxed);
-                    metrics::counter!("splatd_connections_closed_total", "reason" => "evicted")
+                    metrics::counter!(crate::meters::CONNECTIONS_CLOSED, "reason" => "evicted")
                         .increment(1);
                 }
                 None => {
                     self.refused.fetch_add(1, Ordering::Relaxed);
-                    metrics::counter!("splatd_connections_closed_total", "reason" => "full")
+                    metrics::counter!(crate::meters::CONNECTIONS_CLOSED, "reason" => "full")
                         .increment(1);
                     return Err(Refused::Full);
                 }

@@ -83,7 +83,7 @@ impl Conn {
                 () = self.evict.notified() => return Ended::Evicted,
                 () = self.changed.notified() => {}
                 () = sleep_until_some(deadline) => {
-                    metrics::counter!("splatd_connections_closed_total", "reason" => "slow_reader")
+                    metrics::counter!(crate::meters::CONNECTIONS_CLOSED, "reason" => "slow_reader")
                         .increment(1);
                     return Ended::SlowReader;
                 }

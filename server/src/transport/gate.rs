@@ -186,7 +186,7 @@ impl<T: AsyncRead + Unpin> AsyncRead for HeadGate<T> {
                                 "no complete request head in time: closing the connection"
                             );
                             metrics::counter!(
-                                "splatd_connections_closed_total",
+                                crate::meters::CONNECTIONS_CLOSED,
                                 "reason" => if started { "head_timeout" } else { "idle" }
                             )
                             .increment(1);
