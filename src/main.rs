@@ -14,8 +14,8 @@ use splatd_formats::exr::{cascade_layers, encode_exr, Provenance};
 use splatd_formats::state::SparseState;
 use splatd_proto::batchfile::BatchReader;
 use splatd_proto::{Applied, DecodeLimits};
-use splatd_server::frame::dedup::Seen;
 use splatd_server::frame::core_resolve_params;
+use splatd_server::frame::dedup::Seen;
 use splatd_server::server::{shutdown_signal, Server};
 
 #[derive(Parser)]

@@ -1,4 +1,4 @@
-//! `splatd_server::tev` against an independent decoder of tev's IPC protocol.
+//! `splatd_server::viewer::tev` against an independent decoder of tev's IPC protocol.
 //!
 //! The decoder below is written from tev's own source (`src/Ipc.cpp`, `include/tev/Ipc.h`),
 //! not from `tev_client`: every packet is `u32` little-endian length (counting itself), a `u8`
@@ -20,7 +20,7 @@ use std::thread;
 use std::time::Instant;
 
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
-use splatd_server::tev::{TevError, TevSink, MAX_PIXELS_PER_UPDATE};
+use splatd_server::viewer::tev::{TevError, TevSink, MAX_PIXELS_PER_UPDATE};
 
 mod tev_decoder;
 use tev_decoder::*;

@@ -1,33 +1,37 @@
-//! The splatd server: an axum shell around the estimator core.
+//! The splatd server: an axum shell around the estimator core. Its folders say what it does:
 //!
-//! * [`config`]: every flag and default; [`server`]: the [`server::Server`] lifecycle (listener,
-//!   background tasks, graceful shutdown with a final snapshot); [`transport`]: the cap on
-//!   connections, their deadlines, and the check of every request head;
-//! * [`frame`]: one frame as row bands under separate locks, with all-or-nothing batches and
-//!   duplicate detection ([`dedup`]);
+//! * [`frame`]: one frame as row bands under separate locks: its spec, all-or-nothing batches
+//!   and passes with duplicate detection ([`frame::dedup`]), imports and exports of states,
+//!   consistent cuts that share the bands, and where each version changed the frame;
 //! * [`store`]: the frames of a server and the limits on them;
-//! * [`http`]: the router, one handler file per concept, the JSON errors and bearer-token roles;
-//! * [`durable`]: snapshots, recovery and quarantine; [`failpoint`]: fault injection for tests;
-//! * [`renders`] and [`work`]: shared resolves and the working-memory budget; [`converge`]: need
-//!   maps and each frame's convergence over time, from those shared resolves; [`denoise`]:
-//!   Open Image Denoise (loaded at run time) over a frame, for `image.exr?denoise=oidn`;
+//! * [`render`]: resolves shared between requests and patched where a frame changed, the
+//!   figures of convergence ([`render::figures`]) and Open Image Denoise over a frame
+//!   ([`render::denoise`]); [`work`]: the working-memory budget large requests reserve from;
+//! * [`durable`]: snapshots, recovery and quarantine;
+//! * [`transport`]: the cap on connections, their deadlines, and the check of every request
+//!   head; [`http`]: the router, one handler file per concept, the JSON errors (the only place
+//!   that knows a status code) and bearer-token roles;
+//! * [`server`]: the [`server::Server`] lifecycle (listener, background tasks, graceful
+//!   shutdown with a final snapshot); [`config`]: every flag and default;
 //! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
-//!   [`viewer`]: pushing frames to tev; [`memory`]: huge pages for large buffers.
+//!   [`viewer`]: pushing frames to tev; [`priority`]: background threads below the request
+//!   loop; [`meters`]: every metric's name; [`memory`]: huge pages for large buffers;
+//!   [`failpoint`]: fault injection for tests.
+//!
+//! The formats (EXR out, passes in, states, previews) are the `splatd-formats` crate's.
 
 pub mod config;
-pub mod converge;
-pub mod denoise;
 pub mod durable;
 pub mod failpoint;
 pub mod frame;
 pub mod http;
 pub mod memory;
 pub mod meters;
+pub mod priority;
 pub mod push;
-pub mod renders;
+pub mod render;
 pub mod server;
 pub mod store;
-pub mod tev;
 pub mod transport;
 pub mod viewer;
 pub mod work;
@@ -101,7 +105,7 @@ pub struct Shared {
     pub auth: Auth,
     /// Resolved images shared between requests, and the working-memory budget they and
     /// every other large request reserve from.
-    pub renders: renders::Renders,
+    pub renders: render::Renders,
     /// The open connections and their cap (used by the accept loop; in-process router calls
     /// bypass it).
     pub connections: Arc<transport::Connections>,
@@ -110,7 +114,7 @@ pub struct Shared {
     /// Buffers kept for large request bodies (see [`http::extract::BodyPool`]).
     pub body_pool: Arc<http::extract::BodyPool>,
     /// Open Image Denoise, or why this server has none.
-    pub denoiser: denoise::Denoiser,
+    pub denoiser: render::denoise::Denoiser,
 }
 
 /// Finished renders kept for requests that ask again before the frame changes: enough for a
@@ -145,9 +149,9 @@ impl AppState {
         durable: Option<Arc<Durable>>,
         auth: Auth,
     ) -> AppState {
-        let none = denoise::Denoiser::unavailable(format!(
+        let none = render::denoise::Denoiser::unavailable(format!(
             "no denoiser was configured for this server ({})",
-            denoise::HOW
+            render::denoise::HOW
         ));
         Self::with_denoiser(limits, metrics, durable, auth, none)
     }
@@ -158,7 +162,7 @@ impl AppState {
         metrics: Option<PrometheusHandle>,
         durable: Option<Arc<Durable>>,
         auth: Auth,
-        denoiser: denoise::Denoiser,
+        denoiser: render::denoise::Denoiser,
     ) -> AppState {
         let decode_limits = DecodeLimits {
             max_records: limits.max_records,
@@ -167,7 +171,7 @@ impl AppState {
         let resolve_threads = std::thread::available_parallelism().map_or(1, |n| n.get());
         let budget = work::WorkBudget::new(limits.work_memory_bytes, limits.work_wait);
         AppState(Arc::new(Shared {
-            renders: renders::Renders::new(RENDERS_KEPT, budget),
+            renders: render::Renders::new(RENDERS_KEPT, budget),
             connections: Arc::new(transport::Connections::new(limits.max_connections)),
             pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
             body_pool: Arc::new(http::extract::BodyPool::new(resolve_threads)),
@@ -216,7 +220,7 @@ impl AppState {
             tracing::warn!("no tokens configured: anyone who can reach this server may use it");
         }
         let denoiser =
-            denoise::Denoiser::load(config.oidn_lib.as_deref(), config.oidn_max_memory_mib);
+            render::denoise::Denoiser::load(config.oidn_lib.as_deref(), config.oidn_max_memory_mib);
         match denoiser.oidn() {
             Ok(oidn) => tracing::info!(
                 version = %oidn.version(),

@@ -64,9 +64,9 @@ use bytes::Bytes;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Client, ClientError, Origin, RetryPolicy};
 
-use crate::frame::dedup::Seen;
 use super::frame::ShardedFrame;
 use super::AppState;
+use crate::frame::dedup::Seen;
 use splatd_estimator::FrameState;
 
 /// How long a frame whose push the upstream refused (409, 4xx) is left alone before trying

@@ -162,7 +162,7 @@ impl Server {
 /// Serves `app` on `listener` until `shutdown` resolves, then stops accepting, lets requests in
 /// flight finish (batches being applied are applied and acknowledged), and returns.
 ///
-/// Each connection is admitted under the cap ([`Connections::admit`]), its request heads pass
+/// Each connection is admitted under the cap ([`Connections::admit`](crate::transport::Connections::admit)), its request heads pass
 /// the [`HeadGate`], and it is closed when a response outlives the response deadline.
 pub async fn serve(
     listener: TcpListener,

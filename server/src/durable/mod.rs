@@ -201,7 +201,7 @@ impl Durable {
             let cut = tokio::task::spawn_blocking(move || cutter.cut()).await?;
             // The encoding and writing at low priority: on a saturated machine they take the
             // cores that ingest leaves idle, and durability lags instead of ingest slowing.
-            crate::renders::on_low_priority_thread("splatd-snapshot", move || {
+            crate::priority::on_low_priority_thread("splatd-snapshot", move || {
                 this.write_snapshot(&f, &cut)
                     .map(|()| (cut.seen, cut.version))
             })

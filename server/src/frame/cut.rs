@@ -34,7 +34,7 @@ pub struct CounterValues {
 
 /// A consistent cut of a frame: what resolve, export and snapshots work from.
 ///
-/// It shares the frame's bands and AOV sums instead of copying them ([`ShardedFrame::cut`]):
+/// It shares the frame's bands and AOV sums instead of copying them ([`ShardedFrame::cut`](super::ShardedFrame::cut)):
 /// a writer that changes a band while a cut holds it copies that band first (one band, under
 /// that band's own lock), so the cut stays the frame as it was and nobody waits for a copy of
 /// the whole frame.
@@ -46,7 +46,7 @@ pub struct FrameCut {
     pub seen: Seen,
     /// Counters when the copy was taken.
     pub counters: CounterValues,
-    /// The frame's version when the copy was taken (see [`ShardedFrame::version`]).
+    /// The frame's version when the copy was taken (see [`ShardedFrame::version`](super::ShardedFrame::version)).
     pub version: u64,
     /// The AOV sums of the whole frame, if it has AOVs.
     pub aovs: Option<Arc<AovSums>>,

@@ -31,7 +31,7 @@ impl ShardedFrame {
 
     /// [`ShardedFrame::ingest`] of a pass's samples with the values of its AOVs (every pixel,
     /// row-major, the frame's AOV channels in order; checked with
-    /// [`AovSums::check_values`]), added with the samples or not at all.
+    /// [`AovSums::check_values`](splatd_estimator::AovSums::check_values)), added with the samples or not at all.
     ///
     /// # Panics
     /// If `aovs` is given for a frame without AOVs or has the wrong length.

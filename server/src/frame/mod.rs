@@ -83,7 +83,7 @@ pub struct ShardedFrame {
     /// Per worker, the sequence number below which every batch is in that snapshot.
     durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
     /// Convergence figures of the frame's renders over time.
-    history: Mutex<crate::converge::History>,
+    history: Mutex<crate::render::figures::History>,
     /// The samples-per-pixel figures of [`ShardedFrame::info`] and the version they were
     /// counted at: a frame polled but not changed is not read again.
     spp_figures: Mutex<Option<(u64, SppFigures)>>,
@@ -251,8 +251,8 @@ impl ShardedFrame {
         self.counters.samples.load(Ordering::Relaxed)
     }
 
-    /// The frame's convergence over time (see [`crate::converge`]).
-    pub fn history(&self) -> MutexGuard<'_, crate::converge::History> {
+    /// The frame's convergence over time (see [`crate::render::figures`]).
+    pub fn history(&self) -> MutexGuard<'_, crate::render::figures::History> {
         lock(&self.history)
     }
 

@@ -17,8 +17,8 @@ pub struct FrameSpec {
     pub layout: CascadeLayout,
     /// The default resolve parameters.
     pub resolve: estimator::ResolveParams,
-    /// The AOVs that guide its denoised images (see [`crate::denoise::Guides::choose`]).
-    pub guides: crate::denoise::Guides,
+    /// The AOVs that guide its denoised images (see [`crate::render::denoise::Guides::choose`]).
+    pub guides: crate::render::denoise::Guides,
 }
 
 impl FrameSpec {
@@ -41,7 +41,7 @@ impl FrameSpec {
         estimator::check_converged_below(request.converged_below)?;
         check_aovs(&request.aovs)?;
         let guides =
-            crate::denoise::Guides::choose(&request.aovs, request.denoise_guides.as_ref())?;
+            crate::render::denoise::Guides::choose(&request.aovs, request.denoise_guides.as_ref())?;
         Ok(FrameSpec {
             request,
             layout,
@@ -78,7 +78,12 @@ impl FrameSpec {
 pub const MAX_AOV_CHANNELS: usize = 64;
 
 /// Layer names of `image.exr` that an AOV may not take.
-const RESERVED_LAYERS: [&str; 4] = ["mean", "removed", "spp", crate::denoise::DENOISED_LAYER];
+const RESERVED_LAYERS: [&str; 4] = [
+    "mean",
+    "removed",
+    "spp",
+    crate::render::denoise::DENOISED_LAYER,
+];
 
 /// Checks a frame's AOV declarations: named, each name once and not one of the served layers'
 /// (`mean`, `removed`, `spp`, `cascadeN`, the unnamed beauty), channels named, each once, and

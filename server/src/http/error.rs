@@ -234,9 +234,9 @@ impl From<DurabilityError> for ApiError {
 
 /// A need map or figures that could not be computed: a bad tile is the query's fault (400), a
 /// spent working budget 503 with `Retry-After`.
-impl From<crate::converge::FiguresError> for ApiError {
-    fn from(e: crate::converge::FiguresError) -> ApiError {
-        use crate::converge::FiguresError;
+impl From<crate::render::figures::FiguresError> for ApiError {
+    fn from(e: crate::render::figures::FiguresError) -> ApiError {
+        use crate::render::figures::FiguresError;
         match e {
             FiguresError::Param(e) => e.into(),
             FiguresError::Busy(busy) => ApiError::busy(&busy),
@@ -245,11 +245,11 @@ impl From<crate::converge::FiguresError> for ApiError {
     }
 }
 
-impl<E: Into<ApiError>> From<crate::renders::RenderError<E>> for ApiError {
-    fn from(e: crate::renders::RenderError<E>) -> ApiError {
+impl<E: Into<ApiError>> From<crate::render::RenderError<E>> for ApiError {
+    fn from(e: crate::render::RenderError<E>) -> ApiError {
         match e {
-            crate::renders::RenderError::Busy(busy) => ApiError::busy(&busy),
-            crate::renders::RenderError::Failed(e) => e.into(),
+            crate::render::RenderError::Busy(busy) => ApiError::busy(&busy),
+            crate::render::RenderError::Failed(e) => e.into(),
         }
     }
 }
@@ -257,15 +257,15 @@ impl<E: Into<ApiError>> From<crate::renders::RenderError<E>> for ApiError {
 /// A denoise the server cannot run: 501 without a usable OIDN (the request is fine, the server
 /// lacks the part), 500 when OIDN failed on the frame (its message is passed on: it names no
 /// secret and says what went wrong).
-impl From<crate::denoise::DenoiseError> for ApiError {
-    fn from(e: crate::denoise::DenoiseError) -> ApiError {
+impl From<crate::render::denoise::DenoiseError> for ApiError {
+    fn from(e: crate::render::denoise::DenoiseError) -> ApiError {
         match e {
-            crate::denoise::DenoiseError::Unavailable { .. } => ApiError::new(
+            crate::render::denoise::DenoiseError::Unavailable { .. } => ApiError::new(
                 StatusCode::NOT_IMPLEMENTED,
                 "denoiser_unavailable",
                 e.to_string(),
             ),
-            crate::denoise::DenoiseError::Failed { .. } => {
+            crate::render::denoise::DenoiseError::Failed { .. } => {
                 tracing::error!(error = %e, "denoise failed");
                 ApiError::new(
                     StatusCode::INTERNAL_SERVER_ERROR,

@@ -4,10 +4,10 @@ use axum::extract::{Path, State};
 use axum::http::StatusCode;
 use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, PutFrame, QuarantinedFrame};
 
-use crate::converge::FiguresError;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
+use crate::render::figures::FiguresError;
 use crate::store::Created;
 use crate::AppState;
 
@@ -91,7 +91,7 @@ pub async fn info(
     State(app): State<AppState>,
     Frame(frame): Frame,
 ) -> Result<Json<FrameInfo>, ApiError> {
-    let convergence = match crate::converge::convergence(&app, &frame).await {
+    let convergence = match crate::render::figures::convergence(&app, &frame).await {
         Ok(c) => Some(c),
         Err(FiguresError::Busy(busy)) => {
             tracing::warn!(frame = frame.id(), "frame info without convergence: {busy}");

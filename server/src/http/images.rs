@@ -12,10 +12,10 @@ use splatd_estimator::denoise::DenoisePlan;
 use splatd_estimator::ResolveParams;
 use splatd_proto::api::{Denoise, DenoiseQuality, ImageQuery};
 
-use crate::denoise;
 use crate::frame::{core_resolve_params, FrameCut, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
+use crate::render::denoise;
 use crate::work::WorkBudget;
 use crate::AppState;
 use splatd_formats::exr::{cascade_layers, encode_exr_with, ExtraLayer, Provenance};

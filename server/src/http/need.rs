@@ -1,5 +1,5 @@
 //! Where a frame needs samples: `GET /v1/frames/{id}/need`, the need map as JSON or OpenEXR.
-//! The map is computed by the estimator from a shared render ([`crate::converge`]).
+//! The map is computed by the estimator from a shared render ([`crate::render::figures`]).
 
 use axum::extract::State;
 use axum::http::header;
@@ -8,10 +8,10 @@ use bytes::Bytes;
 use exr::prelude::{AnyChannel, FlatSamples, LayerAttributes, Text};
 use splatd_proto::api::{self, NeedFormat, NeedQuery, DEFAULT_NEED_TILE};
 
-use crate::converge::need_map;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
+use crate::render::figures::need_map;
 use crate::AppState;
 
 /// `GET /v1/frames/{id}/need?tile=T&format=json|exr`.

@@ -5,9 +5,9 @@ use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use splatd_proto::api::{Convergence, SyncAck};
 
-use crate::converge::FiguresError;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
+use crate::render::figures::FiguresError;
 use crate::AppState;
 
 /// `GET /`: the live page.
@@ -52,7 +52,7 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
     let mut text = handle.render();
     let mut frames = Vec::new();
     for frame in app.store.list() {
-        match crate::converge::convergence(&app, &frame).await {
+        match crate::render::figures::convergence(&app, &frame).await {
             Ok(c) => frames.push((frame.id().to_owned(), c)),
             // A frame deleted meanwhile has no figures; one that could not get working
             // memory is left out of this scrape, and the log says so.

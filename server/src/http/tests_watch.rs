@@ -59,7 +59,9 @@ async fn polling_unchanged_frames_renders_nothing() {
             info(&app, id).await;
         }
         for frame in app.store.list() {
-            crate::converge::convergence(&app, &frame).await.unwrap();
+            crate::render::figures::convergence(&app, &frame)
+                .await
+                .unwrap();
         }
     }
     assert_eq!(

@@ -23,6 +23,8 @@ use tokio::sync::OnceCell;
 use crate::frame::ShardedFrame;
 use crate::work::{Busy, WorkBudget};
 
+pub mod denoise;
+pub mod figures;
 mod kept;
 pub use kept::{KeptResolves, Made, MAX_KEPT};
 
@@ -37,8 +39,7 @@ struct Key {
 
 type Slot = Arc<OnceCell<Bytes>>;
 
-/// The nice value renders run at (the request loop and ingest run at the process's own, 0).
-pub const RENDER_NICE: i32 = 10;
+pub use crate::priority::RENDER_NICE;
 
 /// Runs `work` on a new thread of lower priority ([`RENDER_NICE`]); its result, or `Err` if it
 /// panicked. A blocking-pool task waits for the thread, so tokio counts the render as work in
@@ -46,44 +47,7 @@ pub const RENDER_NICE: i32 = 10;
 async fn on_render_thread<T: Send + 'static>(
     work: impl FnOnce() -> T + Send + 'static,
 ) -> Result<T, tokio::task::JoinError> {
-    on_low_priority_thread("splatd-render", work).await
-}
-
-/// Runs `work` on a new thread named `name` at the renders' lower priority ([`RENDER_NICE`]):
-/// background work (renders, snapshots) that must take only the cores ingest leaves idle.
-pub(crate) async fn on_low_priority_thread<T: Send + 'static>(
-    name: &str,
-    work: impl FnOnce() -> T + Send + 'static,
-) -> Result<T, tokio::task::JoinError> {
-    let name = name.to_owned();
-    tokio::task::spawn_blocking(move || {
-        let thread = std::thread::Builder::new()
-            .name(name)
-            .spawn(move || {
-                lower_priority();
-                work()
-            })
-            .expect("spawning a low-priority thread");
-        match thread.join() {
-            Ok(result) => result,
-            Err(panic) => std::panic::resume_unwind(panic),
-        }
-    })
-    .await
-}
-
-/// Lowers the calling thread's priority to [`RENDER_NICE`] (Linux keeps a nice value per
-/// thread; threads it starts inherit it). Failing to is harmless: the render runs at normal
-/// priority.
-pub(crate) fn lower_priority() {
-    // SAFETY: gettid and setpriority only read their arguments.
-    let result = unsafe {
-        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
-        libc::setpriority(libc::PRIO_PROCESS, tid, RENDER_NICE)
-    };
-    if result != 0 {
-        tracing::debug!(error = %std::io::Error::last_os_error(), "renders keep normal priority");
-    }
+    crate::priority::on_low_priority_thread("splatd-render", work).await
 }
 
 /// Why a render failed.

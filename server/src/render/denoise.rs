@@ -72,7 +72,7 @@ impl Denoiser {
     /// fails: a library that cannot be used makes a denoiser that refuses, saying why.
     ///
     /// The library is loaded on a thread at the renders' lower priority
-    /// ([`crate::renders::RENDER_NICE`]), so that the worker threads OIDN's thread pool starts,
+    /// ([`crate::render::RENDER_NICE`]), so that the worker threads OIDN's thread pool starts,
     /// which inherit their creator's nice value, take only the cores ingest leaves idle.
     pub fn load(path: Option<&Path>, max_memory_mib: u32) -> Denoiser {
         let path: PathBuf = path.map_or_else(
@@ -82,7 +82,7 @@ impl Denoiser {
         let loaded = std::thread::Builder::new()
             .name("splatd-oidn-load".into())
             .spawn(move || {
-                crate::renders::lower_priority();
+                crate::priority::lower_priority();
                 Oidn::load_from(&path)
             })
             .expect("spawning a thread")

@@ -2,14 +2,16 @@
 //! arrive.
 //!
 //! Every `interval`, each frame whose version changed since it was last shown is resolved and
-//! sent (all layers: reweighted, mean, removed) with [`crate::tev::TevSink`], one frame at a time
+//! sent (all layers: reweighted, mean, removed) with [`crate::viewer::tev::TevSink`], one frame at a time
 //! on the blocking pool. tev not running is not an error of the server: the sink connects
 //! lazily, logs once per outage, and catches up with the current images when tev comes back.
+
+pub mod tev;
 
 use std::collections::HashMap;
 use std::time::Duration;
 
-use crate::tev::TevSink;
+use crate::viewer::tev::TevSink;
 
 use super::AppState;
 
@@ -45,7 +47,7 @@ pub async fn run(
                     None => TevSink::connect(&target)?,
                 };
                 let shown = s.show(f.id(), &resolved);
-                Ok::<_, crate::tev::TevError>((s, shown))
+                Ok::<_, crate::viewer::tev::TevError>((s, shown))
             })
             .await;
             match result {

@@ -109,8 +109,8 @@ pub enum TevError {
 /// A connection to tev that resolved frames are shown through.
 ///
 /// ```no_run
-/// # fn demo(resolved: &splatd_estimator::Resolved) -> Result<(), splatd_server::tev::TevError> {
-/// let mut tev = splatd_server::tev::TevSink::connect("127.0.0.1:14158")?;
+/// # fn demo(resolved: &splatd_estimator::Resolved) -> Result<(), splatd_server::viewer::tev::TevError> {
+/// let mut tev = splatd_server::viewer::tev::TevSink::connect("127.0.0.1:14158")?;
 /// tev.show("shot010.beauty", resolved)?; // creates the image
 /// tev.show("shot010.beauty", resolved)?; // updates it
 /// # Ok(()) }

@@ -1,7 +1,7 @@
 //! How far each frame is from converged, and where it needs samples: need maps and convergence
 //! figures computed from the shared renders, and each frame's convergence over time.
 //!
-//! A need map is one render like an image (see [`crate::renders`]): requests for the same frame
+//! A need map is one render like an image (see [`crate::render`]): requests for the same frame
 //! version and tile size share one resolve, which reserves its memory from the working budget.
 //! Every render of a new version also files the frame's whole-frame figures in the frame's
 //! [`History`], so `GET /v1/frames/{id}`, `/metrics` and the live page read the figures of the
@@ -16,7 +16,7 @@ use splatd_estimator::{self as estimator, NeedMap};
 use splatd_proto::api::{self, ConvergencePoint};
 
 use crate::frame::ShardedFrame;
-use crate::renders::RenderError;
+use crate::render::RenderError;
 use crate::work::Busy;
 use crate::AppState;
 
@@ -115,7 +115,7 @@ impl History {
         });
     }
 
-    /// Samples per second from the newest point at least [`RATE_WINDOW`] before `seconds` (or
+    /// Samples per second from the newest point at least `RATE_WINDOW` (1 s) before `seconds` (or
     /// the oldest point) to `samples` at `seconds`; 0 without a point or time between.
     pub fn rate(&self, seconds: f64, samples: u64) -> f64 {
         let from = self
