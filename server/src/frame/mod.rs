@@ -27,6 +27,7 @@ mod changes;
 mod cut;
 pub mod dedup;
 mod error;
+pub mod history;
 mod ingest;
 mod spec;
 mod transfer;
@@ -83,7 +84,7 @@ pub struct ShardedFrame {
     /// Per worker, the sequence number below which every batch is in that snapshot.
     durable_floors: Mutex<std::collections::HashMap<u64, u64>>,
     /// Convergence figures of the frame's renders over time.
-    history: Mutex<crate::render::figures::History>,
+    history: Mutex<history::History>,
     /// The samples-per-pixel figures of [`ShardedFrame::info`] and the version they were
     /// counted at: a frame polled but not changed is not read again.
     spp_figures: Mutex<Option<(u64, SppFigures)>>,
@@ -252,7 +253,7 @@ impl ShardedFrame {
     }
 
     /// The frame's convergence over time (see [`crate::render::figures`]).
-    pub fn history(&self) -> MutexGuard<'_, crate::render::figures::History> {
+    pub fn history(&self) -> MutexGuard<'_, history::History> {
         lock(&self.history)
     }
 
