@@ -2,9 +2,10 @@
 //!
 //! Cycles, Arnold, Mitsuba and pbrt write images, not sample streams. Rendered with one sample
 //! per pixel and a different seed each time, every image they write is one *pass*: each pixel
-//! of a pass is **one** Monte Carlo sample of that pixel. [`decode_pass`] reads such a file and
-//! [`Pass::records`] turns it into the same [`Record`]s a streaming worker would send, so a pass
-//! is accumulated exactly like a batch of `width * height` samples.
+//! of a pass is **one** Monte Carlo sample of that pixel. [`decode_pass`] reads such a file into
+//! one RGB value per pixel (and the values of its AOVs), which the server adds to a frame as
+//! the batch of `width * height` samples it is (its records, [`Pass::records`], are what a
+//! streaming worker would have sent, and what the pass's digest is computed over).
 //!
 //! # Which channels are the beauty
 //!

@@ -22,7 +22,8 @@
 //! until the server has it on disk, resending it after a restart, and
 //! [`BatchWriter`] (module `writer`) numbers records into batches and posts
 //! them through an outbox, so every sample counts exactly once.
-//! `default-features = false` leaves only serde, bincode and thiserror.
+//! `default-features = false` leaves the formats alone: serde, bincode, thiserror and xxhash
+//! (the batch digests), with the estimator's types.
 //!
 //! `PROTOCOL.md` next to this crate's `Cargo.toml` documents the byte layout
 //! and the HTTP endpoints for implementers in other languages;

@@ -271,27 +271,15 @@ pub fn shutdown_signal() -> impl Future<Output = ()> {
 /// Makes glibc's allocator give large buffers back to the system when they are freed, and keep
 /// batch-sized ones for reuse.
 ///
-/// A request's body, its decoded records and an image's state copy are each tens to hundreds of
-/// megabytes, and the working budget bounds how many exist at once; but glibc raises its mmap
-/// threshold after each large free, so later large buffers came from the heap arenas and stayed
-/// resident after use (the load benchmark saw RSS 650 MB above states + budget). A fixed
-/// threshold keeps every large buffer mmapped, so freeing it returns it, and RSS follows the
-/// budget.
-///
-/// The threshold is 8 MiB, not lower: a worker's batch of 64 Ki records is 1.3 MB on the wire,
-/// decoded and sorted by band twice more, and at 1 MiB each of those three buffers was a fresh
-/// mapping per batch, faulted in and zeroed page by page and unmapped with a TLB shootdown (the
-/// ingest profile: page faults and clear_page on every batch). Below 8 MiB they are reused from
-/// the arenas, which hold at most a few of them per connection.
-///
-/// Setting the mmap threshold also pins the trim threshold at its 128 KiB default, so an arena
-/// whose top chunk was freed gave it back at once and the next batch's buffers were faulted in
-/// again (6 % of the records ingest profile in page faults, mostly under the copy of the body).
-/// Arenas now keep up to 8 MiB free at their top, and there are at most 4 of them (glibc's
-/// default is 8 per core), so at most 32 MiB stays resident beyond the buffers in use: HTTP
-/// records ingest at 1080p went from 45 to 55-57 M samples/s (0.59 to 0.75-0.78 of the
-/// in-process splat, two runs each, load 1.9), and `loadattack`'s peak RSS from 1451 to
-/// 1529 MB (with 16 arenas it was 1608 MB).
+/// Request bodies, decoded records and images are tens to hundreds of megabytes, bounded in
+/// number by the working budget; but glibc raises its mmap threshold after each large free, so
+/// later large buffers came from the heap arenas and stayed resident after use. A fixed
+/// threshold of 8 MiB keeps every large buffer mmapped (freeing it returns it, and RSS follows
+/// the budget) while a worker's batch (1.3 MB on the wire, decoded and sorted by band) is still
+/// reused from the arenas instead of being mapped, faulted in and unmapped every time. Fixing
+/// it also pins the trim threshold, so it is set to 8 MiB too (an arena keeps that much free at
+/// its top instead of giving back and faulting in again every batch), and at most 4 arenas
+/// bound what stays resident beyond the buffers in use to 32 MiB.
 fn return_large_buffers_to_the_system() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: mallopt only sets allocator parameters; called before the server allocates much.
