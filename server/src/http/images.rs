@@ -68,7 +68,7 @@ pub async fn get_image(
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
             let cut = frame.cut();
-            kept.with_resolved(frame, &cut, &params, threads, |resolved, _| {
+            kept.with_resolved(frame, cut, &params, threads, |resolved, cut, _| {
                 let mut extra = if query.cascades {
                     cascade_layers(cut.cascade_means())
                 } else {
@@ -92,6 +92,8 @@ pub async fn get_image(
                         rgb: run.rgb,
                     });
                 }
+                // The encoding needs nothing of the state.
+                drop(cut);
                 let provenance = Provenance {
                     layout: &frame.spec().layout,
                     params: &params,
@@ -202,7 +204,7 @@ pub async fn get_preview(
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
             let cut = frame.cut();
-            kept.with_resolved(frame, &cut, &params, threads, |resolved, _| {
+            kept.with_resolved(frame, cut, &params, threads, |resolved, cut, _| {
                 let exposure = query.exposure.unwrap_or_else(|| {
                     splatd_formats::preview::auto_exposure(&resolved.reweighted)
                 }) * query.stops.exp2();
@@ -227,6 +229,7 @@ pub async fn get_preview(
                         &denoised
                     }
                 };
+                drop(cut);
                 let pixels = splatd_formats::preview::tonemap(layer, exposure);
                 splatd_formats::preview::encode_png(resolved.width, resolved.height, &pixels)
                     .map(Bytes::from)

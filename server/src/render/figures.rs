@@ -75,15 +75,15 @@ pub async fn need_map(
         .renders
         .get_or_render(frame, format!("need {tile}"), cost, move |frame| {
             let cut = frame.cut();
-            let bands = cut.band_refs();
-            let map = kept.with_resolved(frame, &cut, &params, threads, |resolved, _| {
-                NeedMap::build(&bands, resolved, &params, tile)
+            let version = cut.version;
+            let map = kept.with_resolved(frame, cut, &params, threads, |resolved, cut, _| {
+                NeedMap::build(&cut.band_refs(), resolved, &params, tile)
             });
             let map = map.map_err(|e| FiguresError::internal("need map", e))?;
             {
                 let mut history = frame.history();
                 let seconds = history.seconds();
-                history.record(cut.version, seconds, map.convergence());
+                history.record(version, seconds, map.convergence());
             }
             let body = to_api(frame.id(), &map);
             serde_json::to_vec(&body)

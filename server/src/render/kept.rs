@@ -84,16 +84,21 @@ impl KeptResolves {
     /// Calls `use_it` with the resolve of `cut` (a cut of `frame`) at `params` on `threads`:
     /// the kept one, patched or made whole as needed, when `params` are the frame's own;
     /// otherwise a resolve of its own. Renders of one frame take turns here.
+    ///
+    /// `use_it` gets the cut too, to drop as soon as it is done with it: while a cut is held,
+    /// writers copy each band they change, so an encoding that no longer needs the state
+    /// should not hold it.
     pub fn with_resolved<T>(
         &self,
         frame: &ShardedFrame,
-        cut: &FrameCut,
+        cut: FrameCut,
         params: &ResolveParams,
         threads: usize,
-        use_it: impl FnOnce(&Resolved, Made) -> T,
+        use_it: impl FnOnce(&Resolved, FrameCut, Made) -> T,
     ) -> T {
         if *params != frame.spec().resolve {
-            return use_it(&cut.resolve(params, threads), Made::Whole);
+            let resolved = cut.resolve(params, threads);
+            return use_it(&resolved, cut, Made::Whole);
         }
         let slot = self.slot(frame);
         let mut guard = slot.lock().unwrap_or_else(|e| e.into_inner());
@@ -120,14 +125,19 @@ impl KeptResolves {
             }
             // A cut older than the kept resolve (a render that waited its turn behind a newer
             // one): resolved on its own, the kept one stays.
-            Some(_) => return use_it(&cut.resolve(params, threads), Made::Whole),
+            Some(_) => {
+                drop(bands);
+                let resolved = cut.resolve(params, threads);
+                return use_it(&resolved, cut, Made::Whole);
+            }
             None => {
                 kept.resolved = Some(cut.resolve(params, threads));
                 Made::Whole
             }
         };
         kept.version = cut.version;
-        use_it(kept.resolved.as_ref().expect("kept above"), made)
+        drop(bands);
+        use_it(kept.resolved.as_ref().expect("kept above"), cut, made)
     }
 }
 
@@ -163,7 +173,7 @@ mod tests {
         let check = |want: Made| {
             let cut = frame.cut();
             let oracle = bits(&cut.resolve(&params, 1));
-            kept.with_resolved(&frame, &cut, &params, 2, |r, made| {
+            kept.with_resolved(&frame, cut, &params, 2, |r, _, made| {
                 assert_eq!(made, want);
                 assert!(bits(r) == oracle, "{made:?} differs from a fresh resolve");
             });
@@ -190,7 +200,7 @@ mod tests {
         check(Made::Patched);
         let other = ResolveParams::new(params.variant(), 3.0, 1.0, 0.0).unwrap();
         let cut = frame.cut();
-        kept.with_resolved(&frame, &cut, &other, 1, |_, made| {
+        kept.with_resolved(&frame, cut, &other, 1, |_, _, made| {
             assert_eq!(made, Made::Whole)
         });
     }
