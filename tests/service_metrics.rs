@@ -108,6 +108,8 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
     // 100 samples over a time that lies between the two scrapes' ends (which the first point and
     // this scrape's rate each lie within), so within bounds measured here. If this scrape itself
     // took a second or more, its own new point may be the one the rate starts from: then 0.
+    // A second between the scrapes, so that their own durations leave the bounds tight.
+    std::thread::sleep(Duration::from_secs(1));
     rt.block_on(async {
         for seq in 10..20 {
             let records = vec![Record::new(1, 2, [1.0; 3]); 10];
