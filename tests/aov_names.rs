@@ -16,12 +16,10 @@
 //! `SPLATD_BIN=/path/to/splatd` runs the same checks against another build (how the "before" was
 //! seen). Needs `python3` with numpy and OpenEXR (`tests/run.sh` installs them).
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use common::read_exr_with_python;
+use crate::common::read_exr_with_python;
 use serde_json::{json, Value};
 use splatd_harness::{Options, ServerProcess};
 

@@ -7,13 +7,11 @@
 //!
 //! Needs `python3` with numpy and OpenEXR (`tests/run.sh` installs `tests/requirements.txt`).
 
-mod common;
-
 use std::path::Path;
 use std::process::Command;
 
+use crate::common::{read_exr_with_python, runtime, Server, PATIENCE};
 use bytes::Bytes;
-use common::{read_exr_with_python, runtime, Server, PATIENCE};
 use splatd_proto::api::{AovSpec, CreateFrame, ImageQuery};
 use splatd_proto::{Client, ClientError};
 

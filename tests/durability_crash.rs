@@ -10,12 +10,11 @@
 //! advance. Clients reach the server through a forwarder whose port the test owns, so a
 //! restarted server can take any free port.
 
-mod common;
-
 use std::path::Path;
 use std::time::Duration;
 
-use common::{runtime, Forwarder, Server, ServerProcess};
+use crate::common;
+use crate::common::{runtime, Forwarder, Server, ServerProcess};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_formats::exr::{encode_exr, Provenance};
 use splatd_proto::api::{CreateFrame, ImageQuery};

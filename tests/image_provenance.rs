@@ -2,11 +2,9 @@
 //! and its parameters (the frame's, or the request's overrides), and the sample counts, read back
 //! with OpenEXR's own Python package (and `oiiotool --info -v` where OpenImageIO is installed).
 
-mod common;
-
 use std::process::Command;
 
-use common::{read_exr_attributes_with_python, runtime, Server};
+use crate::common::{read_exr_attributes_with_python, runtime, Server};
 use serde_json::json;
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery, ResolveParams, Variant};
 use splatd_proto::{Batch, Client, Record};

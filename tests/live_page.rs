@@ -6,15 +6,14 @@
 //! skip this test on machines that cannot have a browser. Every run stores a screenshot of the
 //! page in `docs/live_page.png` (README shows it).
 
-mod common;
-
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{runtime, Server};
+use crate::common;
+use crate::common::{runtime, Server};
 use serde_json::{json, Value};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Client};

@@ -2,16 +2,15 @@
 //! receive a third of one sample set, and their states, pulled, pushed or merged offline, resolve
 //! to the very bytes a single server receiving every sample serves.
 
-mod common;
-
 use std::io::{Read, Write};
 use std::net::{TcpListener, TcpStream};
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use crate::common;
+use crate::common::{runtime, Server, ServerProcess};
 use bytes::Bytes;
-use common::{runtime, Server, ServerProcess};
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Origin, Record, StateDump};
 use splatd_scenes::synth::FireflyScene;

@@ -10,12 +10,10 @@
 //! policy (warm-up, several rounds with uniform passes mixed in, a budget that no tile divides)
 //! posts exactly its budget. The frame's totals are what the worker posted.
 
-mod common;
-
 use std::path::Path;
 use std::process::Command;
 
-use common::{python_package_venv, run_setup, runtime, venv_site_packages, Server};
+use crate::common::{python_package_venv, run_setup, runtime, venv_site_packages, Server};
 use splatd_estimator::{NeedMap, TileNeed};
 use splatd_proto::api::NeedMap as ApiNeedMap;
 use splatd_proto::Client;

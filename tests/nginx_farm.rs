@@ -5,14 +5,13 @@
 //! nginx is installed by `tests/setup/nginx.sh` when missing. `SPLATD_SKIP_NGINX=1` skips the
 //! test (for machines where it cannot be installed); otherwise a missing nginx is a failure.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{runtime, Server, ServerProcess};
+use crate::common;
+use crate::common::{runtime, Server, ServerProcess};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
 use splatd_scenes::synth::FireflyScene;
@@ -70,12 +69,6 @@ fn nginx_binary() -> Option<PathBuf> {
     Some(PathBuf::from(path))
 }
 
-/// A free loopback port (a tiny race with other processes is possible; nginx then fails loudly).
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
-
 /// The deploy template with the three node addresses and the listen address filled in.
 fn render_site(nodes: &[&str], port: u16) -> String {
     let template = std::fs::read_to_string(
@@ -99,7 +92,7 @@ fn render_site(nodes: &[&str], port: u16) -> String {
 /// bind makes nginx exit at start, and another port is tried.
 fn start_nginx(bin: &Path, dir: &Path, nodes: &[&str]) -> Nginx {
     for _ in 0..5 {
-        if let Some(nginx) = try_start_nginx(bin, dir, nodes, free_port()) {
+        if let Some(nginx) = try_start_nginx(bin, dir, nodes, common::free_port()) {
             return nginx;
         }
     }

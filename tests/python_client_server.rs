@@ -2,12 +2,10 @@
 //! server: what it (and the Mitsuba worker's posting helper, importing the installed package)
 //! posts resolves to exactly the core's image of the same samples; its own tests pass there too.
 
-mod common;
-
 use std::path::Path;
 use std::process::Command;
 
-use common::{python_package_venv, Server};
+use crate::common::{python_package_venv, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_formats::exr::{encode_exr, Provenance};
 

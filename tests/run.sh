@@ -16,8 +16,8 @@
 #                                ~/.cache/splatd; needs CPython 3.11)
 #   openimageio-tools            oiiotool's view of EXR headers (optional)
 #
-# A Blender that cannot be installed makes its test skip, saying why, except on CI (CI=true),
-# where the test fails: CI must run it.
+# A Blender that cannot be installed makes its test skip with a loud SKIP line, except on CI
+# (CI=true), where this script and the test fail: CI must run it.
 #
 # The Debian packages are installed as root (or with sudo) when missing; each script is
 # idempotent and does nothing when its tools are already there.
@@ -53,10 +53,18 @@ elif [ "${CI:-}" = true ]; then
 else
     echo "WARNING: Open Image Denoise could not be installed; the denoise tests will check nothing" >&2
 fi
-# Without a Blender the worker's test on it skips, saying why (and fails on CI); without oiiotool
-# the provenance test checks the EXR header with OpenEXR's Python package only.
-bash tests/setup/blender.sh >/dev/null || echo "Blender could not be installed; its test will skip (fail on CI)"
-bash tests/setup/bpy.sh >/dev/null || echo "bpy could not be installed; its test will skip (fail on CI)"
+# Without a Blender the worker's test on it skips, saying so loudly; in CI a failed install fails
+# the run here, before the test would fail on it. Without oiiotool the provenance test checks the
+# EXR header with OpenEXR's Python package only.
+for blender in blender bpy; do
+    if ! bash "tests/setup/$blender.sh" >/dev/null; then
+        if [ "${CI:-}" = true ]; then
+            echo "tests/setup/$blender.sh failed: the Blender worker's test needs it in CI" >&2
+            exit 1
+        fi
+        echo "WARNING: $blender could not be installed; the Blender worker's test on it will SKIP" >&2
+    fi
+done
 bash tests/setup/oiio.sh >/dev/null || echo "oiiotool could not be installed; not used"
 bash tests/setup/chromium.sh >/dev/null
 

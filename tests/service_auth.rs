@@ -1,9 +1,7 @@
 //! Every write and admin endpoint of a real server refuses missing, wrong and insufficient
 //! tokens, changes nothing when it does, and never writes a token to its log.
 
-mod common;
-
-use common::{runtime, Server};
+use crate::common::{runtime, Server};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
 use splatd_scenes::synth::FireflyScene;

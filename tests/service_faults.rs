@@ -3,12 +3,11 @@
 //! can write, a server killed under the tools that post passes), and so is every answer checked
 //! here.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 
-use common::{Forwarder, Log, Options, Server, ServerProcess};
+use crate::common;
+use crate::common::{Forwarder, Log, Options, Server, ServerProcess};
 use serde_json::Value;
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};

@@ -2,12 +2,11 @@
 //! requests past every limit. The server neither crashes nor grows, and frames change only by
 //! what was valid.
 
-mod common;
-
 use std::io::{Read, Write};
 use std::net::TcpStream;
 
-use common::{runtime, Server};
+use crate::common;
+use crate::common::{runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_formats::exr::{encode_exr, Provenance};
 use splatd_proto::api::{CreateFrame, ImageQuery};

@@ -1,12 +1,10 @@
 //! The real `splatd serve` binary on loopback: concurrent ingest, resolve and every bad input.
 
-mod common;
-
 use std::collections::BTreeMap;
 use std::io::Write;
 
+use crate::common::{read_exr_with_python, runtime, Server};
 use bytes::Bytes;
-use common::{read_exr_with_python, runtime, Server};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Resolved};
 use splatd_formats::exr::{decode_exr_channels, encode_exr, ExtraLayer, Provenance};
 use splatd_proto::api::{CascadeParams, CreateFrame, ImageQuery, Variant};

@@ -1,10 +1,9 @@
 //! `/metrics` of a real server in the Prometheus text format, counting what happened.
 
-mod common;
-
 use std::collections::HashMap;
+use std::time::{Duration, Instant};
 
-use common::{runtime, Server};
+use crate::common::{runtime, Server};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
 
@@ -17,6 +16,18 @@ fn parse(text: &str) -> HashMap<String, f64> {
             (name.to_owned(), value.parse().expect("a number"))
         })
         .collect()
+}
+
+/// `GET /metrics`: the text, checked to be Prometheus text.
+fn scrape(url: &str) -> String {
+    let response = reqwest::blocking::get(format!("{url}/metrics")).unwrap();
+    assert_eq!(response.status(), 200);
+    let content_type = response.headers()["content-type"]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    assert!(content_type.starts_with("text/plain"), "{content_type}");
+    response.text().unwrap()
 }
 
 #[test]
@@ -50,14 +61,10 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
         client.image("m", &ImageQuery::default()).await.unwrap();
         client.image("m", &ImageQuery::default()).await.unwrap();
     });
-    let response = reqwest::blocking::get(format!("{}/metrics", server.url)).unwrap();
-    assert_eq!(response.status(), 200);
-    let content_type = response.headers()["content-type"]
-        .to_str()
-        .unwrap()
-        .to_owned();
-    assert!(content_type.starts_with("text/plain"), "{content_type}");
-    let text = response.text().unwrap();
+    // The first scrape renders the frame's first convergence point, at a time within it.
+    let first_scrape = Instant::now();
+    let text = scrape(&server.url);
+    let first_scraped = Instant::now();
     let m = parse(&text);
     let get = |k: &str| *m.get(k).unwrap_or_else(|| panic!("no {k} in:\n{text}"));
     assert_eq!(get("splatd_samples_ingested_total"), 30.0);
@@ -89,9 +96,43 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
     assert_eq!(frame("splatd_frame_converged_below"), 0.01);
     // 30 identical samples of one pixel: fully supported, nothing removed.
     assert_eq!(frame("splatd_frame_removed_fraction"), 0.0);
-    assert!(frame("splatd_frame_samples_per_second") >= 0.0);
+    // The rate is measured from that one point: no samples came after it.
+    assert_eq!(frame("splatd_frame_samples_per_second"), 0.0);
     assert!(
         text.contains("# TYPE splatd_frame_removed_fraction gauge"),
         "{text}"
+    );
+
+    // 100 samples more, then a second scrape: a second point, and the rate over the time from
+    // the first point (the newest at least a second old, or else the oldest) to this scrape:
+    // 100 samples over a time that lies between the two scrapes' ends (which the first point and
+    // this scrape's rate each lie within), so within bounds measured here. If this scrape itself
+    // took a second or more, its own new point may be the one the rate starts from: then 0.
+    // A second between the scrapes, so that their own durations leave the bounds tight.
+    std::thread::sleep(Duration::from_secs(1));
+    rt.block_on(async {
+        for seq in 10..20 {
+            let records = vec![Record::new(1, 2, [1.0; 3]); 10];
+            client
+                .post_batch(&Batch::new("m", 1, seq, records).unwrap())
+                .await
+                .unwrap();
+        }
+    });
+    let second_scrape = Instant::now();
+    let text = scrape(&server.url);
+    let second_scraped = Instant::now();
+    let m = parse(&text);
+    let rate = *m
+        .get("splatd_frame_samples_per_second{frame=\"m\"}")
+        .unwrap_or_else(|| panic!("no rate in:\n{text}"));
+    assert_eq!(m["splatd_frame_spp_max{frame=\"m\"}"], 130.0);
+    let longest = (second_scraped - first_scrape).as_secs_f64();
+    let shortest = (second_scrape - first_scraped).as_secs_f64();
+    let (low, high) = (100.0 / longest, 100.0 / shortest);
+    let slow_scrape = second_scraped - second_scrape >= Duration::from_secs(1);
+    assert!(
+        (low * (1.0 - 1e-9)..=high * (1.0 + 1e-9)).contains(&rate) || (slow_scrape && rate == 0.0),
+        "{rate} samples/s, not 100 samples over {shortest}..{longest} s"
     );
 }

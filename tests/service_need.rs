@@ -1,9 +1,7 @@
 //! `GET /v1/frames/{id}/need` of a real server: the EXR form, read back by OpenEXR's own Python
 //! bindings (an independent reader), holds the JSON form's tiles, one pixel each.
 
-mod common;
-
-use common::{read_exr_with_python, runtime, Server};
+use crate::common::{read_exr_with_python, runtime, Server};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Client, Record};
 use splatd_scenes::synth::FireflyScene;

@@ -2,12 +2,10 @@
 //! package) with `splatd post` give exactly the frame the same values give posted as records;
 //! a pass with invalid samples is refused by name and changes nothing.
 
-mod common;
-
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use common::{runtime, Server};
+use crate::common::{runtime, Server};
 use exr::prelude::f16;
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Record};

@@ -1,17 +1,16 @@
 //! `splatd serve --tev`: a real server pushes a frame to a tev stand-in as samples arrive; the
 //! stand-in decodes tev's protocol independently and the pixels equal the core's resolve.
 
-mod common;
-mod tev_decoder;
-
 use std::time::Instant;
 
-use common::{runtime, Server};
+use crate::common;
+use crate::common::{runtime, Server};
+use crate::tev_decoder;
+use crate::tev_decoder::{assert_planes_equal, read_packet, reassemble, Packet};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Client, Record};
 use splatd_scenes::synth::FireflyScene;
-use tev_decoder::{assert_planes_equal, read_packet, reassemble, Packet};
 
 #[test]
 fn served_frames_reach_tev_with_the_resolved_pixels() {

@@ -10,8 +10,6 @@
 //!
 //! `SPLATD_BIN=/path/to/splatd` runs it against another build.
 
-mod common;
-
 use std::path::PathBuf;
 
 use serde_json::Value;

@@ -22,8 +22,7 @@ use std::time::Instant;
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams};
 use splatd_server::viewer::tev::{TevError, TevSink, MAX_PIXELS_PER_UPDATE};
 
-mod tev_decoder;
-use tev_decoder::*;
+use crate::tev_decoder::*;
 
 /// A frame with dim samples everywhere and a few fireflies, so every layer has content.
 fn splat_some(state: &mut FrameState, seed: u64, per_pixel: u32) {

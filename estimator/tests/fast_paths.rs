@@ -9,6 +9,10 @@ use splatd_estimator::{
     REC709_LUMINANCE,
 };
 
+#[path = "common/kernels.rs"]
+mod kernels;
+use kernels::kernels;
+
 const W: u32 = 40;
 const H: u32 = 5;
 
@@ -28,13 +32,6 @@ fn one_by_one(state: &mut FrameState, records: &[Rec]) -> SplatReport {
         }
     }
     r
-}
-
-fn kernels() -> Vec<Kernel> {
-    [Kernel::Portable, Kernel::Avx2]
-        .into_iter()
-        .filter(|k| k.available())
-        .collect()
 }
 
 /// Values at and around every boundary the split and the fixed-point conversion have: each

@@ -32,6 +32,8 @@ pub mod push;
 pub mod render;
 pub mod server;
 pub mod store;
+#[cfg(any(test, feature = "testing"))]
+pub mod testing;
 pub mod transport;
 pub mod viewer;
 pub mod work;

@@ -3,14 +3,17 @@
 //! early refusals, `Expect: 100-continue`, and clients that half-close after their request.
 //!
 //! Every wait is for an event (a response, the server closing a socket, the count of open
-//! connections) with [`PATIENCE`] only as a guard against a hang; nothing asserts on time.
+//! connections) with [`PATIENCE`] only as a guard against a hang; nothing asserts on time. The
+//! head and idle deadlines are out of reach except in the test of each, which waits for it to
+//! expire and sends nothing that must beat it: no request races a deadline, however loaded the
+//! machine.
 
 use std::time::Duration;
 
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
 use splatd_server::http::auth::Auth;
-use splatd_server::{server::serve, AppState, Limits};
+use splatd_server::{server::serve, testing, AppState, Limits};
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpSocket, TcpStream};
 
@@ -56,10 +59,19 @@ impl Running {
     }
 }
 
+/// A deadline the tests let expire: short, so that waiting for it is quick. Only a phase that
+/// waits for the server to close a connection by itself runs with it; where a request must get
+/// through, the deadlines are [`LONG`].
+const SHORT: Duration = Duration::from_millis(300);
+/// A deadline no test reaches: a loaded machine may take any time between two requests of a
+/// test without the server closing the connection under it.
+const LONG: Duration = Duration::from_secs(3600);
+
+/// Small limits, with head and idle deadlines no test reaches.
 fn small_limits() -> Limits {
     Limits {
-        head_timeout: Duration::from_millis(300),
-        idle_timeout: Duration::from_millis(300),
+        head_timeout: LONG,
+        idle_timeout: LONG,
         ..Limits::default()
     }
 }
@@ -138,11 +150,10 @@ fn create_request(id: &str, w: u32, h: u32) -> Vec<u8> {
 
 #[tokio::test]
 async fn silent_sockets_are_pushed_out_and_cannot_lock_out_healthz() {
-    // No head deadline within the test: only the cap closes silent sockets here.
+    // No head deadline within the test (see `small_limits`): only the cap closes silent sockets.
     let server = Running::start(
         Limits {
             max_connections: 8,
-            head_timeout: PATIENCE * 2,
             ..small_limits()
         },
         Auth::open(),
@@ -178,16 +189,30 @@ async fn silent_sockets_are_pushed_out_and_cannot_lock_out_healthz() {
     server.stop().await;
 }
 
+/// Half a request line, then nothing: closed at the head deadline without an answer. (The idle
+/// deadline is out of reach, so it is the head deadline that closes it.)
 #[tokio::test]
-async fn a_trickled_head_is_cut_at_the_head_deadline_and_keep_alive_survives_requests() {
-    let server = Running::start(small_limits(), Auth::open()).await;
-    // Half a request line, then nothing: closed without an answer.
+async fn a_trickled_head_is_cut_at_the_head_deadline() {
+    let server = Running::start(
+        Limits {
+            head_timeout: SHORT,
+            ..small_limits()
+        },
+        Auth::open(),
+    )
+    .await;
     let mut s = server.connect().await;
     s.write_all(b"GET /heal").await.unwrap();
     assert!(until_closed(&mut s).await.is_empty());
+    assert_eq!(server.app.connections.evicted(), 0, "not pushed out");
+    server.stop().await;
+}
 
-    // Two pipelined requests in one write, then a third on the same connection: each answered,
-    // in order.
+/// Two pipelined requests in one write, then a third on the same connection: each answered, in
+/// order, the connection kept alive. With deadlines out of reach, however slowly this test runs.
+#[tokio::test]
+async fn keep_alive_survives_pipelined_and_later_requests() {
+    let server = Running::start(small_limits(), Auth::open()).await;
     let mut s = BufReader::new(server.connect().await);
     s.get_mut()
         .write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\nGET /nope HTTP/1.1\r\nhost: x\r\n\r\n")
@@ -203,7 +228,37 @@ async fn a_trickled_head_is_cut_at_the_head_deadline_and_keep_alive_survives_req
     let (status, headers, _) = response(&mut s).await;
     assert_eq!(status, 201);
     assert_eq!(header(&headers, "connection"), None);
-    // Then silence: the idle keep-alive connection is closed.
+    // Still open: one more request is answered.
+    s.get_mut()
+        .write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+        .await
+        .unwrap();
+    assert_eq!(response(&mut s).await.0, 200);
+    drop(s);
+    server.stop().await;
+}
+
+/// After an answer, silence: the idle keep-alive connection is closed at the idle deadline.
+/// (The head deadline is out of reach, and the request is sent whole before the idle deadline is
+/// armed by its answer, so nothing here races the clock.)
+#[tokio::test]
+async fn an_idle_keep_alive_connection_is_closed_at_the_idle_deadline() {
+    let server = Running::start(
+        Limits {
+            idle_timeout: SHORT,
+            ..small_limits()
+        },
+        Auth::open(),
+    )
+    .await;
+    let mut s = BufReader::new(server.connect().await);
+    s.get_mut()
+        .write_all(b"GET /healthz HTTP/1.1\r\nhost: x\r\n\r\n")
+        .await
+        .unwrap();
+    let (status, headers, _) = response(&mut s).await;
+    assert_eq!(status, 200);
+    assert_eq!(header(&headers, "connection"), None, "kept alive");
     assert!(until_closed(&mut s).await.is_empty());
     server.stop().await;
 }
@@ -336,7 +391,7 @@ async fn early_refusals_say_connection_close_and_100_continue_waits_for_the_chec
 async fn a_reader_that_stops_reading_is_dropped_at_the_response_deadline() {
     let server = Running::start(
         Limits {
-            response_timeout: Duration::from_millis(300),
+            response_timeout: SHORT,
             ..small_limits()
         },
         Auth::open(),
@@ -347,8 +402,25 @@ async fn a_reader_that_stops_reading_is_dropped_at_the_response_deadline() {
         .store
         .check(CreateFrame::new("big", 384, 384))
         .unwrap();
-    let state_len = spec.memory_bytes();
     server.app.store.create(spec).unwrap();
+    // Samples in every pixel, so that the state is megabytes, far more than the socket buffers
+    // hold: the response cannot be flushed whole, and only its deadline can close the
+    // connection (the head and idle deadlines are out of reach).
+    let records = (0..384 * 384)
+        .map(|i| Record::new(i % 384, i / 384, [1.0, 50.0, 0.5]))
+        .collect();
+    let batch = Batch::new("big", 1, 0, records).unwrap();
+    server.app.store.get("big").unwrap().ingest(&batch).unwrap();
+    let whole = testing::send(
+        &server.app,
+        axum::http::Request::get("/v1/frames/big/state")
+            .body(axum::body::Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(whole.status, 200);
+    let state_len = whole.body.len() as u64;
+    assert!(state_len > 8 << 20, "{state_len} bytes");
 
     // A small receive window, so the server's writes block soon.
     let socket = TcpSocket::new_v4().unwrap();

@@ -13,15 +13,11 @@ use std::time::Duration;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
-use axum::Router;
 use bytes::Bytes;
 use http_body::Frame;
-use http_body_util::BodyExt;
-use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
-use splatd_server::{http::router, AppState, Limits};
+use splatd_server::{testing, AppState, Limits};
 use tokio::time::Instant;
-use tower::ServiceExt;
 
 const TIMEOUT: Duration = Duration::from_secs(2);
 
@@ -70,21 +66,12 @@ impl http_body::Body for SlowBody {
     }
 }
 
-async fn app_with_frame() -> Router {
+fn app_with_frame() -> AppState {
     let limits = Limits {
         request_timeout: TIMEOUT,
         ..Limits::default()
     };
-    let app = router(AppState::new(limits, None, None));
-    let create = Request::post("/v1/frames")
-        .header("content-type", "application/json")
-        .body(Body::from(
-            serde_json::to_vec(&CreateFrame::new("f", 4, 4)).unwrap(),
-        ))
-        .unwrap();
-    let response = app.clone().oneshot(create).await.unwrap();
-    assert!(response.status().is_success(), "{response:?}");
-    app
+    testing::with_frame(AppState::new(limits, None, None), "f", 4, 4)
 }
 
 /// A valid batch of 4 samples for frame `f`, encoded.
@@ -103,45 +90,43 @@ fn samples(body: Body, len: usize) -> Request<Body> {
         .unwrap()
 }
 
-async fn json(response: axum::response::Response) -> serde_json::Value {
-    let bytes = response.into_body().collect().await.unwrap().to_bytes();
-    serde_json::from_slice(&bytes).unwrap()
-}
-
-async fn samples_in_frame(app: Router) -> serde_json::Value {
-    let info = app
-        .oneshot(Request::get("/v1/frames/f").body(Body::empty()).unwrap())
-        .await
-        .unwrap();
-    json(info).await["samples"].clone()
+async fn samples_in_frame(app: &AppState) -> serde_json::Value {
+    let info = testing::send(
+        app,
+        Request::get("/v1/frames/f").body(Body::empty()).unwrap(),
+    )
+    .await;
+    info.json()["samples"].clone()
 }
 
 #[tokio::test(start_paused = true)]
 async fn a_stalled_body_is_answered_408_when_the_request_timeout_passes_and_not_before() {
-    let app = app_with_frame().await;
+    let app = app_with_frame();
     let body = batch();
     let stalled = samples(SlowBody::stalled(body.slice(..4)), body.len());
     let start = Instant::now();
-    let mut call = tokio::spawn(app.clone().oneshot(stalled));
+    let mut call = tokio::spawn({
+        let app = app.clone();
+        async move { testing::send(&app, stalled).await }
+    });
 
     // The clock is paused and only moves to the next timer when every task waits: this timer,
     // 1 ms short of the timeout, fires first, with the request still unanswered.
     let early = tokio::time::timeout(TIMEOUT - Duration::from_millis(1), &mut call).await;
     assert!(early.is_err(), "answered before the timeout: {early:?}");
 
-    let response = call.await.unwrap().unwrap();
+    let reply = call.await.unwrap();
     assert_eq!(start.elapsed(), TIMEOUT, "virtual time at the answer");
-    assert_eq!(response.status(), StatusCode::REQUEST_TIMEOUT);
-    let error = json(response).await;
-    assert_eq!(error["error"], "request_timeout", "{error}");
+    assert_eq!(reply.status, StatusCode::REQUEST_TIMEOUT);
+    assert_eq!(reply.error().0, "request_timeout", "{reply:?}");
 
     // The stalled request changed nothing.
-    assert_eq!(samples_in_frame(app).await, 0);
+    assert_eq!(samples_in_frame(&app).await, 0);
 }
 
 #[tokio::test(start_paused = true)]
 async fn a_slow_body_that_finishes_within_the_timeout_is_applied() {
-    let app = app_with_frame().await;
+    let app = app_with_frame();
     let body = batch();
     // Half the body, then the rest 1 ms before the time is up.
     let split = body.len() / 2;
@@ -150,11 +135,7 @@ async fn a_slow_body_that_finishes_within_the_timeout_is_applied() {
         TIMEOUT - Duration::from_millis(1),
         body.slice(split..),
     );
-    let response = app
-        .clone()
-        .oneshot(samples(slow, body.len()))
-        .await
-        .unwrap();
-    assert_eq!(response.status(), StatusCode::OK);
-    assert_eq!(samples_in_frame(app).await, 4);
+    let reply = testing::send(&app, samples(slow, body.len())).await;
+    assert_eq!(reply.status, StatusCode::OK);
+    assert_eq!(samples_in_frame(&app).await, 4);
 }

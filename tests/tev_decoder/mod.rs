@@ -1,6 +1,5 @@
 //! An independent decoder of tev's IPC protocol and a tev stand-in, shared by the tests of
 //! `splatd_server::viewer::tev` and of `splatd serve --tev` (see `tests/tev_protocol.rs` for the packet layouts).
-#![allow(dead_code)]
 
 use std::collections::HashMap;
 use std::io::{ErrorKind, Read};

@@ -21,12 +21,9 @@ fn bits(r: &Resolved) -> (Vec<u32>, Vec<u64>) {
     (floats, r.spp.clone())
 }
 
-fn kernels() -> Vec<Kernel> {
-    [Kernel::Portable, Kernel::Avx2]
-        .into_iter()
-        .filter(|k| k.available())
-        .collect()
-}
+#[path = "../../tests/common/kernels.rs"]
+mod kernels;
+use kernels::kernels;
 
 /// A random integer in `0..=max`, often one of its edges (0, 1, `max`, around `2^52`).
 fn edgy(rng: &mut SplitMix64, max: u128) -> u128 {

@@ -7,12 +7,10 @@ use std::sync::Arc;
 use axum::body::{Body, Bytes};
 use axum::http::{header, Method, Request, StatusCode};
 use http_body_util::{BodyExt, Full};
-use splatd_proto::api::CreateFrame;
-use tower::ServiceExt;
 
 use super::auth::{Auth, Role};
-use super::{router, routes, Endpoint};
-use crate::{AppState, Limits};
+use super::{routes, Endpoint};
+use crate::{testing, AppState, Limits};
 
 const READ: &str = "read-token-0123456789";
 const WRITE: &str = "write-token-0123456789";
@@ -25,10 +23,12 @@ fn app(public_read: bool) -> AppState {
         public_read,
     )
     .unwrap();
-    let app = AppState::with_auth(Limits::default(), None, None, auth);
-    let spec = app.store.check(CreateFrame::new("f", 8, 8)).unwrap();
-    app.store.create(spec).unwrap();
-    app
+    testing::with_frame(
+        AppState::with_auth(Limits::default(), None, None, auth),
+        "f",
+        8,
+        8,
+    )
 }
 
 /// A body that records whether anything polled it (read or decompressed it).
@@ -60,23 +60,14 @@ async fn send(
     if let Some(token) = token {
         request = request.header(header::AUTHORIZATION, format!("Bearer {token}"));
     }
-    let response = router(app.clone())
-        .oneshot(request.body(body).unwrap())
-        .await
-        .unwrap();
-    let status = response.status();
-    let headers = response.headers().clone();
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
+    let reply = testing::send(app, request.body(body).unwrap()).await;
+    let status = reply.status;
     let code = if !head && (status.is_client_error() || status.is_server_error()) {
-        let error: serde_json::Value = serde_json::from_slice(&bytes)
-            .unwrap_or_else(|e| panic!("{status} without a JSON body ({e}): {bytes:?}"));
-        error["error"].as_str().unwrap().to_owned()
+        reply.json()["error"].as_str().unwrap().to_owned()
     } else {
         String::new()
     };
-    (status, code, headers)
+    (status, code, reply.headers)
 }
 
 fn concrete(path: &str) -> String {
@@ -292,8 +283,10 @@ async fn public_read_and_open_servers() {
         .header(header::CONTENT_TYPE, "application/json")
         .body(Body::from(&create[..]))
         .unwrap();
-    let response = router(open.clone()).oneshot(request).await.unwrap();
-    assert_eq!(response.status(), StatusCode::CREATED);
+    assert_eq!(
+        testing::send(&open, request).await.status,
+        StatusCode::CREATED
+    );
     assert!(open.store.get("g").is_ok());
 }
 
@@ -310,22 +303,12 @@ async fn exchange(
     for (name, value) in headers {
         request = request.header(name, *value);
     }
-    let response = router(server.clone())
-        .oneshot(request.body(body).unwrap())
-        .await
-        .unwrap();
-    let status = response.status();
-    let headers = response.headers().clone();
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
-    if status.is_success() {
-        return (status, String::new(), String::new(), headers);
+    let reply = testing::send(server, request.body(body).unwrap()).await;
+    if reply.status.is_success() {
+        return (reply.status, String::new(), String::new(), reply.headers);
     }
-    let error: serde_json::Value = serde_json::from_slice(&bytes)
-        .unwrap_or_else(|e| panic!("{status} without a JSON body ({e}): {bytes:?}"));
-    let text = |key: &str| error[key].as_str().unwrap_or_default().to_owned();
-    (status, text("error"), text("message"), headers)
+    let (code, message) = reply.error();
+    (reply.status, code, message, reply.headers)
 }
 
 /// The extractors refuse a request in the order the handlers used to check it by hand, each with
@@ -333,9 +316,7 @@ async fn exchange(
 /// is told the cheapest thing wrong first, and an unknown frame costs the server no body read.
 #[tokio::test]
 async fn extractors_refuse_in_order_with_json_codes() {
-    let server = AppState::new(Limits::default(), None, None);
-    let spec = server.store.check(CreateFrame::new("f", 8, 8)).unwrap();
-    server.store.create(spec).unwrap();
+    let server = testing::with_frame(AppState::new(Limits::default(), None, None), "f", 8, 8);
     let exr = [(header::CONTENT_TYPE, "image/x-exr")];
     let json = [(header::CONTENT_TYPE, "application/json")];
 
@@ -535,14 +516,8 @@ async fn put_frame(
         .header(header::AUTHORIZATION, format!("Bearer {token}"))
         .body(Body::from(body.to_string()))
         .unwrap();
-    let response = router(server.clone()).oneshot(request).await.unwrap();
-    let status = response.status();
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
-    let json = serde_json::from_slice(&bytes)
-        .unwrap_or_else(|e| panic!("{status} without a JSON body ({e}): {bytes:?}"));
-    (status, json)
+    let reply = testing::send(server, request).await;
+    (reply.status, reply.json())
 }
 
 /// Create-or-get with each role: `read` is refused and nothing is created; `write` and `admin`
@@ -732,9 +707,7 @@ fn rgb_exr(w: usize, h: usize) -> Vec<u8> {
 #[tokio::test]
 async fn large_pass_bodies_and_decodes_reuse_kept_buffers() {
     let (w, h) = (320, 320);
-    let server = AppState::new(Limits::default(), None, None);
-    let spec = server.store.check(CreateFrame::new("big", w, h)).unwrap();
-    server.store.create(spec).unwrap();
+    let server = testing::with_frame(AppState::new(Limits::default(), None, None), "big", w, h);
     let exr = rgb_exr(w as usize, h as usize);
     assert!(exr.len() as u64 >= super::extract::POOLED_MIN);
     let length = exr.len().to_string();

@@ -5,17 +5,12 @@ use std::time::Duration;
 
 use axum::body::Body;
 use axum::http::{header, Request, StatusCode};
-use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
-use tower::ServiceExt;
 
-use super::router;
-use crate::{AppState, Limits};
+use crate::{testing, AppState, Limits};
 
 fn app(limits: Limits) -> AppState {
-    let app = AppState::new(limits, None, None);
-    let spec = app.store.check(CreateFrame::new("f", 16, 16)).unwrap();
-    app.store.create(spec).unwrap();
+    let app = testing::with_frame(AppState::new(limits, None, None), "f", 16, 16);
     let records = (0..256)
         .map(|i| Record::new(i % 16, i / 16, [1.0, 50.0, 0.5]))
         .collect();
@@ -25,13 +20,8 @@ fn app(limits: Limits) -> AppState {
 }
 
 async fn get(app: &AppState, path: &str) -> (StatusCode, axum::http::HeaderMap, axum::body::Bytes) {
-    let request = Request::get(path).body(Body::empty()).unwrap();
-    let response = router(app.clone()).oneshot(request).await.unwrap();
-    let (status, headers) = (response.status(), response.headers().clone());
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
-    (status, headers, bytes)
+    let reply = testing::send(app, Request::get(path).body(Body::empty()).unwrap()).await;
+    (reply.status, reply.headers, reply.body)
 }
 
 #[tokio::test]
@@ -116,12 +106,9 @@ async fn answer(
     app: &AppState,
     request: Request<Body>,
 ) -> (StatusCode, axum::http::HeaderMap, serde_json::Value) {
-    let response = router(app.clone()).oneshot(request).await.unwrap();
-    let (status, headers) = (response.status(), response.headers().clone());
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
-    (status, headers, serde_json::from_slice(&bytes).unwrap())
+    let reply = testing::send(app, request).await;
+    let json = reply.json();
+    (reply.status, reply.headers, json)
 }
 
 /// A compressed body reserves the endpoint's whole limit before a byte is inflated (its size is

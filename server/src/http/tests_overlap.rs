@@ -4,23 +4,17 @@
 
 use axum::body::Body;
 use axum::http::{header, Method, Request, StatusCode};
-use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record, StateDump, BATCH_CONTENT_TYPE, STATE_CONTENT_TYPE};
 use splatd_scenes::synth::SplitMix64;
-use tower::ServiceExt;
 
-use super::router;
-use crate::{AppState, Limits};
+use crate::{testing, AppState, Limits};
 
 const W: u32 = 16;
 const H: u32 = 16;
 
 /// A server with an empty 16x16 frame `f` and no tokens.
 fn server() -> AppState {
-    let app = AppState::new(Limits::default(), None, None);
-    let spec = app.store.check(CreateFrame::new("f", W, H)).unwrap();
-    app.store.create(spec).unwrap();
-    app
+    testing::with_frame(AppState::new(Limits::default(), None, None), "f", W, H)
 }
 
 /// Batch `seq` of worker 7: 64 random samples, some of them fireflies, drawn from `seed`.
@@ -64,12 +58,8 @@ async fn call(
         .header(header::CONTENT_TYPE, kind)
         .body(Body::from(body))
         .unwrap();
-    let response = router(app.clone()).oneshot(request).await.unwrap();
-    let status = response.status();
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
-    (status, bytes.to_vec())
+    let reply = testing::send(app, request).await;
+    (reply.status, reply.body.to_vec())
 }
 
 async fn post(app: &AppState, b: &Batch) -> serde_json::Value {

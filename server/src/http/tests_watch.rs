@@ -4,12 +4,9 @@
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
-use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
-use tower::ServiceExt;
 
-use super::router;
-use crate::{AppState, Limits};
+use crate::{testing, AppState, Limits};
 
 /// More frames than the renders' cache holds (16).
 const FRAMES: usize = 20;
@@ -18,12 +15,9 @@ async fn info(app: &AppState, id: &str) -> serde_json::Value {
     let request = Request::get(format!("/v1/frames/{id}"))
         .body(Body::empty())
         .unwrap();
-    let response = router(app.clone()).oneshot(request).await.unwrap();
-    assert_eq!(response.status(), StatusCode::OK);
-    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX)
-        .await
-        .unwrap();
-    serde_json::from_slice(&bytes).unwrap()
+    let reply = testing::send(app, request).await;
+    assert_eq!(reply.status, StatusCode::OK);
+    reply.json()
 }
 
 fn post(app: &AppState, id: &str, seq: u64) {
@@ -36,11 +30,10 @@ fn post(app: &AppState, id: &str, seq: u64) {
 
 #[tokio::test]
 async fn polling_unchanged_frames_renders_nothing() {
-    let app = AppState::new(Limits::default(), None, None);
+    let mut app = AppState::new(Limits::default(), None, None);
     let ids: Vec<String> = (0..FRAMES).map(|i| format!("f{i}")).collect();
     for id in &ids {
-        let spec = app.store.check(CreateFrame::new(id, 8, 8)).unwrap();
-        app.store.create(spec).unwrap();
+        app = testing::with_frame(app, id, 8, 8);
         post(&app, id, 0);
     }
     for id in &ids {
