@@ -10,7 +10,8 @@
 //! * [`durable`]: snapshots, recovery and quarantine;
 //! * [`transport`]: the cap on connections, their deadlines, and the check of every request
 //!   head; [`http`]: the router, one handler file per concept, the JSON errors (the only place
-//!   that knows a status code) and bearer-token roles;
+//!   that knows a status code) and the guard of every route; [`access`]: who may do what
+//!   (bearer tokens and their roles);
 //! * [`server`]: the [`server::Server`] lifecycle (listener, background tasks, graceful
 //!   shutdown with a final snapshot); [`config`]: every flag and default;
 //! * [`push`]: push mode, forwarding exact deltas of every frame to an upstream splatd;
@@ -20,6 +21,7 @@
 //!
 //! The formats (EXR out, passes in, states, previews) are the `splatd-formats` crate's.
 
+pub mod access;
 pub mod config;
 pub mod durable;
 pub mod failpoint;
@@ -45,10 +47,10 @@ use std::time::Duration;
 use metrics_exporter_prometheus::PrometheusHandle;
 use splatd_proto::DecodeLimits;
 
+use access::Auth;
 pub use config::Config;
 use durable::{DurabilityError, Durable};
 use frame::ShardedFrame;
-use http::auth::Auth;
 use store::FrameStore;
 
 /// What a server refuses, so that no client can exhaust it.
@@ -113,8 +115,8 @@ pub struct Shared {
     pub connections: Arc<transport::Connections>,
     /// Decode buffers kept between passes (see [`splatd_formats::passes::ScratchPool`]).
     pub pass_scratch: splatd_formats::passes::ScratchPool,
-    /// Buffers kept for large request bodies (see [`http::extract::BodyPool`]).
-    pub body_pool: Arc<http::extract::BodyPool>,
+    /// Buffers kept for large request bodies (see [`memory::BodyPool`]).
+    pub body_pool: Arc<memory::BodyPool>,
     /// Open Image Denoise, or why this server has none.
     pub denoiser: render::denoise::Denoiser,
 }
@@ -176,7 +178,7 @@ impl AppState {
             renders: render::Renders::new(RENDERS_KEPT, budget),
             connections: Arc::new(transport::Connections::new(limits.max_connections)),
             pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
-            body_pool: Arc::new(http::extract::BodyPool::new(resolve_threads)),
+            body_pool: Arc::new(memory::BodyPool::new(resolve_threads)),
             store: FrameStore::new(limits),
             decode_limits,
             resolve_threads,

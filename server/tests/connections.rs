@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use splatd_proto::api::CreateFrame;
 use splatd_proto::{Batch, Record};
-use splatd_server::http::auth::Auth;
+use splatd_server::access::Auth;
 use splatd_server::{server::serve, testing, AppState, Limits};
 use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt, BufReader};
 use tokio::net::{TcpSocket, TcpStream};

@@ -13,7 +13,7 @@ use axum::body::Body;
 use axum::http::{header, Request, StatusCode};
 use tower::ServiceExt;
 
-use splatd_server::http::auth::Auth;
+use splatd_server::access::Auth;
 use splatd_server::http::router;
 use splatd_server::{AppState, Limits};
 

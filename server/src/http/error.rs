@@ -232,6 +232,19 @@ impl From<DurabilityError> for ApiError {
     }
 }
 
+/// A request the access rules refused: 401 `unauthorized` without a valid token, 403
+/// `forbidden` for a token without the role.
+impl From<crate::access::Refused> for ApiError {
+    fn from(e: crate::access::Refused) -> ApiError {
+        use crate::access::Refused;
+        let (status, code) = match e {
+            Refused::NoToken | Refused::UnknownToken => (StatusCode::UNAUTHORIZED, "unauthorized"),
+            Refused::LacksRole(_) => (StatusCode::FORBIDDEN, "forbidden"),
+        };
+        ApiError::new(status, code, e.to_string())
+    }
+}
+
 /// A need map or figures that could not be computed: a bad tile is the query's fault (400), a
 /// spent working budget 503 with `Retry-After`.
 impl From<crate::render::figures::FiguresError> for ApiError {

@@ -46,8 +46,9 @@ use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::{DefaultOnFailure, TraceLayer};
 use tracing::Level;
 
+use crate::access::Role;
 use crate::AppState;
-use auth::{Gate, Role};
+use auth::Gate;
 use error::ApiError;
 
 /// The whole HTTP surface.

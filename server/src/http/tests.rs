@@ -8,8 +8,8 @@ use axum::body::{Body, Bytes};
 use axum::http::{header, Method, Request, StatusCode};
 use http_body_util::{BodyExt, Full};
 
-use super::auth::{Auth, Role};
 use super::{routes, Endpoint};
+use crate::access::{Auth, Role};
 use crate::{testing, AppState, Limits};
 
 const READ: &str = "read-token-0123456789";
