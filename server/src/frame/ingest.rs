@@ -64,6 +64,8 @@ impl ShardedFrame {
         if single {
             buckets[0].reserve_exact(batch.records.len());
         }
+        // The pixels the batch touches, found in the pass that checks and sorts the records.
+        let mut bounds = Rect::new(u32::MAX, u32::MAX, 0, 0);
         for (index, r) in batch.records.iter().enumerate() {
             if r.x >= w || r.y >= h {
                 return Err(IngestError::Sample {
@@ -91,11 +93,22 @@ impl ShardedFrame {
                 self.band_of_row[r.y as usize] as usize
             };
             buckets[band].push((r.x, r.y, r.rgb));
+            bounds.x0 = bounds.x0.min(r.x);
+            bounds.y0 = bounds.y0.min(r.y);
+            bounds.x1 = bounds.x1.max(r.x + 1);
+            bounds.y1 = bounds.y1.max(r.y + 1);
+        }
+        if batch.records.is_empty() {
+            bounds = Rect::new(0, 0, 0, 0);
         }
 
         // Outside the gate: a pass over the records, as long as a copy of them.
         let digest = batch.content_digest();
-        let parts = Parts::Records { batch, buckets };
+        let parts = Parts::Records {
+            batch,
+            buckets,
+            bounds,
+        };
         self.apply(batch.worker, batch.seq, digest, parts, aovs)
     }
 
@@ -255,6 +268,8 @@ enum Parts<'a> {
     Records {
         batch: &'a Batch,
         buckets: Vec<Vec<(u32, u32, [f32; 3])>>,
+        /// The bounding box of the records' pixels (empty for no records).
+        bounds: Rect,
     },
     /// A whole pass: one sample per pixel of the frame, row-major.
     Pass { rgb: &'a [[f32; 3]] },
@@ -273,20 +288,7 @@ impl Parts<'_> {
     /// or a few rows it is the tile or the rows).
     fn bounds(&self, frame: &ShardedFrame) -> Rect {
         match self {
-            Parts::Records { batch, .. } => {
-                let mut r = Rect::new(u32::MAX, u32::MAX, 0, 0);
-                for rec in &batch.records {
-                    r.x0 = r.x0.min(rec.x);
-                    r.y0 = r.y0.min(rec.y);
-                    r.x1 = r.x1.max(rec.x + 1);
-                    r.y1 = r.y1.max(rec.y + 1);
-                }
-                if r.x0 > r.x1 {
-                    Rect::new(0, 0, 0, 0)
-                } else {
-                    r
-                }
-            }
+            Parts::Records { bounds, .. } => *bounds,
             Parts::Pass { .. } => frame.everywhere(),
         }
     }
@@ -302,7 +304,7 @@ impl Parts<'_> {
     /// The refusal for the first sample band `i` (`band`) cannot take, if any.
     fn first_full(&self, i: usize, band: &FrameState) -> Option<IngestError> {
         match self {
-            Parts::Records { batch, buckets } => first_full(band, &buckets[i]).map(|(x, y)| {
+            Parts::Records { batch, buckets, .. } => first_full(band, &buckets[i]).map(|(x, y)| {
                 let spp = band.spp(x, y);
                 pixel_full(batch, x, y, spp)
             }),
