@@ -74,12 +74,7 @@ const GOAL: f64 = 1.0;
 const DENOISE_GOAL: f64 = 0.2;
 
 fn uptime() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| {
-            let v: Vec<&str> = s.split_whitespace().take(3).collect();
-            format!("load {}", v.join(" "))
-        })
-        .unwrap_or_default()
+    format!("load {}", load::load_averages())
 }
 
 /// Clock ticks per second (`getconf CLK_TCK`; 100 if that fails).

@@ -183,12 +183,7 @@ fn load1() -> f64 {
 }
 
 fn uptime() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| {
-            let v: Vec<&str> = s.split_whitespace().take(3).collect();
-            format!("load average {}", v.join(" "))
-        })
-        .unwrap_or_default()
+    format!("load average {}", load::load_averages())
 }
 
 fn percentile(sorted: &[f64], p: f64) -> f64 {

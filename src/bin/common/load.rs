@@ -84,3 +84,11 @@ pub fn encode_pass(
         .to_buffered(std::io::Cursor::new(&mut bytes))?;
     Ok(bytes)
 }
+
+/// The machine's 1-, 5- and 15-minute load averages as `/proc/loadavg` gives them ("" where it
+/// cannot be read), for the load figure every benchmark line carries.
+pub fn load_averages() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_default()
+}
