@@ -67,8 +67,7 @@ pub async fn get_image(
     let exr = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
-            let cut = frame.cut();
-            kept.with_resolved(frame, cut, &params, threads, |resolved, cut, _| {
+            kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
                 let mut extra = if query.cascades {
                     cascade_layers(cut.cascade_means())
                 } else {
@@ -203,8 +202,7 @@ pub async fn get_preview(
     let png = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
-            let cut = frame.cut();
-            kept.with_resolved(frame, cut, &params, threads, |resolved, cut, _| {
+            kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
                 let exposure = query.exposure.unwrap_or_else(|| {
                     splatd_formats::preview::auto_exposure(&resolved.reweighted)
                 }) * query.stops.exp2();

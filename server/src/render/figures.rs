@@ -74,10 +74,9 @@ pub async fn need_map(
     let bytes = app
         .renders
         .get_or_render(frame, format!("need {tile}"), cost, move |frame| {
-            let cut = frame.cut();
-            let version = cut.version;
-            let map = kept.with_resolved(frame, cut, &params, threads, |resolved, cut, _| {
-                NeedMap::build(&cut.band_refs(), resolved, &params, tile)
+            let (map, version) = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+                let map = NeedMap::build(&cut.band_refs(), resolved, &params, tile);
+                (map, cut.version)
             });
             let map = map.map_err(|e| FiguresError::internal("need map", e))?;
             {

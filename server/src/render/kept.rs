@@ -81,28 +81,31 @@ impl KeptResolves {
         slots.retain(|(s, _)| *s != serial);
     }
 
-    /// Calls `use_it` with the resolve of `cut` (a cut of `frame`) at `params` on `threads`:
+    /// Calls `use_it` with a cut of `frame` taken now and its resolve at `params` on `threads`:
     /// the kept one, patched or made whole as needed, when `params` are the frame's own;
-    /// otherwise a resolve of its own. Renders of one frame take turns here.
+    /// otherwise a resolve of its own. Renders of one frame take turns here, and each takes its
+    /// cut in its turn: a render waiting behind another holds no cut (while a cut is held,
+    /// writers copy each band they change), and its cut is of the version its turn came at, so
+    /// the patch covers only what changed since the render before.
     ///
-    /// `use_it` gets the cut too, to drop as soon as it is done with it: while a cut is held,
-    /// writers copy each band they change, so an encoding that no longer needs the state
-    /// should not hold it.
+    /// `use_it` gets the cut to drop as soon as it is done with it: an encoding that no longer
+    /// needs the state should not hold it.
     pub fn with_resolved<T>(
         &self,
         frame: &ShardedFrame,
-        cut: FrameCut,
         params: &ResolveParams,
         threads: usize,
         use_it: impl FnOnce(&Resolved, FrameCut, Made) -> T,
     ) -> T {
         if *params != frame.spec().resolve {
+            let cut = frame.cut();
             let resolved = cut.resolve(params, threads);
             return use_it(&resolved, cut, Made::Whole);
         }
         let slot = self.slot(frame);
         let mut guard = slot.lock().unwrap_or_else(|e| e.into_inner());
         let kept = &mut *guard;
+        let cut = frame.cut();
         let bands = cut.band_refs();
         let made = match kept.resolved.as_mut() {
             Some(_) if kept.version == cut.version => Made::Kept,
@@ -123,8 +126,9 @@ impl KeptResolves {
                     }
                 }
             }
-            // A cut older than the kept resolve (a render that waited its turn behind a newer
-            // one): resolved on its own, the kept one stays.
+            // The kept resolve is of a later version than a cut taken after it (a frame
+            // re-created under the same slot cannot be: slots are per serial); resolved on its
+            // own, the kept one stays.
             Some(_) => {
                 drop(bands);
                 let resolved = cut.resolve(params, threads);
@@ -171,9 +175,8 @@ mod tests {
                 .collect()
         };
         let check = |want: Made| {
-            let cut = frame.cut();
-            let oracle = bits(&cut.resolve(&params, 1));
-            kept.with_resolved(&frame, cut, &params, 2, |r, _, made| {
+            kept.with_resolved(&frame, &params, 2, |r, cut, made| {
+                let oracle = bits(&cut.resolve(&params, 1));
                 assert_eq!(made, want);
                 assert!(bits(r) == oracle, "{made:?} differs from a fresh resolve");
             });
@@ -199,8 +202,7 @@ mod tests {
         // The estimator resolves the whole frame when the change covers most of it.
         check(Made::Patched);
         let other = ResolveParams::new(params.variant(), 3.0, 1.0, 0.0).unwrap();
-        let cut = frame.cut();
-        kept.with_resolved(&frame, cut, &other, 1, |_, _, made| {
+        kept.with_resolved(&frame, &other, 1, |_, _, made| {
             assert_eq!(made, Made::Whole)
         });
     }

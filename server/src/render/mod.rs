@@ -1,10 +1,17 @@
-//! Resolved images shared between requests: one resolve per frame version and query.
+//! Resolved images shared between requests: one render at a time per frame and query, shared by
+//! every request it can answer.
 //!
-//! A resolve copies the frame's state (hundreds of megabytes for a 1080p frame) and writes its
-//! layers; twelve dashboards asking for the same frame at once used to do that twelve times.
-//! Here concurrent requests for the same frame version and query wait for one render and share
-//! its encoded bytes (a `Bytes` is reference-counted, so a slow reader pins no copy of its own),
-//! and the latest render of each query stays cached until the frame changes.
+//! A resolve reads the whole frame (hundreds of megabytes of state for a 1080p frame) and writes
+//! its layers; twelve dashboards asking for the same frame at once used to do that twelve times,
+//! and while workers add samples every request saw a new version and started a render of its
+//! own beside the others. Here each frame and query has one render in flight at most: a request
+//! is answered by the latest render if that render read the frame at the request's version or
+//! later (it then holds every sample acknowledged before the request came); otherwise it waits
+//! for the render in flight, and if that one read an older version, the next render (one, for
+//! everyone who waited) answers it. A dashboard polling a frame that workers keep changing thus
+//! costs at most one render after another per frame and query, however many watch it. Bytes are
+//! reference-counted, so a slow reader pins no copy of its own, and the latest render of each
+//! query stays cached.
 //!
 //! The render reserves its working memory from the [`WorkBudget`] first; a request that cannot
 //! get it in time fails with [`Busy`] and leaves nothing cached.
@@ -18,7 +25,6 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
 use bytes::Bytes;
-use tokio::sync::OnceCell;
 
 use crate::frame::ShardedFrame;
 use crate::work::{Busy, WorkBudget};
@@ -29,15 +35,48 @@ mod kept;
 pub use kept::{KeptResolves, Made, MAX_KEPT};
 
 /// Which render of a frame: the frame's serial (so a deleted and re-created frame never hits
-/// the old one's renders), its version, and the query in a canonical form.
+/// the old one's renders) and the query in a canonical form.
 #[derive(Debug, Clone, PartialEq, Eq)]
 struct Key {
     frame: u64,
-    version: u64,
     query: String,
 }
 
-type Slot = Arc<OnceCell<Bytes>>;
+/// One frame and query: its latest render, and the turn its renders take one at a time.
+#[derive(Debug, Default)]
+struct Entry {
+    /// The latest render's bytes and the version of the frame read before it began (the bytes
+    /// hold every sample of that version, perhaps a few more).
+    latest: Mutex<Option<(u64, Bytes)>>,
+    /// Held by the render in flight (by its thread, so a request that gives up waiting does not
+    /// let a second render start beside the first).
+    turn: Arc<tokio::sync::Mutex<()>>,
+}
+
+impl Entry {
+    /// The latest bytes if they hold the frame's version `wanted` or a later one.
+    fn answering(&self, wanted: u64) -> Option<Bytes> {
+        let latest = self.latest.lock().unwrap_or_else(|e| e.into_inner());
+        latest
+            .as_ref()
+            .filter(|(version, _)| *version >= wanted)
+            .map(|(_, bytes)| bytes.clone())
+    }
+
+    /// Files a render of `version` unless a newer one is filed.
+    fn file(&self, version: u64, bytes: &Bytes) {
+        let mut latest = self.latest.lock().unwrap_or_else(|e| e.into_inner());
+        if latest.as_ref().is_none_or(|(v, _)| *v <= version) {
+            *latest = Some((version, bytes.clone()));
+        }
+    }
+
+    /// Bytes held by the latest render.
+    fn held(&self) -> u64 {
+        let latest = self.latest.lock().unwrap_or_else(|e| e.into_inner());
+        latest.as_ref().map_or(0, |(_, b)| b.len() as u64)
+    }
+}
 
 pub use crate::priority::RENDER_NICE;
 
@@ -61,11 +100,11 @@ pub enum RenderError<E> {
     Failed(E),
 }
 
-/// Renders in progress and the latest finished one per frame and query.
+/// The renders of each frame and query: the latest finished one and the one in flight.
 #[derive(Debug)]
 pub struct Renders {
-    slots: Mutex<VecDeque<(Key, Slot)>>,
-    /// Most renders kept; the oldest go first.
+    slots: Mutex<VecDeque<(Key, Arc<Entry>)>>,
+    /// Most frames and queries kept; the oldest go first.
     max_slots: usize,
     budget: Arc<WorkBudget>,
     /// Renders run so far (shared ones count once).
@@ -101,19 +140,17 @@ impl Renders {
         &self.budget
     }
 
-    fn slot(&self, key: Key) -> Slot {
+    fn entry(&self, key: Key) -> Arc<Entry> {
         let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        if let Some((_, slot)) = slots.iter().find(|(k, _)| *k == key) {
-            return slot.clone();
+        if let Some((_, entry)) = slots.iter().find(|(k, _)| *k == key) {
+            return entry.clone();
         }
-        // Older versions of the same render are stale from now on.
-        slots.retain(|(k, _)| !(k.frame == key.frame && k.query == key.query));
-        let slot = Slot::default();
-        slots.push_back((key, slot.clone()));
+        let entry = Arc::<Entry>::default();
+        slots.push_back((key, entry.clone()));
         while slots.len() > self.max_slots {
             slots.pop_front();
         }
-        slot
+        entry
     }
 
     /// Forgets every render of `frame` (when it is deleted).
@@ -125,9 +162,10 @@ impl Renders {
         self.kept.forget(frame);
     }
 
-    /// The bytes of `query` rendered from `frame` as it is now: shared with every concurrent or
-    /// earlier request for the same version and query, or rendered by `render` on the blocking
-    /// pool after reserving `cost` bytes of working memory.
+    /// The bytes of `query` rendered from `frame` with every sample it holds now: the latest
+    /// render's if it read this version or a later one, else the next render's, rendered by
+    /// `render` on a thread of its own after reserving `cost` bytes of working memory and shared
+    /// with everyone waiting for it.
     ///
     /// The version is read before rendering; if samples arrive meanwhile, the bytes may show a
     /// slightly newer state than the version they are filed under, never an older one.
@@ -138,45 +176,52 @@ impl Renders {
         cost: u64,
         render: impl FnOnce(&ShardedFrame) -> Result<Bytes, E> + Send + 'static,
     ) -> Result<Bytes, RenderError<E>> {
-        let key = Key {
+        let wanted = frame.version();
+        let entry = self.entry(Key {
             frame: frame.serial(),
-            version: frame.version(),
             query,
-        };
-        let slot = self.slot(key);
+        });
+        if let Some(bytes) = entry.answering(wanted) {
+            return Ok(bytes);
+        }
+        let turn = entry.turn.clone().lock_owned().await;
+        // The render that held the turn may have read this version or a later one.
+        if let Some(bytes) = entry.answering(wanted) {
+            return Ok(bytes);
+        }
+        let version = frame.version();
+        let reservation = self.budget.reserve(cost).await?;
+        self.rendered
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let frame = frame.clone();
-        let budget = self.budget.clone();
-        slot.get_or_try_init(|| async move {
-            let reservation = budget.reserve(cost).await?;
-            self.rendered
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            let rendered = on_render_thread(move || {
-                let bytes = render(&frame);
-                drop(reservation);
-                bytes
-            })
-            .await
-            .expect("a render does not panic");
-            rendered.map_err(RenderError::Failed)
+        let filed = entry.clone();
+        let rendered = on_render_thread(move || {
+            let bytes = render(&frame);
+            drop(reservation);
+            if let Ok(bytes) = &bytes {
+                filed.file(version, bytes);
+            }
+            drop(turn);
+            bytes
         })
         .await
-        .cloned()
-        .inspect(|_| self.trim())
+        .expect("a render does not panic");
+        let bytes = rendered.map_err(RenderError::Failed)?;
+        self.trim();
+        Ok(bytes)
     }
 
     /// Drops the oldest finished renders while the kept ones hold more than a quarter of the
-    /// working budget: cached bytes are memory too. Renders still in progress stay.
+    /// working budget: cached bytes are memory too. Renders in flight stay.
     fn trim(&self) {
         let cap = self.budget.capacity() / 4;
         let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        let held = |slots: &VecDeque<(Key, Slot)>| -> u64 {
-            slots
-                .iter()
-                .filter_map(|(_, s)| s.get().map(|b| b.len() as u64))
-                .sum()
+        let held = |slots: &VecDeque<(Key, Arc<Entry>)>| -> u64 {
+            slots.iter().map(|(_, e)| e.held()).sum()
         };
         while held(&slots) > cap {
-            match slots.iter().position(|(_, s)| s.initialized()) {
+            let idle = |(_, e): &(Key, Arc<Entry>)| e.held() > 0 && e.turn.try_lock().is_ok();
+            match slots.iter().position(idle) {
                 Some(oldest) => drop(slots.remove(oldest)),
                 None => break,
             }
@@ -244,6 +289,59 @@ mod tests {
         assert_eq!(calls.load(Ordering::SeqCst), 3);
     }
 
+    /// While a render of an older version runs, requests for the new one wait for it and then
+    /// share one render: however many watch a frame that keeps changing, one render of it runs
+    /// at a time, and each request's bytes hold the version it asked at.
+    #[tokio::test]
+    async fn requests_behind_a_running_render_share_the_next_one() {
+        let renders = Arc::new(Renders::new(8, WorkBudget::new(1 << 20, Duration::ZERO)));
+        let f = frame();
+        let calls = Arc::new(AtomicUsize::new(0));
+        let (release, released) = std::sync::mpsc::channel::<()>();
+        let (started, has_started) = tokio::sync::oneshot::channel::<()>();
+        let first = {
+            let (renders, f, calls) = (renders.clone(), f.clone(), calls.clone());
+            tokio::spawn(async move {
+                renders
+                    .get_or_render(&f, "q".into(), 100, move |f: &ShardedFrame| {
+                        calls.fetch_add(1, Ordering::SeqCst);
+                        let version = f.version();
+                        started.send(()).unwrap();
+                        released.recv().unwrap();
+                        Ok::<_, String>(Bytes::from(format!("v{version}")))
+                    })
+                    .await
+                    .unwrap()
+            })
+        };
+        has_started.await.unwrap();
+        // Two more versions, each asked for by four requests while the first render runs
+        // (a current-thread runtime runs the spawned requests up to their wait at each yield).
+        let mut waiting = Vec::new();
+        for seq in 0..2 {
+            let batch = Batch::new("f", 1, seq, vec![Record::new(0, 0, [1.0; 3])]).unwrap();
+            f.ingest(&batch).unwrap();
+            for _ in 0..4 {
+                let (renders, f, render) = (renders.clone(), f.clone(), counting(&calls));
+                waiting.push(tokio::spawn(async move {
+                    renders.get_or_render(&f, "q".into(), 100, render).await
+                }));
+            }
+            tokio::task::yield_now().await;
+            tokio::task::yield_now().await;
+        }
+        release.send(()).unwrap();
+        assert_eq!(first.await.unwrap(), "v0", "the first request asked at version 0");
+        for request in waiting {
+            assert_eq!(request.await.unwrap().unwrap(), "v2", "the next render read both");
+        }
+        assert_eq!(calls.load(Ordering::SeqCst), 2, "one render for the eight");
+        // An unchanged frame is answered by the latest render.
+        let again = renders.get_or_render(&f, "q".into(), 100, counting(&calls));
+        assert_eq!(again.await.unwrap(), "v2");
+        assert_eq!(calls.load(Ordering::SeqCst), 2);
+    }
+
     /// A render runs at nice RENDER_NICE, read back by the render itself from the kernel, while
     /// the caller keeps its own priority.
     #[tokio::test]
@@ -290,10 +388,7 @@ mod tests {
             );
         }
         let slots = renders.slots.lock().unwrap();
-        let held: usize = slots
-            .iter()
-            .filter_map(|(_, s)| s.get().map(Bytes::len))
-            .sum();
+        let held: u64 = slots.iter().map(|(_, e)| e.held()).sum();
         assert_eq!(held, 80, "two renders of 40 bytes fit 100");
         assert_eq!(slots.back().unwrap().0.query, "q4", "the newest is kept");
     }
