@@ -19,6 +19,9 @@ pub const INGEST_BYTES: &str = "splatd_ingest_bytes_total";
 pub const FRAMES: &str = "splatd_frames";
 /// Seconds an `image.exr` took (histogram).
 pub const RESOLVE_SECONDS: &str = "splatd_resolve_seconds";
+/// Renders run for images, previews, need maps and convergence figures; requests that shared
+/// one count once (a dashboard of unchanged frames adds none).
+pub const RENDERS: &str = "splatd_renders_total";
 /// Seconds OIDN took for a denoised image (histogram).
 pub const DENOISE_SECONDS: &str = "splatd_denoise_seconds";
 /// Imported states, label `result` (`applied`, `duplicate`).
@@ -61,7 +64,7 @@ pub const FRAME_CONVERGED: &str = "splatd_frame_converged";
 pub const FRAME_CONVERGED_BELOW: &str = "splatd_frame_converged_below";
 
 /// Every name above.
-pub const ALL: [&str; 27] = [
+pub const ALL: [&str; 28] = [
     SAMPLES_INGESTED,
     BATCHES_INGESTED,
     BATCHES_DUPLICATE,
@@ -70,6 +73,7 @@ pub const ALL: [&str; 27] = [
     INGEST_BYTES,
     FRAMES,
     RESOLVE_SECONDS,
+    RENDERS,
     DENOISE_SECONDS,
     IMPORTS,
     EXPORTS,

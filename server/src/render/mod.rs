@@ -193,6 +193,7 @@ impl Renders {
         let reservation = self.budget.reserve(cost).await?;
         self.rendered
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        metrics::counter!(crate::meters::RENDERS).increment(1);
         let frame = frame.clone();
         let filed = entry.clone();
         let rendered = on_render_thread(move || {
@@ -331,9 +332,17 @@ mod tests {
             tokio::task::yield_now().await;
         }
         release.send(()).unwrap();
-        assert_eq!(first.await.unwrap(), "v0", "the first request asked at version 0");
+        assert_eq!(
+            first.await.unwrap(),
+            "v0",
+            "the first request asked at version 0"
+        );
         for request in waiting {
-            assert_eq!(request.await.unwrap().unwrap(), "v2", "the next render read both");
+            assert_eq!(
+                request.await.unwrap().unwrap(),
+                "v2",
+                "the next render read both"
+            );
         }
         assert_eq!(calls.load(Ordering::SeqCst), 2, "one render for the eight");
         // An unchanged frame is answered by the latest render.
