@@ -4,7 +4,8 @@
 //! then `mean.R`, `removed.R`, `spp.Y`, and on request `cascade3.R` ...). Every EXR reader
 //! understands one part with dotted channel names (OpenEXR's layer convention), which is not
 //! true of multi-part files. Samples are 32-bit float; `spp.Y` is exact up to 2^24 samples.
-//! Scan lines with ZIP over 16 lines: lossless, compact, read everywhere.
+//! Scan lines with ZIP over 16 lines: lossless, compact, read everywhere (deflated at a fast
+//! level on every core, see [`zip`]).
 //!
 //! The header says how the image was made ([`Provenance`]): the standard `software` attribute
 //! (`splatd 0.1.0`), then `splatd:` attributes for the estimator and its parameters and the
@@ -33,6 +34,8 @@
 //! | `splatd:denoiseAlbedo`, `splatd:denoiseNormal` | string | the AOVs that guided it, or `none` |
 
 use exr::prelude::*;
+
+mod zip;
 
 use splatd_estimator::{CascadeLayout, ResolveParams, Resolved};
 use splatd_proto::api::Variant;
@@ -147,25 +150,8 @@ fn add_attributes(bytes: Vec<u8>, attributes: &[(&str, HeaderValue)]) -> Result<
         || attributes
             .iter()
             .any(|(name, _)| name.len() > SHORT_NAME_BYTES);
-    // Magic number and version field, then `name\0 type\0 size value` until an empty name.
-    let mut at = 8;
-    let skip_string = |at: &mut usize| -> Result<usize> {
-        let len = bytes[*at..]
-            .iter()
-            .position(|&b| b == 0)
-            .ok_or_else(|| invalid("unterminated header"))?;
-        *at += len + 1;
-        Ok(len)
-    };
-    while skip_string(&mut at)? > 0 {
-        skip_string(&mut at)?;
-        let size = bytes
-            .get(at..at + 4)
-            .map(|b| i32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-            .ok_or_else(|| invalid("header cut short"))?;
-        at += 4 + usize::try_from(size).map_err(|_| invalid("negative attribute size"))?;
-    }
-    let end = at - 1; // the empty name that ends the header
+    let end = zip::scan_header(&bytes)?.end;
+    let at = end + 1; // the offset table
     let mut added = Vec::new();
     for (name, value) in attributes {
         let (kind, data) = value.encode();
@@ -285,23 +271,32 @@ pub fn encode_exr_with(
 }
 
 /// One part of `size` pixels holding `channels`, in the layout of the module docs (scan lines,
-/// ZIP over 16 lines). Like [`encode_exr`], call it off the async threads.
+/// ZIP over 16 lines, deflated on every core: see [`zip`]). Like [`encode_exr`], call it off the
+/// async threads.
 pub fn write_one_part(
     size: (usize, usize),
     attributes: LayerAttributes,
     channels: Vec<AnyChannel<FlatSamples>>,
 ) -> Result<Vec<u8>> {
+    let first_y = attributes.layer_position.y();
+    let encoding = Encoding {
+        compression: Compression::Uncompressed,
+        blocks: Blocks::ScanLines,
+        line_order: LineOrder::Increasing,
+    };
     let layer = Layer::new(
         size,
         attributes,
-        Encoding::SMALL_LOSSLESS,
+        encoding,
         AnyChannels::sort(SmallVec::from_vec(channels)),
     );
     let mut bytes = Vec::new();
     Image::from_layer(layer)
         .write()
+        .non_parallel()
         .to_buffered(std::io::Cursor::new(&mut bytes))?;
-    Ok(bytes)
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    zip::compress_scan_lines(&bytes, first_y, size.1, threads)
 }
 
 fn push_rgb(channels: &mut Vec<AnyChannel<FlatSamples>>, prefix: &str, rgb: &[[f32; 3]]) {
