@@ -202,36 +202,44 @@ pub async fn get_preview(
     let png = app
         .renders
         .get_or_render(&frame, key, cost, move |frame| {
-            kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+            // A layer that needs nothing of the state is answered by a resolve of the version
+            // this render began at or a later one, kept by a render of another kind (the
+            // renders' cache files these bytes under a version read before this one).
+            let wanted = frame.version();
+            let encode = |resolved: &splatd_estimator::Resolved, denoised: Option<&[[f32; 3]]>| {
                 let exposure = query.exposure.unwrap_or_else(|| {
                     splatd_formats::preview::auto_exposure(&resolved.reweighted)
                 }) * query.stops.exp2();
-                let denoised;
                 let layer = match query.layer {
-                    PreviewLayer::Reweighted => &resolved.reweighted,
-                    PreviewLayer::Mean => &resolved.mean,
-                    PreviewLayer::Removed => &resolved.removed,
-                    PreviewLayer::Denoised => {
-                        let oidn = oidn.expect("checked above");
-                        let aovs = cut
-                            .aovs
-                            .as_ref()
-                            .map(|sums| sums.means())
-                            .unwrap_or_default();
-                        let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
-                        let high = DenoiseQuality::High;
-                        denoised = denoise_cut(
-                            &oidn, frame, &cut, &params, threads, &planes, px, &budget, high,
-                        )?
-                        .rgb;
-                        &denoised
-                    }
+                    PreviewLayer::Reweighted => &resolved.reweighted[..],
+                    PreviewLayer::Mean => &resolved.mean[..],
+                    PreviewLayer::Removed => &resolved.removed[..],
+                    PreviewLayer::Denoised => denoised.expect("made for the denoised layer"),
                 };
-                drop(cut);
                 let pixels = splatd_formats::preview::tonemap(layer, exposure);
                 splatd_formats::preview::encode_png(resolved.width, resolved.height, &pixels)
                     .map(Bytes::from)
                     .map_err(|e| ApiError::internal("PNG encoding", e))
+            };
+            let Some(oidn) = oidn else {
+                return kept.with_resolved_since(frame, &params, threads, wanted, |resolved, _| {
+                    encode(resolved, None)
+                });
+            };
+            kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+                let aovs = cut
+                    .aovs
+                    .as_ref()
+                    .map(|sums| sums.means())
+                    .unwrap_or_default();
+                let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
+                let high = DenoiseQuality::High;
+                let denoised = denoise_cut(
+                    &oidn, frame, &cut, &params, threads, &planes, px, &budget, high,
+                )?
+                .rgb;
+                drop(cut);
+                encode(resolved, Some(&denoised))
             })
         })
         .await?;

@@ -145,6 +145,33 @@ impl KeptResolves {
     }
 }
 
+impl KeptResolves {
+    /// [`with_resolved`](Self::with_resolved) for a render that needs the resolved layers only,
+    /// not the state: the kept resolve as it is if it is of version `wanted` or later (a render
+    /// of another kind, say the other layer of the live page's preview, just made it), else one
+    /// made as `with_resolved` makes it, its cut dropped before `use_it` runs.
+    pub fn with_resolved_since<T>(
+        &self,
+        frame: &ShardedFrame,
+        params: &ResolveParams,
+        threads: usize,
+        wanted: u64,
+        use_it: impl FnOnce(&Resolved, Made) -> T,
+    ) -> T {
+        if *params == frame.spec().resolve {
+            let slot = self.slot(frame);
+            let guard = slot.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(resolved) = guard.resolved.as_ref().filter(|_| guard.version >= wanted) {
+                return use_it(resolved, Made::Kept);
+            }
+        }
+        self.with_resolved(frame, params, threads, |resolved, cut, made| {
+            drop(cut);
+            use_it(resolved, made)
+        })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -205,5 +232,37 @@ mod tests {
         kept.with_resolved(&frame, &other, 1, |_, _, made| {
             assert_eq!(made, Made::Whole)
         });
+    }
+
+    /// A render that needs only the resolved layers takes the kept resolve when it is of the
+    /// version the render asks for or later, and patches it otherwise.
+    #[test]
+    fn a_layer_of_a_version_already_resolved_is_not_resolved_again() {
+        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", 40, 30)).unwrap());
+        let params = frame.spec().resolve;
+        let one = |seq: u64| Batch::new("f", 1, seq, vec![Record::new(3, 4, [2.0; 3])]).unwrap();
+        frame.ingest(&one(0)).unwrap();
+        let kept = KeptResolves::default();
+        let asked = frame.version();
+        kept.with_resolved(&frame, &params, 1, |_, _, made| {
+            assert_eq!(made, Made::Whole)
+        });
+        frame.ingest(&one(1)).unwrap();
+        let spp_at = |wanted: u64| {
+            kept.with_resolved_since(&frame, &params, 1, wanted, |r, made| {
+                (r.spp[4 * 40 + 3], made)
+            })
+        };
+        assert_eq!(
+            spp_at(asked),
+            (1, Made::Kept),
+            "the kept resolve answers its version"
+        );
+        assert_eq!(
+            spp_at(frame.version()),
+            (2, Made::Patched),
+            "a later version is patched"
+        );
+        assert_eq!(spp_at(frame.version()), (2, Made::Kept));
     }
 }
