@@ -4,7 +4,9 @@
 //! The browser is installed by `tests/setup/chromium.sh` (Debian's `chromium` and
 //! `chromium-driver`); a failure to install is a test failure. Set `SPLATD_SKIP_BROWSER=1` to
 //! skip this test on machines that cannot have a browser. Every run stores a screenshot of the
-//! page in `docs/live_page.png` (README shows it).
+//! page beside the test server's log, named after it (the path is printed); with
+//! `SPLATD_REFRESH_DOCS=1` it replaces `docs/live_page.png` (the README shows it), so a test run
+//! leaves the clone as it was and the README's image changes only on purpose.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
@@ -627,9 +629,15 @@ fn live_page_zooms_pans_splits_exposes_and_plots_convergence() {
             .await;
         let png = session.screenshot().await;
         assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n", "the screenshot is a PNG");
-        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/live_page.png");
-        std::fs::write(&path, png).expect("writing docs/live_page.png");
-        eprintln!("saved {}", path.display());
+        let path = if std::env::var_os("SPLATD_REFRESH_DOCS").is_some_and(|v| v == "1") {
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/live_page.png")
+        } else {
+            // Beside the server's log, named after it.
+            let log = server.log_path().map(|log| log.with_extension("png"));
+            log.unwrap_or_else(|| std::env::temp_dir().join("splatd-live-page.png"))
+        };
+        std::fs::write(&path, png).unwrap_or_else(|e| panic!("writing {}: {e}", path.display()));
+        eprintln!("saved the screenshot in {}", path.display());
         drop(session);
         drop(driver);
     });
