@@ -19,16 +19,27 @@ pub type PieceVisitor<'a> = dyn FnMut(u64, &[u64]) -> Result<(), MergeError> + '
 
 /// A state that a server frame's import adds to the frame: held whole ([`FrameState`]) or as the
 /// runs of a body being decoded ([`Decoded`]), whose cells are checked already.
-pub trait Importable {
+pub trait Importable: Sync {
     /// Width, height and cascade layout of its frame.
     fn geometry(&self) -> (u32, u32, &CascadeLayout);
     /// The first row it holds: its pixels are numbered row-major from 0 there.
     fn first_row(&self) -> u32;
     /// The samples it holds.
     fn samples(&self) -> u64;
-    /// Hands its cells to `f` in order, in pieces of consecutive whole pixels with the number of
-    /// each piece's first pixel; stops at `f`'s first error and returns it.
-    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError>;
+    /// The pixels of the rows it holds, empty ones included.
+    fn pixels(&self) -> u64;
+    /// Hands the cells of its pixels numbered in `within` to `f` in order, in pieces of
+    /// consecutive whole pixels with the number of each piece's first pixel; stops at `f`'s
+    /// first error and returns it. Threads may each visit a share of the pixels.
+    fn pieces_in(
+        &self,
+        within: std::ops::Range<u64>,
+        f: &mut PieceVisitor<'_>,
+    ) -> Result<(), MergeError>;
+    /// [`Importable::pieces_in`] for all its pixels.
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+        self.pieces_in(0..u64::MAX, f)
+    }
 }
 
 impl Importable for FrameState {
@@ -44,8 +55,25 @@ impl Importable for FrameState {
         self.total_samples()
     }
 
-    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
-        f(0, self.cells())
+    fn pixels(&self) -> u64 {
+        self.width() as u64 * self.rows().len() as u64
+    }
+
+    fn pieces_in(
+        &self,
+        within: std::ops::Range<u64>,
+        f: &mut PieceVisitor<'_>,
+    ) -> Result<(), MergeError> {
+        let pixels = Importable::pixels(self);
+        let stride = 4 * self.layout().cascades() + 1;
+        let (start, end) = (within.start.min(pixels), within.end.min(pixels));
+        if start >= end {
+            return Ok(());
+        }
+        f(
+            start,
+            &self.cells()[start as usize * stride..end as usize * stride],
+        )
     }
 }
 
@@ -250,14 +278,29 @@ impl Decoded<'_> {
     }
 }
 
+/// Pixels below which a share of the pixels is not worth a thread of its own.
+const MIN_SHARE_PIXELS: u64 = 1 << 14;
+
+/// `pixels` cut into at most `threads` consecutive shares of at least [`MIN_SHARE_PIXELS`]
+/// (one share when there are fewer).
+pub fn shares(pixels: u64, threads: usize) -> Vec<std::ops::Range<u64>> {
+    let n = (threads as u64).min(pixels / MIN_SHARE_PIXELS).max(1);
+    let step = pixels.div_ceil(n);
+    (0..n)
+        .map(|i| (i * step).min(pixels)..((i + 1) * step).min(pixels))
+        .collect()
+}
+
 /// Checks a state decoded without its cells ([`StateDump::decode_runs`]) like [`load`] and
 /// [`take_aovs`] check a whole one: the precision, the cascade parameters and every pixel of
-/// every run (one pass over the runs, a cache-sized piece at a time), then the AOV words (the
-/// AOV runs, expanded into the sums of the rows held).
+/// every run (one pass over the runs, a cache-sized piece at a time, by up to `threads` threads
+/// each taking a share of the pixels; a refusal names the first bad pixel, as one thread
+/// would), then the AOV words (the AOV runs, expanded into the sums of the rows held).
 pub fn load_runs<'a>(
     mut dump: StateDump,
     runs: Runs<'a>,
     aov_runs: Option<Runs<'_>>,
+    threads: usize,
 ) -> Result<Decoded<'a>, ImportError> {
     if dump.frac_bits != FRAC_BITS {
         return Err(ImportError::FracBits {
@@ -265,11 +308,36 @@ pub fn load_runs<'a>(
         });
     }
     let layout = CascadeLayout::new(dump.base, dump.cascades, dump.lowest_scale, dump.luminance)?;
+    let check = |within: std::ops::Range<u64>| {
+        let mut samples = 0;
+        runs.try_for_each_in(within, |first, cells| {
+            samples += check_pixels(dump.width, dump.rows_start, layout.cascades(), first, cells)?;
+            Ok::<(), ImportError>(())
+        })
+        .map(|()| samples)
+    };
+    let shares = shares(runs.pixels(), threads);
+    let checked: Vec<Result<u64, ImportError>> = match shares.as_slice() {
+        [all] => vec![check(all.clone())],
+        _ => std::thread::scope(|scope| {
+            let workers: Vec<_> = shares[1..]
+                .iter()
+                .map(|share| scope.spawn(|| check(share.clone())))
+                .collect();
+            let mut checked = vec![check(shares[0].clone())];
+            checked.extend(
+                workers
+                    .into_iter()
+                    .map(|w| w.join().expect("a state check does not panic")),
+            );
+            checked
+        }),
+    };
+    // In pixel order: the first share's refusal is the first bad pixel.
     let mut samples = 0;
-    runs.try_for_each(|first, cells| {
-        samples += check_pixels(dump.width, dump.rows_start, layout.cascades(), first, cells)?;
-        Ok::<(), ImportError>(())
-    })?;
+    for share in checked {
+        samples += share?;
+    }
     let words = aov_runs.map(|r| r.expand()).transpose()?;
     let specs = std::mem::take(&mut dump.aovs);
     let aovs = aov_sums(&dump, specs, words.unwrap_or_default())?;
@@ -295,7 +363,15 @@ impl Importable for Decoded<'_> {
         self.samples
     }
 
-    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+    fn pixels(&self) -> u64 {
+        self.runs.pixels()
+    }
+
+    fn pieces_in(
+        &self,
+        within: std::ops::Range<u64>,
+        f: &mut PieceVisitor<'_>,
+    ) -> Result<(), MergeError> {
         /// The runs' own refusals were all found by [`load_runs`]; only `f`'s remain.
         enum Stop {
             Merge(MergeError),
@@ -305,8 +381,9 @@ impl Importable for Decoded<'_> {
                 unreachable!("the runs were checked when the state was loaded: {e}")
             }
         }
+        let within = within.start.min(self.runs.pixels())..within.end.min(self.runs.pixels());
         self.runs
-            .try_for_each(|first, cells| f(first, cells).map_err(Stop::Merge))
+            .try_for_each_in(within, |first, cells| f(first, cells).map_err(Stop::Merge))
             .map_err(|Stop::Merge(e)| e)
     }
 }
@@ -771,6 +848,39 @@ mod tests {
         let mut dense = b.clone();
         dense.merge(&a).unwrap();
         assert_eq!(band.encode(vec![]), bytes(&dense));
+    }
+
+    /// Checked by several threads, a state gives the samples one thread counts, and a refusal
+    /// names the first bad pixel whichever share it lies in.
+    #[test]
+    fn shared_checks_agree_with_one_thread() {
+        let (w, h) = (256, 160);
+        let scene = FireflyScene::new(w, h, 5);
+        let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
+        state.splat_all(scene.pass(0));
+        assert!(shares(w as u64 * h as u64, 4).len() > 1);
+        let load = |d: &StateDump, threads| {
+            let bytes = d.encode();
+            let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, u64::MAX).unwrap();
+            load_runs(dump, runs, aov_runs, threads).map(|s| Importable::samples(&s))
+        };
+        let good = dump(&state, None, "f", None, vec![]);
+        assert_eq!(load(&good, 4), Ok(state.total_samples()));
+        assert_eq!(load(&good, 1), Ok(state.total_samples()));
+        let stride = 4 * state.layout().cascades() + 1;
+        let mut bad = good.clone();
+        // Counts that overflow, in the last share and then also in the first.
+        for pixel in [w as usize * (h as usize - 3) + 7, 300] {
+            bad.cells[pixel * stride + 3] = u64::MAX;
+            bad.cells[pixel * stride + 7] = u64::MAX;
+            let one = load(&bad, 1).unwrap_err();
+            assert_eq!(load(&bad, 4).unwrap_err(), one);
+            let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
+            assert!(
+                matches!(one, ImportError::Cells(CellsError::Invalid { x: ex, y: ey, .. }) if (ex, ey) == (x, y)),
+                "{one}"
+            );
+        }
     }
 
     #[test]

@@ -482,9 +482,13 @@ impl StateDump {
     /// The length of [`StateDump::write_with_cell_parts`]'s output, without writing it.
     pub fn encoded_len_with_cell_parts(&self, parts: &[&[u64]]) -> u64 {
         let pixels = Pixels::new(parts, self.cell_len());
-        let runs: Vec<Range<usize>> = pixels.runs().collect();
-        let cells: usize = runs.iter().map(|r| r.len() * self.cell_len()).sum();
-        (6 + self.header_bytes().len() + 8 * (runs.len() + 1) + 8 * cells) as u64
+        // Counted, not collected: one pass over the occupancy (a pixel's first word that is not
+        // 0 settles it), no list as long as the runs.
+        let (runs, held) = pixels
+            .runs()
+            .fold((0usize, 0usize), |(n, held), r| (n + 1, held + r.len()));
+        let cells = held * self.cell_len();
+        (6 + self.header_bytes().len() + 8 * (runs + 1) + 8 * cells) as u64
             + self.batches_bytes().len() as u64
             + self.aov_bytes().len() as u64
     }
@@ -941,10 +945,12 @@ impl<'a> Runs<'a> {
     }
 
     /// The runs' cells as little-endian bytes, in pieces of whole pixels: `f(first, bytes)`
-    /// with the number of the piece's first pixel. The headers were checked by the decoder.
+    /// with the number of the piece's first pixel, for the pixels of `within` only. The headers
+    /// were checked by the decoder.
     fn pieces<E: From<StateError>>(
         &self,
         max_pixels: usize,
+        within: Range<u64>,
         mut f: impl FnMut(u64, &'a [u8]) -> Result<(), E>,
     ) -> Result<(), E> {
         let pixel_bytes = 8 * self.cell_len;
@@ -953,10 +959,19 @@ impl<'a> Runs<'a> {
             let (head, tail) = rest.split_at(8);
             let first = u32::from_le_bytes(head[..4].try_into().expect("4 bytes")) as u64;
             let n = u32::from_le_bytes(head[4..].try_into().expect("4 bytes")) as usize;
-            if n == 0 {
+            if n == 0 || first >= within.end {
                 return Ok(());
             }
             let (cells, tail) = tail.split_at(n * pixel_bytes);
+            rest = tail;
+            // The part of the run inside `within`.
+            let skip = within.start.saturating_sub(first).min(n as u64) as usize;
+            let take = (within.end - first).min(n as u64) as usize;
+            if skip >= take {
+                continue;
+            }
+            let cells = &cells[skip * pixel_bytes..take * pixel_bytes];
+            let first = first + skip as u64;
             for (i, piece) in cells.chunks(max_pixels * pixel_bytes).enumerate() {
                 let first = first + (i * max_pixels) as u64;
                 // A run's pixels all hold something (the runs are maximal).
@@ -972,7 +987,6 @@ impl<'a> Runs<'a> {
                 }
                 f(first, piece)?;
             }
-            rest = tail;
         }
     }
 
@@ -982,11 +996,21 @@ impl<'a> Runs<'a> {
     /// first error, `f`'s or a pixel holding nothing, stops the visit and is returned.
     pub fn try_for_each<E: From<StateError>>(
         &self,
+        f: impl FnMut(u64, &[u64]) -> Result<(), E>,
+    ) -> Result<(), E> {
+        self.try_for_each_in(0..self.pixels, f)
+    }
+
+    /// [`Runs::try_for_each`] for the pixels of `within` only (numbered like `first`): so
+    /// several threads can each take a share of the pixels, the same pieces cut at its ends.
+    pub fn try_for_each_in<E: From<StateError>>(
+        &self,
+        within: Range<u64>,
         mut f: impl FnMut(u64, &[u64]) -> Result<(), E>,
     ) -> Result<(), E> {
         let max_pixels = (PIECE_CELLS / self.cell_len).max(1);
         let mut buf = vec![0u64; max_pixels * self.cell_len];
-        self.pieces(max_pixels, |first, bytes| {
+        self.pieces(max_pixels, within, |first, bytes| {
             let cells = &mut buf[..bytes.len() / 8];
             le_cells(bytes, cells);
             f(first, cells)
@@ -1008,7 +1032,7 @@ impl<'a> Runs<'a> {
     pub fn expand_into(&self, cells: &mut [u64]) -> Result<(), StateError> {
         assert_eq!(cells.len() as u64, self.pixels * self.cell_len as u64);
         let max_pixels = (PIECE_CELLS / self.cell_len).max(1);
-        self.pieces(max_pixels, |first, bytes| {
+        self.pieces(max_pixels, 0..self.pixels, |first, bytes| {
             let at = first as usize * self.cell_len;
             le_cells(bytes, &mut cells[at..at + bytes.len() / 8]);
             Ok(())
@@ -1351,6 +1375,22 @@ mod tests {
         .unwrap();
         assert!(pieces > 2000, "the short runs come one by one");
         assert_eq!(pieced, d.cells);
+        // Shares of the pixels, cut inside the long run, between short runs and inside the
+        // tail, together hand out every cell once, each share only its own pixels.
+        let cuts = [0, 1000, 2001, 5000, pixels as u64 - 5, pixels as u64];
+        let mut shared = vec![0u64; pixels * cell];
+        for share in cuts.windows(2) {
+            runs.try_for_each_in(share[0]..share[1], |first, cells| {
+                let end = first + (cells.len() / cell) as u64;
+                assert!(share[0] <= first && end <= share[1]);
+                let at = first as usize * cell;
+                assert!(shared[at..at + cells.len()].iter().all(|&c| c == 0));
+                shared[at..at + cells.len()].copy_from_slice(cells);
+                Ok::<(), StateError>(())
+            })
+            .unwrap();
+        }
+        assert_eq!(shared, d.cells);
         assert_eq!(StateDump::decode(&bytes, u64::MAX).unwrap(), d);
         // The visit stops at the first error of the visitor and returns it.
         let mut seen = 0;

@@ -117,6 +117,10 @@ pub struct Shared {
     pub pass_scratch: splatd_formats::passes::ScratchPool,
     /// Buffers kept for large request bodies (see [`memory::BodyPool`]).
     pub body_pool: Arc<memory::BodyPool>,
+    /// The buffer kept for state bodies (imports and pushed deltas): one, as large as the last
+    /// state received. A fresh buffer of a 1080p state's 550 MB cost more in page faults than
+    /// receiving it.
+    pub state_pool: Arc<memory::BodyPool>,
     /// Open Image Denoise, or why this server has none.
     pub denoiser: render::denoise::Denoiser,
 }
@@ -179,6 +183,7 @@ impl AppState {
             connections: Arc::new(transport::Connections::new(limits.max_connections)),
             pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
             body_pool: Arc::new(memory::BodyPool::new(resolve_threads)),
+            state_pool: Arc::new(memory::BodyPool::new(1)),
             store: FrameStore::new(limits),
             decode_limits,
             resolve_threads,

@@ -103,6 +103,8 @@ impl BodyPool {
             buffer.shrink_to(len);
         } else {
             buffer.reserve_exact(len);
+            // Pages not mapped yet (a new buffer, or what growing added) on huge pages.
+            advise_or_log(buffer.spare_capacity_mut());
         }
         buffer
     }

@@ -476,7 +476,7 @@ fn imports_from_runs_match_imports_of_states() {
         let bytes = splatd_formats::state::dump(state, None, "f", None, vec![]).encode();
         let (dump, runs, aov_runs) =
             splatd_proto::StateDump::decode_runs(&bytes, u64::MAX).unwrap();
-        let decoded = splatd_formats::state::load_runs(dump, runs, aov_runs).unwrap();
+        let decoded = splatd_formats::state::load_runs(dump, runs, aov_runs, 2).unwrap();
         assert_eq!(decoded.samples(), state.total_samples());
         frame.import("f", &decoded, decoded.aovs(), None, &[])
     };

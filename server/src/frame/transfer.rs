@@ -14,6 +14,11 @@ use splatd_formats::state::Importable;
 
 use super::{lock, ImportRefused, ShardedFrame};
 
+/// Threads a large import adds with: one per core.
+fn import_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
 impl ShardedFrame {
     pub(super) fn check_fits(&self, state: &FrameState) -> Result<(), MergeError> {
         // Every band has the frame's size and layout.
@@ -172,15 +177,42 @@ impl ShardedFrame {
         // pass over the state adds each piece to the bands it falls in.
         // Copies of the bands cuts hold, made before anything changes.
         let mut bands: Vec<&mut FrameState> = bands.iter_mut().map(|b| Arc::make_mut(b)).collect();
-        let mut added = 0;
-        state
-            .pieces(&mut |first, cells| {
-                for band in bands.iter_mut() {
-                    added += band.add_pixels(y0, first, cells);
-                }
-                Ok(())
+        // A large state is added by a few threads, each to its own bands from the pixels they
+        // hold (the locks are all held already, so they hold them for less time).
+        let width = state.geometry().0 as u64;
+        let add = |group: &mut [&mut FrameState]| -> u64 {
+            let (start, end) = (group[0].rows().start, group[group.len() - 1].rows().end);
+            let within =
+                start.saturating_sub(y0) as u64 * width..end.saturating_sub(y0) as u64 * width;
+            let mut added = 0;
+            state
+                .pieces_in(within, &mut |first, cells| {
+                    for band in group.iter_mut() {
+                        added += band.add_pixels(y0, first, cells);
+                    }
+                    Ok(())
+                })
+                .expect("adding checked pieces refuses nothing");
+            added
+        };
+        let threads = splatd_formats::state::shares(state.pixels(), import_threads())
+            .len()
+            .min(bands.len());
+        let added: u64 = if threads <= 1 {
+            add(&mut bands)
+        } else {
+            let per = bands.len().div_ceil(threads);
+            let mut groups = bands.chunks_mut(per);
+            let mine = groups.next().expect("at least one band");
+            std::thread::scope(|scope| {
+                let others: Vec<_> = groups.map(|g| scope.spawn(|| add(g))).collect();
+                add(mine)
+                    + others
+                        .into_iter()
+                        .map(|t| t.join().expect("adding checked pieces does not panic"))
+                        .sum::<u64>()
             })
-            .expect("adding checked pieces refuses nothing");
+        };
         debug_assert_eq!(added, state.samples());
         if let Some((mine, theirs)) = aov_sums.as_mut() {
             Arc::make_mut(mine)
@@ -197,16 +229,17 @@ impl ShardedFrame {
         Ok(true)
     }
 
-    /// Appends the frame's state with the batches it holds, in the state wire format, to `out`
-    /// (`GET .../state`), encoded from a [`ShardedFrame::cut`]: writers go on meanwhile.
-    pub fn write_state(&self, out: &mut Vec<u8>) {
+    /// Writes the frame's state with the batches it holds, in the state wire format, to `out`
+    /// (`GET .../state`), encoded from a [`ShardedFrame::cut`] a 64 KiB block at a time:
+    /// writers go on meanwhile, and no copy of the whole encoding is made.
+    pub fn write_state(&self, out: &mut impl std::io::Write) -> std::io::Result<()> {
         let cut = self.cut();
         let bands: Vec<&FrameState> = cut.bands.iter().map(|b| &**b).collect();
         let aovs = cut
             .aovs
             .as_deref()
             .map(|sums| (self.spec.request.aovs.as_slice(), sums));
-        splatd_formats::state::write_bands(&bands, aovs, self.id(), None, cut.seen.applied(), out)
-            .expect("writing into a Vec<u8> is infallible");
+        splatd_formats::state::write_bands(&bands, aovs, self.id(), None, cut.seen.applied(), out)?;
+        out.flush()
     }
 }

@@ -102,9 +102,11 @@ pub trait Upload {
     /// refusal can be counted where the kind's other refusals are.
     fn refused(_frame: &ShardedFrame) {}
 
-    /// Whether a large body sent as it is, with a `Content-Length`, is read into a buffer of
-    /// the server's [`BodyPool`] rather than a fresh one.
-    const POOLED: bool = false;
+    /// The [`BodyPool`] a large body sent as it is, with a `Content-Length`, is read into
+    /// rather than a fresh buffer; `None`: a fresh one.
+    fn pool(_app: &AppState) -> Option<&Arc<BodyPool>> {
+        None
+    }
 }
 
 /// The body of a `POST` to a frame, of kind `K`.
@@ -154,10 +156,10 @@ impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
             .reserve(wire + inflated + K::decoding_bytes(&frame, inflated))
             .await
             .map_err(|busy| ApiError::busy(&busy))?;
-        let bytes = match declared {
-            Some(len) if K::POOLED && encoding == Encoding::Identity && len >= POOLED_MIN => {
-                let pool = app.body_pool.clone();
-                read_pooled(body, limit, pool, len as usize).await
+        let pool = K::pool(app).filter(|_| encoding == Encoding::Identity);
+        let bytes = match (declared, pool) {
+            (Some(len), Some(pool)) if len >= POOLED_MIN => {
+                read_pooled(body, limit, pool.clone(), len as usize).await
             }
             _ => read_body(body, limit, encoding, declared)
                 .await

@@ -14,6 +14,7 @@ use crate::frame::ShardedFrame;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{FrameBody, Json, Query, Upload};
+use crate::memory::BodyPool;
 use crate::work::Reservation;
 use crate::AppState;
 
@@ -67,7 +68,9 @@ impl Upload for Pass {
         reject(frame, 0, "body");
     }
 
-    const POOLED: bool = true;
+    fn pool(app: &AppState) -> Option<&Arc<BodyPool>> {
+        Some(&app.body_pool)
+    }
 }
 
 fn pass_pixels(frame: &ShardedFrame) -> u64 {

@@ -2,6 +2,7 @@
 //! of another node's state or a pushed delta.
 
 use std::pin::Pin;
+use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 
 use axum::body::{Body, Bytes};
@@ -15,6 +16,7 @@ use crate::frame::ShardedFrame;
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, FrameBody, Json, Upload};
+use crate::memory::BodyPool;
 use crate::work::Reservation;
 use crate::AppState;
 use splatd_formats::state::Importable;
@@ -28,6 +30,12 @@ pub struct StateBody;
 
 impl Upload for StateBody {
     const CONTENT_TYPE: &'static str = STATE_CONTENT_TYPE;
+
+    /// The server's one kept state buffer: a node receiving states repeatedly (pulls, pushed
+    /// deltas) receives each into memory already mapped.
+    fn pool(app: &AppState) -> Option<&Arc<BodyPool>> {
+        Some(&app.state_pool)
+    }
 
     /// A state of this frame is at most its cells, plus a header and the batches it holds
     /// (16 bytes per worker, 16 per range of sequence numbers, 8 per batch): allow a generous
@@ -52,32 +60,61 @@ impl Upload for StateBody {
     }
 }
 
+/// Bytes of one piece of a streamed export: large enough that a piece is one cheap write to
+/// the socket, small enough that the pieces in flight are a few MiB whatever the frame.
+const EXPORT_PIECE: usize = 1 << 20;
+
+/// Pieces encoded ahead of the connection: the encoder keeps this many ready while the
+/// connection sends, so encoding and sending overlap.
+const EXPORT_AHEAD: usize = 4;
+
+/// Pieces of one export that exist at once: those queued, the one being filled, and those the
+/// connection holds while writing them.
+const EXPORT_PIECES: u64 = EXPORT_AHEAD as u64 + 3;
+
 /// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
+///
+/// Streamed (chunked): the state is encoded from a cut of the frame on the blocking pool, a
+/// piece at a time, while the connection sends the pieces before it. Nothing as large as the
+/// state is allocated for it (on a VM a fresh buffer of a 1080p state's 550 MB cost more in page
+/// faults than sending it), and no pass over the cells is spent finding the length first. A
+/// response that stops short (the encoder failed) ends without the last chunk, so a client sees
+/// a cut-off body, never a short state.
 pub async fn export(
     State(app): State<AppState>,
     Frame(frame): Frame,
 ) -> Result<impl IntoResponse, ApiError> {
-    // The encoding: the cells, a header, run headers and the applied batches.
-    let room = frame.spec().memory_bytes() + 64 * 1024;
-    let reservation = app
-        .renders
-        .budget()
-        .reserve(room)
+    // While the encoding runs, the cut it encodes shares the frame's bands: writers copy a band
+    // they change meanwhile, up to the frame's cells. Then the pieces in flight.
+    let budget = app.renders.budget();
+    let cut_room = budget
+        .reserve(frame.spec().memory_bytes())
         .await
         .map_err(|busy| ApiError::busy(&busy))?;
-    let (bytes, mut reservation) = blocking("export", move || {
-        let mut out = crate::memory::faulted_buffer(room as usize);
-        frame.write_state(&mut out);
-        Ok((out, reservation))
-    })
-    .await?;
+    let pieces_room = budget
+        .reserve(EXPORT_PIECES * EXPORT_PIECE as u64)
+        .await
+        .map_err(|busy| ApiError::busy(&busy))?;
+    let (pieces, rx) = tokio::sync::mpsc::channel(EXPORT_AHEAD);
+    tokio::task::spawn_blocking(move || {
+        let mut out = PieceWriter {
+            pieces,
+            piece: Vec::with_capacity(EXPORT_PIECE),
+            free: Arc::default(),
+        };
+        let written = frame.write_state(&mut out).and_then(|()| out.finish());
+        // The cut is gone once the encoding is: its room goes back with it.
+        drop(cut_room);
+        if let Err(e) = written {
+            // The client went away (the connection dropped the pieces' receiver).
+            tracing::debug!(frame = %frame.id(), "export stopped: {e}");
+        }
+    });
     metrics::counter!(crate::meters::EXPORTS).increment(1);
-    reservation.shrink_to(bytes.len() as u64);
-    // The encoded state stays reserved until the response is sent or dropped: a client that
-    // reads slowly holds its share of the budget, not memory beside it.
-    let body = Reserved {
-        inner: Body::from(bytes),
-        _reservation: reservation,
+    let body = StreamedState {
+        pieces: rx,
+        ended: false,
+        _reservation: pieces_room,
     };
     Ok((
         [(header::CONTENT_TYPE, STATE_CONTENT_TYPE)],
@@ -85,29 +122,121 @@ pub async fn export(
     ))
 }
 
-/// A response body that holds working memory until it is dropped.
-struct Reserved {
-    inner: Body,
+/// The idle piece buffers of one export, reused so that a piece lands in memory already mapped.
+type FreePieces = Arc<Mutex<Vec<Vec<u8>>>>;
+
+/// Cuts what is written into pieces of [`EXPORT_PIECE`] bytes and queues each for the
+/// connection (`Some`; `None` once the encoding is whole), waiting while [`EXPORT_AHEAD`] are
+/// queued; fails once the connection is gone.
+struct PieceWriter {
+    pieces: tokio::sync::mpsc::Sender<Option<Bytes>>,
+    piece: Vec<u8>,
+    free: FreePieces,
+}
+
+impl PieceWriter {
+    fn send(&mut self) -> std::io::Result<()> {
+        if self.piece.is_empty() {
+            return Ok(());
+        }
+        let next = lock_free(&self.free)
+            .pop()
+            .unwrap_or_else(|| Vec::with_capacity(EXPORT_PIECE));
+        let piece = Recycled {
+            bytes: std::mem::replace(&mut self.piece, next),
+            free: self.free.clone(),
+        };
+        self.queue(Some(Bytes::from_owner(piece)))
+    }
+
+    fn queue(&self, piece: Option<Bytes>) -> std::io::Result<()> {
+        self.pieces.blocking_send(piece).map_err(|_| {
+            std::io::Error::new(std::io::ErrorKind::BrokenPipe, "the response was dropped")
+        })
+    }
+
+    /// Sends what is left and marks the encoding whole.
+    fn finish(&mut self) -> std::io::Result<()> {
+        self.send()?;
+        self.queue(None)
+    }
+}
+
+impl std::io::Write for PieceWriter {
+    fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
+        let n = data.len().min(EXPORT_PIECE - self.piece.len());
+        self.piece.extend_from_slice(&data[..n]);
+        if self.piece.len() == EXPORT_PIECE {
+            self.send()?;
+        }
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.send()
+    }
+}
+
+fn lock_free(free: &FreePieces) -> std::sync::MutexGuard<'_, Vec<Vec<u8>>> {
+    // A list of empty buffers holds no invariant a panic could break.
+    free.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// A piece that goes back to its export's free list once the connection has sent it.
+struct Recycled {
+    bytes: Vec<u8>,
+    free: FreePieces,
+}
+
+impl AsRef<[u8]> for Recycled {
+    fn as_ref(&self) -> &[u8] {
+        &self.bytes
+    }
+}
+
+impl Drop for Recycled {
+    fn drop(&mut self) {
+        let mut bytes = std::mem::take(&mut self.bytes);
+        bytes.clear();
+        lock_free(&self.free).push(bytes);
+    }
+}
+
+/// The response body of an export: the pieces as the encoder queues them, until the encoder
+/// marks the encoding whole (`ended`), holding the pieces' working memory until it is dropped.
+/// An encoder that stops short (a panic) ends the body with an error instead, so the client
+/// sees a cut-off response rather than a short state.
+struct StreamedState {
+    pieces: tokio::sync::mpsc::Receiver<Option<Bytes>>,
+    ended: bool,
     _reservation: Reservation,
 }
 
-impl http_body::Body for Reserved {
+impl http_body::Body for StreamedState {
     type Data = Bytes;
-    type Error = axum::Error;
+    type Error = std::io::Error;
 
     fn poll_frame(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
-    ) -> Poll<Option<Result<http_body::Frame<Bytes>, axum::Error>>> {
-        Pin::new(&mut self.inner).poll_frame(cx)
+    ) -> Poll<Option<Result<http_body::Frame<Bytes>, std::io::Error>>> {
+        if self.ended {
+            return Poll::Ready(None);
+        }
+        match std::task::ready!(self.pieces.poll_recv(cx)) {
+            Some(Some(piece)) => Poll::Ready(Some(Ok(http_body::Frame::data(piece)))),
+            Some(None) => {
+                self.ended = true;
+                Poll::Ready(None)
+            }
+            None => Poll::Ready(Some(Err(std::io::Error::other(
+                "the state's encoding stopped before its end",
+            )))),
+        }
     }
 
     fn is_end_stream(&self) -> bool {
-        self.inner.is_end_stream()
-    }
-
-    fn size_hint(&self) -> http_body::SizeHint {
-        self.inner.size_hint()
+        self.ended
     }
 }
 
@@ -127,12 +256,13 @@ pub async fn import(
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
+    let threads = app.resolve_threads;
     let (samples, applied) = blocking("import", move || {
         let _reservation = reservation;
         let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
         // Refused before its AOV words are expanded (at most the frame's, reserved above).
         target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
-        let state = splatd_formats::state::load_runs(dump, runs, aov_runs)?;
+        let state = splatd_formats::state::load_runs(dump, runs, aov_runs, threads)?;
         let dump = &state.dump;
         let applied = target.import(
             &dump.frame,
