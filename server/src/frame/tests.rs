@@ -389,6 +389,24 @@ fn too_bright_samples_and_full_pixels_are_refused_whole() {
     assert_eq!(frame.ingest(&batch(1, 2, ok)).unwrap().accepted, 2);
 }
 
+/// A pass large enough to be splatted on several threads ([`super::ingest`]'s
+/// `PARALLEL_SAMPLES`) gives the frame one state would hold, bit for bit.
+#[test]
+fn a_large_pass_splatted_on_several_threads_is_the_one_state() {
+    let (w, h) = (1024, 512);
+    let scene = FireflyScene::new(w, h, 5);
+    let frame = ShardedFrame::new(spec(w, h));
+    assert!(frame.bands.len() > 1, "the test needs several bands");
+    let mut reference = FrameState::new(w, h, CascadeLayout::with_defaults());
+    for pass in 0..2 {
+        let rgb: Vec<[f32; 3]> = scene.pass(pass).map(|(_, _, rgb)| rgb).collect();
+        reference.splat_all(scene.pass(pass));
+        let got = frame.ingest_pass(1, pass, &rgb, None).unwrap();
+        assert_eq!(got.accepted, u64::from(w * h));
+    }
+    assert!(frame.cut().whole() == reference, "the frame differs");
+}
+
 /// A pass ingested whole (rows straight into the bands) against the batch of its records:
 /// the same cells over several bands, the same digest (a pass retried as records is a
 /// duplicate, other records under its id a conflict), the same refusals with the same
