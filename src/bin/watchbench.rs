@@ -564,7 +564,7 @@ async fn scrape_cost(args: &Args, tick: f64) -> Result<Vec<String>> {
     );
     println!("  for scale, image.exr of one {s}x{s} frame: {image:.4} s CPU");
     let met = |renders: u64| {
-        if renders <= SCRAPE_GOAL_RENDERS {
+        if renders == SCRAPE_GOAL_RENDERS {
             "met"
         } else {
             "MISSED"
