@@ -840,7 +840,7 @@ mod tests {
     /// Release-mode throughput at 128x128 on one thread; run with
     /// `cargo test --release --lib tracer::tests::throughput -- --ignored --nocapture`.
     #[test]
-    #[ignore]
+    #[ignore = "a throughput measurement, not a check: run it in release with --ignored"]
     fn throughput() {
         let tracer = Tracer::new(128, 128);
         let mut out = Vec::with_capacity(128 * 128);
