@@ -176,7 +176,7 @@ impl AppState {
             max_records: limits.max_records,
             ..DecodeLimits::default()
         };
-        let resolve_threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+        let resolve_threads = frame::cores();
         let budget = work::WorkBudget::new(limits.work_memory_bytes, limits.work_wait);
         AppState(Arc::new(Shared {
             renders: render::Renders::new(RENDERS_KEPT, budget),

@@ -270,41 +270,21 @@ impl ShardedFrame {
 const PARALLEL_SAMPLES: u64 = 1 << 19;
 
 /// Splats each band of `touched` (index, state) with its samples of `parts`: on the calling
-/// thread, or for a large ingest over the bands on as many threads as the machine has cores
-/// (each taking the next band not yet taken), so that a pass is not splatted on one core
-/// while the others wait for its bands. The bands are disjoint rows: the result is the same
-/// bit for bit whichever thread splats which band.
+/// thread, or for a large ingest in groups of bands on as many threads as the machine has
+/// cores, so that a pass is not splatted on one core while the others wait for its bands. The
+/// bands are disjoint rows: the result is the same bit for bit whichever thread splats which
+/// band.
 fn splat_bands(parts: &Parts<'_>, touched: &mut [(usize, &mut FrameState)]) {
-    let threads = splat_threads().min(touched.len());
-    if threads <= 1 || parts.len() < PARALLEL_SAMPLES {
-        for (i, band) in touched.iter_mut() {
+    let threads = if parts.len() < PARALLEL_SAMPLES {
+        1
+    } else {
+        super::cores()
+    };
+    super::on_groups(touched, threads, |group| {
+        for (i, band) in group.iter_mut() {
             parts.splat(*i, band);
         }
-        return;
-    }
-    let bands: Vec<std::sync::Mutex<&mut (usize, &mut FrameState)>> =
-        touched.iter_mut().map(std::sync::Mutex::new).collect();
-    let next = std::sync::atomic::AtomicUsize::new(0);
-    let work = || loop {
-        let k = next.fetch_add(1, Ordering::Relaxed);
-        let Some(slot) = bands.get(k) else { return };
-        // Each slot is taken by exactly one thread: the lock is never contended.
-        let mut slot = slot.lock().unwrap_or_else(|e| e.into_inner());
-        let (i, band) = &mut **slot;
-        parts.splat(*i, band);
-    };
-    std::thread::scope(|scope| {
-        for _ in 1..threads {
-            scope.spawn(work);
-        }
-        work();
     });
-}
-
-/// Threads a large ingest splats its bands on: the machine's cores.
-fn splat_threads() -> usize {
-    static THREADS: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
-    *THREADS.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
 /// The checked samples of one ingest.

@@ -106,6 +106,43 @@ fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
     m.lock().unwrap_or_else(|e| e.into_inner())
 }
 
+/// The machine's cores: the threads a large ingest or import (and a resolve) works on.
+pub fn cores() -> usize {
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+}
+
+/// `work` on `items` cut into at most `threads` consecutive groups of equal length, each group
+/// on a thread of its own (the first on the calling thread); the groups' results in order.
+/// For work on disjoint bands, whose locks the caller holds.
+fn on_groups<T: Send, R: Send>(
+    items: &mut [T],
+    threads: usize,
+    work: impl Fn(&mut [T]) -> R + Sync,
+) -> Vec<R> {
+    let per = items.len().div_ceil(threads.max(1)).max(1);
+    if items.is_empty() {
+        return Vec::new();
+    }
+    if per >= items.len() {
+        // One group: no thread to start.
+        return vec![work(items)];
+    }
+    let mut groups = items.chunks_mut(per);
+    let mine = groups.next().expect("two groups or more");
+    let work = &work;
+    std::thread::scope(|scope| {
+        let others: Vec<_> = groups.map(|g| scope.spawn(move || work(g))).collect();
+        let mut results = vec![work(mine)];
+        results.extend(
+            others
+                .into_iter()
+                .map(|t| t.join().expect("work on bands does not panic")),
+        );
+        results
+    })
+}
+
 impl ShardedFrame {
     /// An empty frame.
     pub fn new(spec: FrameSpec) -> ShardedFrame {

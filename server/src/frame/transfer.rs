@@ -14,11 +14,6 @@ use splatd_formats::state::Importable;
 
 use super::{lock, ImportRefused, ShardedFrame};
 
-/// Threads a large import adds with: one per core.
-fn import_threads() -> usize {
-    std::thread::available_parallelism().map_or(1, |n| n.get())
-}
-
 impl ShardedFrame {
     pub(super) fn check_fits(&self, state: &FrameState) -> Result<(), MergeError> {
         // Every band has the frame's size and layout.
@@ -195,24 +190,8 @@ impl ShardedFrame {
                 .expect("adding checked pieces refuses nothing");
             added
         };
-        let threads = splatd_formats::state::shares(state.pixels(), import_threads())
-            .len()
-            .min(bands.len());
-        let added: u64 = if threads <= 1 {
-            add(&mut bands)
-        } else {
-            let per = bands.len().div_ceil(threads);
-            let mut groups = bands.chunks_mut(per);
-            let mine = groups.next().expect("at least one band");
-            std::thread::scope(|scope| {
-                let others: Vec<_> = groups.map(|g| scope.spawn(|| add(g))).collect();
-                add(mine)
-                    + others
-                        .into_iter()
-                        .map(|t| t.join().expect("adding checked pieces does not panic"))
-                        .sum::<u64>()
-            })
-        };
+        let threads = splatd_formats::state::shares(state.pixels(), super::cores()).len();
+        let added: u64 = super::on_groups(&mut bands, threads, add).into_iter().sum();
         debug_assert_eq!(added, state.samples());
         if let Some((mine, theirs)) = aov_sums.as_mut() {
             Arc::make_mut(mine)
