@@ -109,7 +109,13 @@ impl KeptResolves {
         let bands = cut.band_refs();
         let made = match kept.resolved.as_mut() {
             Some(_) if kept.version == cut.version => Made::Kept,
-            Some(resolved) if kept.version < cut.version => {
+            Some(resolved) => {
+                // Cuts are taken in turn under this slot's lock, so each is at least as new as
+                // the one the kept resolve came from.
+                debug_assert!(
+                    kept.version < cut.version,
+                    "a cut older than the kept resolve"
+                );
                 match frame.changes_between(kept.version, cut.version) {
                     Some(changed) => {
                         let changed = Rect::merge(&changed, MAX_PATCHES);
@@ -126,14 +132,6 @@ impl KeptResolves {
                     }
                 }
             }
-            // The kept resolve is of a later version than a cut taken after it (a frame
-            // re-created under the same slot cannot be: slots are per serial); resolved on its
-            // own, the kept one stays.
-            Some(_) => {
-                drop(bands);
-                let resolved = cut.resolve(params, threads);
-                return use_it(&resolved, cut, Made::Whole);
-            }
             None => {
                 kept.resolved = Some(cut.resolve(params, threads));
                 Made::Whole
@@ -143,9 +141,7 @@ impl KeptResolves {
         drop(bands);
         use_it(kept.resolved.as_ref().expect("kept above"), cut, made)
     }
-}
 
-impl KeptResolves {
     /// [`with_resolved`](Self::with_resolved) for a render that needs the resolved layers only,
     /// not the state: the kept resolve as it is if it is of version `wanted` or later (a render
     /// of another kind, say the other layer of the live page's preview, just made it), else one
