@@ -308,15 +308,20 @@ fn push_rgb(channels: &mut Vec<AnyChannel<FlatSamples>>, prefix: &str, rgb: &[[f
     }
 }
 
-/// The channels of an EXR read back, by name (for tests and tools).
-pub fn decode_exr_channels(bytes: &[u8]) -> Result<Vec<(String, Vec<f32>)>> {
-    let image = read()
+/// The first layer of an EXR, every channel and attribute, as `exr` reads it.
+fn read_first_layer(bytes: &[u8]) -> Result<Image<Layer<AnyChannels<FlatSamples>>>> {
+    read()
         .no_deep_data()
         .largest_resolution_level()
         .all_channels()
         .first_valid_layer()
         .all_attributes()
-        .from_buffered(std::io::Cursor::new(bytes))?;
+        .from_buffered(std::io::Cursor::new(bytes))
+}
+
+/// The channels of an EXR read back, by name (for tests and tools).
+pub fn decode_exr_channels(bytes: &[u8]) -> Result<Vec<(String, Vec<f32>)>> {
+    let image = read_first_layer(bytes)?;
     Ok(image
         .layer_data
         .channel_data
@@ -363,14 +368,7 @@ mod tests {
         let bytes = encode_exr(&resolved, &[], &[], &provenance).unwrap();
         assert!(bytes == encode_exr(&resolved, &[], &[], &provenance).unwrap());
 
-        let image = read()
-            .no_deep_data()
-            .largest_resolution_level()
-            .all_channels()
-            .first_valid_layer()
-            .all_attributes()
-            .from_buffered(std::io::Cursor::new(&bytes))
-            .unwrap();
+        let image = read_first_layer(&bytes).unwrap();
         let attributes = &image.layer_data.attributes;
         let version = format!("splatd {}", env!("CARGO_PKG_VERSION"));
         assert_eq!(attributes.software_name, Some(Text::from(version.as_str())));
