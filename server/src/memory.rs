@@ -47,20 +47,6 @@ pub fn zeroed_cells(len: usize) -> Vec<u64> {
     cells
 }
 
-/// An empty `Vec<u8>` with room for `capacity` bytes, on huge pages where the kernel grants them
-/// and faulted in already, for a large encoding written under a lock: its writes then take no
-/// page faults.
-pub fn faulted_buffer(capacity: usize) -> Vec<u8> {
-    let mut buf = Vec::<u8>::with_capacity(capacity);
-    let spare = buf.spare_capacity_mut();
-    advise_or_log(spare);
-    // One write per 4 KiB page maps it (the kernel zeroes it, or its whole huge page).
-    for page in spare.chunks_mut(4096) {
-        page[0].write(0);
-    }
-    buf
-}
-
 /// [`advise_huge_pages`], logging (at debug level) a kernel that refuses.
 pub fn advise_or_log<T>(buf: &[T]) {
     if let Err(e) = advise_huge_pages(buf) {

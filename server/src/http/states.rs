@@ -2,7 +2,7 @@
 //! of another node's state or a pushed delta.
 
 use std::pin::Pin;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::task::{Context, Poll};
 
 use axum::body::{Body, Bytes};
@@ -97,10 +97,11 @@ pub async fn export(
         .map_err(|busy| ApiError::busy(&busy))?;
     let (pieces, rx) = tokio::sync::mpsc::channel(EXPORT_AHEAD);
     tokio::task::spawn_blocking(move || {
+        let free = Arc::new(BodyPool::new(EXPORT_PIECES as usize));
         let mut out = PieceWriter {
             pieces,
-            piece: Vec::with_capacity(EXPORT_PIECE),
-            free: Arc::default(),
+            piece: free.take(EXPORT_PIECE),
+            free,
         };
         let written = frame.write_state(&mut out).and_then(|()| out.finish());
         // The cut is gone once the encoding is: its room goes back with it.
@@ -122,16 +123,14 @@ pub async fn export(
     ))
 }
 
-/// The idle piece buffers of one export, reused so that a piece lands in memory already mapped.
-type FreePieces = Arc<Mutex<Vec<Vec<u8>>>>;
-
 /// Cuts what is written into pieces of [`EXPORT_PIECE`] bytes and queues each for the
 /// connection (`Some`; `None` once the encoding is whole), waiting while [`EXPORT_AHEAD`] are
 /// queued; fails once the connection is gone.
 struct PieceWriter {
     pieces: tokio::sync::mpsc::Sender<Option<Bytes>>,
     piece: Vec<u8>,
-    free: FreePieces,
+    /// The export's idle piece buffers, reused so that a piece lands in memory already mapped.
+    free: Arc<BodyPool>,
 }
 
 impl PieceWriter {
@@ -139,9 +138,7 @@ impl PieceWriter {
         if self.piece.is_empty() {
             return Ok(());
         }
-        let next = lock_free(&self.free)
-            .pop()
-            .unwrap_or_else(|| Vec::with_capacity(EXPORT_PIECE));
+        let next = self.free.take(EXPORT_PIECE);
         let piece = Recycled {
             bytes: std::mem::replace(&mut self.piece, next),
             free: self.free.clone(),
@@ -177,15 +174,10 @@ impl std::io::Write for PieceWriter {
     }
 }
 
-fn lock_free(free: &FreePieces) -> std::sync::MutexGuard<'_, Vec<Vec<u8>>> {
-    // A list of empty buffers holds no invariant a panic could break.
-    free.lock().unwrap_or_else(|p| p.into_inner())
-}
-
 /// A piece that goes back to its export's free list once the connection has sent it.
 struct Recycled {
     bytes: Vec<u8>,
-    free: FreePieces,
+    free: Arc<BodyPool>,
 }
 
 impl AsRef<[u8]> for Recycled {
@@ -196,9 +188,7 @@ impl AsRef<[u8]> for Recycled {
 
 impl Drop for Recycled {
     fn drop(&mut self) {
-        let mut bytes = std::mem::take(&mut self.bytes);
-        bytes.clear();
-        lock_free(&self.free).push(bytes);
+        self.free.give(std::mem::take(&mut self.bytes));
     }
 }
 
