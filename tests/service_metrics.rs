@@ -30,6 +30,17 @@ fn scrape(url: &str) -> String {
     response.text().unwrap()
 }
 
+/// Batches of worker 1 numbered `seqs` to frame `m`, each 10 samples at pixel (1, 2).
+async fn post_tens(client: &Client, seqs: std::ops::Range<u64>) {
+    for seq in seqs {
+        let records = vec![Record::new(1, 2, [1.0; 3]); 10];
+        client
+            .post_batch(&Batch::new("m", 1, seq, records).unwrap())
+            .await
+            .unwrap();
+    }
+}
+
 #[test]
 fn metrics_count_ingest_rejections_frames_and_resolves() {
     let server = Server::start(&[]);
@@ -40,13 +51,7 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
             .create_frame(&CreateFrame::new("m", 8, 8))
             .await
             .unwrap();
-        for seq in 0..3 {
-            let records = vec![Record::new(1, 2, [1.0; 3]); 10];
-            client
-                .post_batch(&Batch::new("m", 1, seq, records).unwrap())
-                .await
-                .unwrap();
-        }
+        post_tens(&client, 0..3).await;
         // A duplicate and a refused batch.
         let records = vec![Record::new(1, 2, [1.0; 3]); 10];
         client
@@ -111,13 +116,7 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
     // A second between the scrapes, so that their own durations leave the bounds tight.
     std::thread::sleep(Duration::from_secs(1));
     rt.block_on(async {
-        for seq in 10..20 {
-            let records = vec![Record::new(1, 2, [1.0; 3]); 10];
-            client
-                .post_batch(&Batch::new("m", 1, seq, records).unwrap())
-                .await
-                .unwrap();
-        }
+        post_tens(&client, 10..20).await;
     });
     let second_scrape = Instant::now();
     let text = scrape(&server.url);
