@@ -12,7 +12,7 @@ use clap::Parser;
 use crate::Limits;
 
 /// Everything `splatd serve` can be told.
-#[derive(Debug, Clone, PartialEq, Eq, clap::Args)]
+#[derive(Debug, Clone, PartialEq, clap::Args)]
 pub struct Config {
     /// Address to listen on (port 0 picks a free port; the address is printed).
     #[arg(long, default_value = "127.0.0.1:7878")]
@@ -59,6 +59,11 @@ pub struct Config {
     /// Longest a request waits for working memory, in seconds.
     #[arg(long, default_value_t = 10)]
     pub work_wait_secs: u64,
+    /// Most of the wall time a frame that workers keep changing spends rendering (images,
+    /// previews, figures), in (0, 1]: watchers then wait for its next render instead of
+    /// slowing its ingest. 1 renders it back to back.
+    #[arg(long, default_value_t = crate::render::pace::DEFAULT_SHARE, value_parser = parse_share)]
+    pub render_share: f64,
     /// Keep frames on disk here so they survive restarts and crashes (see PROTOCOL.md,
     /// "Exactly-once and durability"). Without it frames live in memory only.
     #[arg(long)]
@@ -115,6 +120,16 @@ struct Defaults {
     config: Config,
 }
 
+/// A share of the wall time: a number in (0, 1].
+fn parse_share(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(share) if share > 0.0 && share <= 1.0 => Ok(share),
+        _ => Err(format!(
+            "a share of the time is a number in (0, 1], not {s:?}"
+        )),
+    }
+}
+
 impl Default for Config {
     fn default() -> Config {
         Defaults::try_parse_from(["splatd"])
@@ -139,6 +154,7 @@ impl Config {
             max_connections: self.max_connections,
             work_memory_bytes: self.work_memory_mib << 20,
             work_wait: Duration::from_secs(self.work_wait_secs),
+            render_share: self.render_share,
         }
     }
 
@@ -173,6 +189,13 @@ mod tests {
             .unwrap()
             .config;
         assert_eq!((parsed.max_frames, parsed.public_read), (3, true));
+        assert_eq!(c.limits().render_share, 0.2);
+        for bad in ["0", "1.5", "-1", "NaN", "half"] {
+            assert!(
+                Defaults::try_parse_from(["splatd", "--render-share", bad]).is_err(),
+                "--render-share {bad}"
+            );
+        }
         assert!(
             Defaults::try_parse_from(["splatd", "--upstream", "http://x", "--data-dir", "d"])
                 .is_err(),

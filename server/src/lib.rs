@@ -81,6 +81,8 @@ pub struct Limits {
     pub work_memory_bytes: u64,
     /// Longest a request waits for working memory before it is answered 503.
     pub work_wait: Duration,
+    /// Most of the wall time a changing frame's renders take ([`render::pace`]).
+    pub render_share: f64,
 }
 
 impl Default for Limits {
@@ -179,7 +181,7 @@ impl AppState {
         let resolve_threads = frame::cores();
         let budget = work::WorkBudget::new(limits.work_memory_bytes, limits.work_wait);
         AppState(Arc::new(Shared {
-            renders: render::Renders::new(RENDERS_KEPT, budget),
+            renders: render::Renders::new(RENDERS_KEPT, budget).paced(limits.render_share),
             connections: Arc::new(transport::Connections::new(limits.max_connections)),
             pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
             body_pool: Arc::new(memory::BodyPool::new(resolve_threads)),

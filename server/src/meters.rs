@@ -22,6 +22,9 @@ pub const RESOLVE_SECONDS: &str = "splatd_resolve_seconds";
 /// Renders run for images, previews, need maps and convergence figures; requests that shared
 /// one count once (a dashboard of unchanged frames adds none).
 pub const RENDERS: &str = "splatd_renders_total";
+/// Seconds a request waited for a changing frame's render pace (`--render-share`), when it
+/// waited (histogram).
+pub const RENDER_PACE_SECONDS: &str = "splatd_render_pace_seconds";
 /// Seconds OIDN took for a denoised image (histogram).
 pub const DENOISE_SECONDS: &str = "splatd_denoise_seconds";
 /// Imported states, label `result` (`applied`, `duplicate`).
@@ -64,7 +67,7 @@ pub const FRAME_CONVERGED: &str = "splatd_frame_converged";
 pub const FRAME_CONVERGED_BELOW: &str = "splatd_frame_converged_below";
 
 /// Every name above.
-pub const ALL: [&str; 28] = [
+pub const ALL: [&str; 29] = [
     SAMPLES_INGESTED,
     BATCHES_INGESTED,
     BATCHES_DUPLICATE,
@@ -74,6 +77,7 @@ pub const ALL: [&str; 28] = [
     FRAMES,
     RESOLVE_SECONDS,
     RENDERS,
+    RENDER_PACE_SECONDS,
     DENOISE_SECONDS,
     IMPORTS,
     EXPORTS,

@@ -13,6 +13,10 @@
 //! reference-counted, so a slow reader pins no copy of its own, and the latest render of each
 //! query stays cached.
 //!
+//! While workers keep changing a frame, its renders take at most a set share of the wall time
+//! ([`pace`]): a request then waits for the frame's pace, and is still answered by a render
+//! that holds every sample acknowledged before it came.
+//!
 //! The render reserves its working memory from the [`WorkBudget`] first; a request that cannot
 //! get it in time fails with [`Busy`] and leaves nothing cached.
 //!
@@ -32,6 +36,7 @@ use crate::work::{Busy, WorkBudget};
 pub mod denoise;
 pub mod figures;
 mod kept;
+pub mod pace;
 pub use kept::{KeptResolves, Made, MAX_KEPT};
 
 /// Which render of a frame: the frame's serial (so a deleted and re-created frame never hits
@@ -111,10 +116,13 @@ pub struct Renders {
     rendered: std::sync::atomic::AtomicU64,
     /// The latest resolve of the frames rendered last, which renders patch.
     kept: Arc<KeptResolves>,
+    /// How often a changing frame is rendered.
+    paces: Arc<pace::Paces>,
 }
 
 impl Renders {
-    /// An empty cache keeping at most `max_slots` renders, reserving from `budget`.
+    /// An empty cache keeping at most `max_slots` renders, reserving from `budget`, rendering a
+    /// changing frame back to back.
     pub fn new(max_slots: usize, budget: Arc<WorkBudget>) -> Renders {
         Renders {
             slots: Mutex::new(VecDeque::new()),
@@ -122,7 +130,22 @@ impl Renders {
             budget,
             rendered: Default::default(),
             kept: Arc::default(),
+            paces: Arc::new(pace::Paces::new(1.0)),
         }
+    }
+
+    /// These renders, a changing frame's taking at most `share` of the wall time (see
+    /// [`pace`]).
+    pub fn paced(self, share: f64) -> Renders {
+        Renders {
+            paces: Arc::new(pace::Paces::new(share)),
+            ..self
+        }
+    }
+
+    /// The share of the wall time a changing frame's renders may take.
+    pub fn share(&self) -> f64 {
+        self.paces.share()
     }
 
     /// How many renders ran so far; requests that shared one count once.
@@ -160,6 +183,7 @@ impl Renders {
         slots.retain(|(k, _)| k.frame != serial);
         drop(slots);
         self.kept.forget(frame);
+        self.paces.forget(frame);
     }
 
     /// The bytes of `query` rendered from `frame` with every sample it holds now: the latest
@@ -167,8 +191,9 @@ impl Renders {
     /// `render` on a thread of its own after reserving `cost` bytes of working memory and shared
     /// with everyone waiting for it.
     ///
-    /// The version is read before rendering; if samples arrive meanwhile, the bytes may show a
-    /// slightly newer state than the version they are filed under, never an older one.
+    /// The version is read before rendering (after the frame's pace, [`pace`]); if samples
+    /// arrive meanwhile, the bytes may show a slightly newer state than the version they are
+    /// filed under, never an older one.
     pub async fn get_or_render<E: Send + 'static>(
         &self,
         frame: &Arc<ShardedFrame>,
@@ -189,6 +214,10 @@ impl Renders {
         if let Some(bytes) = entry.answering(wanted) {
             return Ok(bytes);
         }
+        let waited = self.paces.wait(frame).await;
+        if !waited.is_zero() {
+            metrics::histogram!(crate::meters::RENDER_PACE_SECONDS).record(waited.as_secs_f64());
+        }
         let version = frame.version();
         let reservation = self.budget.reserve(cost).await?;
         self.rendered
@@ -196,12 +225,15 @@ impl Renders {
         metrics::counter!(crate::meters::RENDERS).increment(1);
         let frame = frame.clone();
         let filed = entry.clone();
+        let paces = self.paces.clone();
         let rendered = on_render_thread(move || {
+            let started = std::time::Instant::now();
             let bytes = render(&frame);
             drop(reservation);
             if let Ok(bytes) = &bytes {
                 filed.file(version, bytes);
             }
+            paces.rendered(&frame, version, started.elapsed());
             drop(turn);
             bytes
         })

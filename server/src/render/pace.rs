@@ -1,0 +1,194 @@
+//! How often a frame that keeps changing is rendered: at most a set share of the time.
+//!
+//! Sharing renders (see [`crate::render`]) makes a frame cost one render at a time however many
+//! watch it, but while workers keep adding samples every request sees a new version, so a
+//! dashboard, the live page and an `image.exr` fetched now and then kept one render of the frame
+//! running back to back. On a head whose cores ingest uses, that cost a quarter of the ingest
+//! rate (`watchbench`), and a client fetching images in a loop cost the same.
+//!
+//! So after a render that took `d`, the next one of that frame, of whatever kind, starts no
+//! sooner than `d * (1 / share - 1)` after it ended, **while the frame keeps changing**; the
+//! renders that waited for that moment start together, so a request waits for one pace, not
+//! for a queue of them: a frame rendered at most `share` of the wall time costs ingest at most about that
+//! share of what rendering it without pause did. Answers never get older for it: a request that
+//! waits is answered by a render that starts after the wait and so holds every sample
+//! acknowledged before the request came; watchers of a busy frame only see new figures and
+//! images less often. A frame that has not changed since its last render is not held back (a
+//! new query of it, say the final `image.exr` after a dashboard's figures, renders at once), and
+//! neither is one that goes quiet: the wait ends as soon as [`QUIET`] passes with nothing new,
+//! so the final fetched when the workers are done is rendered within that time.
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use crate::frame::ShardedFrame;
+
+/// A wait for a frame's pace ends once this passes with no new samples in the frame.
+pub const QUIET: Duration = Duration::from_millis(100);
+
+/// The share of the wall time a changing frame's renders may take unless set.
+pub const DEFAULT_SHARE: f64 = 0.2;
+
+/// The latest renders of one frame.
+#[derive(Debug, Default, Clone, Copy)]
+struct Gate {
+    /// The newest version of the frame a render read before it began.
+    version: u64,
+    /// When the next render of the frame may start if the frame changed since.
+    next: Option<Instant>,
+}
+
+/// The pace of every frame rendered so far.
+#[derive(Debug)]
+pub struct Paces {
+    /// In `(0, 1]`; 1 renders a changing frame back to back.
+    share: f64,
+    frames: Mutex<HashMap<u64, Gate>>,
+}
+
+impl Paces {
+    /// Renders of a changing frame take at most `share` of the wall time (clamped to
+    /// `[0.01, 1]`).
+    pub fn new(share: f64) -> Paces {
+        Paces {
+            share: if share.is_nan() {
+                1.0
+            } else {
+                share.clamp(0.01, 1.0)
+            },
+            frames: Mutex::default(),
+        }
+    }
+
+    /// The share set.
+    pub fn share(&self) -> f64 {
+        self.share
+    }
+
+    fn gate(&self, frame: &ShardedFrame) -> Gate {
+        let frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
+        frames.get(&frame.serial()).copied().unwrap_or_default()
+    }
+
+    /// Waits for `frame`'s pace if the frame changed since its last render and keeps changing:
+    /// until the next render may start, or until [`QUIET`] passes with no new samples,
+    /// whichever comes first. Renders of any kind that waited for the same pace start together
+    /// when it ends (one wait, not one after another). Returns the time waited.
+    pub async fn wait(&self, frame: &ShardedFrame) -> Duration {
+        let gate = self.gate(frame);
+        let Some(next) = gate.next.filter(|_| frame.version() != gate.version) else {
+            return Duration::ZERO;
+        };
+        // On tokio's clock from here (paused in tests), so the loop ends by its own deadline.
+        let start = tokio::time::Instant::now();
+        let deadline = start + next.saturating_duration_since(Instant::now());
+        loop {
+            let now = tokio::time::Instant::now();
+            if now >= deadline {
+                break;
+            }
+            let seen = frame.version();
+            tokio::time::sleep((deadline - now).min(QUIET)).await;
+            if frame.version() == seen {
+                break;
+            }
+        }
+        start.elapsed()
+    }
+
+    /// Files a render of `frame` at `version` that took `took` and ended now.
+    pub fn rendered(&self, frame: &ShardedFrame, version: u64, took: Duration) {
+        let next = Instant::now() + took.mul_f64(1.0 / self.share - 1.0);
+        let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
+        let gate = frames.entry(frame.serial()).or_default();
+        gate.version = gate.version.max(version);
+        gate.next = Some(gate.next.map_or(next, |n| n.max(next)));
+    }
+
+    /// Forgets `frame`'s pace (when it is deleted).
+    pub fn forget(&self, frame: &ShardedFrame) {
+        let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
+        frames.remove(&frame.serial());
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::FrameSpec;
+    use splatd_proto::api::CreateFrame;
+    use splatd_proto::{Batch, Record};
+    use std::sync::Arc;
+
+    fn frame() -> Arc<ShardedFrame> {
+        Arc::new(ShardedFrame::new(
+            FrameSpec::new(CreateFrame::new("f", 4, 4)).unwrap(),
+        ))
+    }
+
+    fn add(frame: &ShardedFrame, seq: u64) {
+        let batch = Batch::new("f", 1, seq, vec![Record::new(0, 0, [1.0; 3])]).unwrap();
+        frame.ingest(&batch).unwrap();
+    }
+
+    /// After a render of 1 s at a share of 0.2, the next render of a frame that keeps changing
+    /// waits 4 s; of a frame that went quiet, one quiet spell; of an unchanged frame, nothing.
+    /// On tokio's paused clock, so the waits are exact.
+    #[tokio::test(start_paused = true)]
+    async fn a_changing_frame_waits_its_pace_and_a_quiet_one_does_not() {
+        let paces = Paces::new(0.2);
+        let f = frame();
+        assert_eq!(
+            paces.wait(&f).await,
+            Duration::ZERO,
+            "a frame never rendered"
+        );
+        paces.rendered(&f, f.version(), Duration::from_secs(1));
+        assert_eq!(paces.wait(&f).await, Duration::ZERO, "an unchanged frame");
+
+        // A writer adds a sample every 10 ms for 10 s: two renders wait out one pace together.
+        add(&f, 0);
+        let writer = {
+            let f = f.clone();
+            tokio::spawn(async move {
+                for seq in 1..1000 {
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                    add(&f, seq);
+                }
+            })
+        };
+        let (a, b) = tokio::join!(paces.wait(&f), paces.wait(&f));
+        // The pace was set from the real clock an instant before the paused one started
+        // counting, and tokio's timers round up to the millisecond: 4 s, give or take 1 ms.
+        let ms = Duration::from_millis(1);
+        for waited in [a, b] {
+            assert!(
+                waited > Duration::from_secs(4) - ms && waited <= Duration::from_secs(4) + ms,
+                "waited {waited:?}"
+            );
+        }
+        paces.rendered(&f, f.version(), Duration::from_secs(1));
+        writer.abort();
+
+        // One more sample, then nothing: the wait ends after one quiet spell.
+        add(&f, 5000);
+        let waited = paces.wait(&f).await;
+        assert!(
+            waited >= QUIET && waited <= QUIET + ms,
+            "a frame that went quiet waited {waited:?}"
+        );
+    }
+
+    /// A share of 1 renders a changing frame back to back; the share is clamped.
+    #[tokio::test(start_paused = true)]
+    async fn a_share_of_one_never_waits() {
+        let paces = Paces::new(1.0);
+        let f = frame();
+        paces.rendered(&f, 0, Duration::from_secs(3));
+        add(&f, 0);
+        assert_eq!(paces.wait(&f).await, Duration::ZERO);
+        assert_eq!(Paces::new(f64::NAN).share(), 1.0);
+        assert_eq!(Paces::new(0.0).share(), 0.01);
+    }
+}
