@@ -147,7 +147,9 @@ fn check_worker(blender: Blender) {
         let mut cmd = match &blender {
             Blender::Command(exe) => {
                 let mut cmd = Command::new(exe);
-                cmd.arg("-b");
+                // No audio device: Blender's sound system otherwise starts PulseAudio's
+                // client, which leaves a `pulse-*` folder in TMPDIR now and then.
+                cmd.args(["-b", "-noaudio"]);
                 match blend {
                     Some(blend) => cmd.arg(blend),
                     None => cmd.arg("--factory-startup"),
