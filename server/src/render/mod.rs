@@ -143,11 +143,6 @@ impl Renders {
         }
     }
 
-    /// The share of the wall time a changing frame's renders may take.
-    pub fn share(&self) -> f64 {
-        self.paces.share()
-    }
-
     /// How many renders ran so far; requests that shared one count once.
     pub fn rendered(&self) -> u64 {
         self.rendered.load(std::sync::atomic::Ordering::Relaxed)

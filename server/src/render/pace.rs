@@ -9,8 +9,8 @@
 //! So after a render that took `d`, the next one of that frame, of whatever kind, starts no
 //! sooner than `d * (1 / share - 1)` after it ended, **while the frame keeps changing**; the
 //! renders that waited for that moment start together, so a request waits for one pace, not
-//! for a queue of them: a frame rendered at most `share` of the wall time costs ingest at most about that
-//! share of what rendering it without pause did. Answers never get older for it: a request that
+//! for a queue of them. A frame rendered at most `share` of the wall time costs ingest at most
+//! about that share of what rendering it without pause did. Answers never get older for it: a request that
 //! waits is answered by a render that starts after the wait and so holds every sample
 //! acknowledged before the request came; watchers of a busy frame only see new figures and
 //! images less often. A frame that has not changed since its last render is not held back (a
