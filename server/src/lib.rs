@@ -125,6 +125,8 @@ pub struct Shared {
     pub state_pool: Arc<memory::BodyPool>,
     /// Open Image Denoise, or why this server has none.
     pub denoiser: render::denoise::Denoiser,
+    /// Renders of figures started for `/metrics` scrapes and still running.
+    pub refreshes: render::figures::Refreshes,
 }
 
 /// Finished renders kept for requests that ask again before the frame changes: enough for a
@@ -194,6 +196,7 @@ impl AppState {
             boot: boot_id(),
             auth,
             denoiser,
+            refreshes: Default::default(),
         }))
     }
 

@@ -65,9 +65,11 @@ pub const FRAME_SAMPLES_PER_SECOND: &str = "splatd_frame_samples_per_second";
 pub const FRAME_CONVERGED: &str = "splatd_frame_converged";
 /// Per-frame gauge: the frame's convergence threshold.
 pub const FRAME_CONVERGED_BELOW: &str = "splatd_frame_converged_below";
+/// Gauge per frame: seconds since the render its figures come from.
+pub const FRAME_FIGURES_AGE: &str = "splatd_frame_figures_age_seconds";
 
 /// Every name above.
-pub const ALL: [&str; 29] = [
+pub const ALL: [&str; 30] = [
     SAMPLES_INGESTED,
     BATCHES_INGESTED,
     BATCHES_DUPLICATE,
@@ -97,6 +99,7 @@ pub const ALL: [&str; 29] = [
     FRAME_SAMPLES_PER_SECOND,
     FRAME_CONVERGED,
     FRAME_CONVERGED_BELOW,
+    FRAME_FIGURES_AGE,
 ];
 
 #[cfg(test)]

@@ -7,7 +7,6 @@ use splatd_proto::api::{Convergence, SyncAck};
 
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
-use crate::render::figures::FiguresError;
 use crate::AppState;
 
 /// `GET /`: the live page.
@@ -50,16 +49,26 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
         ));
     };
     let mut text = handle.render();
+    // Every frame's figures at once, each waiting for a fresh render until one deadline.
+    let deadline = tokio::time::Instant::now() + crate::render::figures::SCRAPE_WAIT;
+    let waits: Vec<_> = app
+        .store
+        .list()
+        .into_iter()
+        .map(|frame| {
+            let app = app.clone();
+            tokio::spawn(async move {
+                let figures = crate::render::figures::latest_convergence(&app, &frame, deadline);
+                (frame.id().to_owned(), figures.await)
+            })
+        })
+        .collect();
     let mut frames = Vec::new();
-    for frame in app.store.list() {
-        match crate::render::figures::convergence(&app, &frame).await {
-            Ok(c) => frames.push((frame.id().to_owned(), c)),
-            // A frame deleted meanwhile has no figures; one that could not get working
-            // memory is left out of this scrape, and the log says so.
-            Err(FiguresError::Busy(busy)) => {
-                tracing::warn!(frame = frame.id(), "no convergence metrics: {busy}")
-            }
-            Err(e) => return Err(e.into()),
+    for wait in waits {
+        // A frame whose figures never rendered (no working memory: its render logged why) is
+        // left out of this scrape.
+        if let (id, Some((c, age))) = wait.await.expect("a scrape's wait does not panic") {
+            frames.push(FrameFigures { id, c, age });
         }
     }
     text.push_str(&convergence_metrics(&frames));
@@ -73,44 +82,61 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
         .into_response())
 }
 
+/// A frame's figures in a scrape.
+#[derive(Debug)]
+pub struct FrameFigures {
+    /// The frame.
+    pub id: String,
+    /// Its latest figures.
+    pub c: Convergence,
+    /// Seconds since the render they come from.
+    pub age: f64,
+}
+
 /// The per-frame convergence gauges in the Prometheus text format.
-pub fn convergence_metrics(frames: &[(String, Convergence)]) -> String {
-    type Gauge = (&'static str, &'static str, fn(&Convergence) -> f64);
-    const GAUGES: [Gauge; 7] = [
+pub fn convergence_metrics(frames: &[FrameFigures]) -> String {
+    type Gauge = (&'static str, &'static str, fn(&FrameFigures) -> f64);
+    const GAUGES: [Gauge; 8] = [
         (
             crate::meters::FRAME_REMOVED_FRACTION,
             "Luminance the resolve removes, as a fraction of the plain mean's.",
-            |c| c.removed_fraction,
+            |f| f.c.removed_fraction,
         ),
         (
             crate::meters::FRAME_SPP_MIN,
             "Fewest samples of any pixel.",
-            |c| c.spp_min as f64,
+            |f| f.c.spp_min as f64,
         ),
         (
             crate::meters::FRAME_SPP_MEAN,
             "Mean samples per pixel.",
-            |c| c.spp_mean,
+            |f| f.c.spp_mean,
         ),
         (
             crate::meters::FRAME_SPP_MAX,
             "Most samples of any pixel.",
-            |c| c.spp_max as f64,
+            |f| f.c.spp_max as f64,
         ),
         (
             crate::meters::FRAME_SAMPLES_PER_SECOND,
             "Samples accepted per second lately.",
-            |c| c.samples_per_second,
+            |f| f.c.samples_per_second,
         ),
         (
             crate::meters::FRAME_CONVERGED,
             "1 when the frame is converged at its threshold, else 0.",
-            |c| f64::from(u8::from(c.converged)),
+            |f| f64::from(u8::from(f.c.converged)),
         ),
         (
             crate::meters::FRAME_CONVERGED_BELOW,
             "The frame's convergence threshold.",
-            |c| c.converged_below,
+            |f| f.c.converged_below,
+        ),
+        (
+            crate::meters::FRAME_FIGURES_AGE,
+            "Seconds since the render these figures come from (a scrape waits 5 s at most for \
+             a frame that changed).",
+            |f| f.age,
         ),
     ];
     let mut out = String::new();
@@ -119,9 +145,9 @@ pub fn convergence_metrics(frames: &[(String, Convergence)]) -> String {
     }
     for (name, help, value) in GAUGES {
         out.push_str(&format!("# HELP {name} {help}\n# TYPE {name} gauge\n"));
-        for (id, c) in frames {
-            let id = id.replace('\\', "\\\\").replace('"', "\\\"");
-            out.push_str(&format!("{name}{{frame=\"{id}\"}} {}\n", value(c)));
+        for f in frames {
+            let id = f.id.replace('\\', "\\\\").replace('"', "\\\"");
+            out.push_str(&format!("{name}{{frame=\"{id}\"}} {}\n", value(f)));
         }
     }
     out

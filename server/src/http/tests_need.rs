@@ -379,7 +379,12 @@ fn convergence_metrics_are_prometheus_gauges_per_frame() {
         converged: false,
         history: Vec::new(),
     };
-    let text = super::operations::convergence_metrics(&[("shot\"1".into(), c)]);
+    let figures = super::operations::FrameFigures {
+        id: "shot\"1".into(),
+        c,
+        age: 2.5,
+    };
+    let text = super::operations::convergence_metrics(&[figures]);
     for line in [
         "# TYPE splatd_frame_removed_fraction gauge",
         "splatd_frame_removed_fraction{frame=\"shot\\\"1\"} 0.125",
@@ -389,6 +394,7 @@ fn convergence_metrics_are_prometheus_gauges_per_frame() {
         "splatd_frame_samples_per_second{frame=\"shot\\\"1\"} 50",
         "splatd_frame_converged{frame=\"shot\\\"1\"} 0",
         "splatd_frame_converged_below{frame=\"shot\\\"1\"} 0.01",
+        "splatd_frame_figures_age_seconds{frame=\"shot\\\"1\"} 2.5",
     ] {
         assert!(
             text.lines().any(|l| l == line),

@@ -73,3 +73,96 @@ async fn polling_unchanged_frames_renders_nothing() {
     assert_eq!(app.renders.rendered(), FRAMES as u64 + 1);
     assert_eq!(info(&app, "f7").await["convergence"]["samples"], 32);
 }
+
+/// A writer that posts to each of `ids` now and every 10 ms (on tokio's clock), until aborted.
+fn keep_writing(app: &AppState, ids: &[&str]) -> tokio::task::JoinHandle<()> {
+    let (app, ids) = (
+        app.clone(),
+        ids.iter().map(|s| s.to_string()).collect::<Vec<_>>(),
+    );
+    for id in &ids {
+        post(&app, id, 1);
+    }
+    tokio::spawn(async move {
+        for seq in 2..1_000_000 {
+            tokio::time::sleep(std::time::Duration::from_millis(10)).await;
+            for id in &ids {
+                post(&app, id, seq);
+            }
+        }
+    })
+}
+
+/// A frame that workers keep changing renders at its pace, which on a busy head can outlast
+/// Prometheus' scrape timeout: a scrape waits `SCRAPE_WAIT` at most, for all frames at once,
+/// then reports the latest figures; the render it started goes on, and the next scrape waits
+/// for that one instead of starting another. On tokio's paused clock, so the waits are exact.
+#[tokio::test(start_paused = true)]
+async fn a_scrape_of_frames_that_keep_changing_waits_its_bound_once() {
+    use crate::render::figures::{latest_convergence, SCRAPE_WAIT};
+    use std::time::Duration;
+    let handle = metrics_exporter_prometheus::PrometheusBuilder::new()
+        .build_recorder()
+        .handle();
+    let mut app = AppState::new(Limits::default(), Some(handle), None);
+    for id in ["a", "b"] {
+        app = testing::with_frame(app, id, 8, 8);
+        post(&app, id, 0);
+    }
+    let scrape = |app: AppState| async move {
+        let request = Request::get("/metrics").body(Body::empty()).unwrap();
+        let reply = testing::send(&app, request).await;
+        assert_eq!(reply.status, StatusCode::OK);
+        String::from_utf8(reply.body.to_vec()).unwrap()
+    };
+    let text = scrape(app.clone()).await;
+    assert!(
+        text.contains("splatd_frame_spp_max{frame=\"a\"} 1\n"),
+        "{text}"
+    );
+    assert_eq!(app.renders.rendered(), 2, "one render per frame");
+
+    // Their last renders took 100 s each (as if on a saturated head): at the default share of
+    // 0.2, the next ones wait 400 s while the writer keeps changing both frames.
+    for frame in app.store.list() {
+        let paces = app.renders.paces();
+        paces.rendered(&frame, frame.version(), Duration::from_secs(100));
+    }
+    let writer = keep_writing(&app, &["a", "b"]);
+    let ms = Duration::from_millis(1);
+    for _ in 0..2 {
+        let started = tokio::time::Instant::now();
+        let text = scrape(app.clone()).await;
+        let took = started.elapsed();
+        assert!(
+            took >= SCRAPE_WAIT && took <= SCRAPE_WAIT + ms,
+            "two frames waited for together: {took:?}"
+        );
+        for id in ["a", "b"] {
+            let line = format!("splatd_frame_spp_max{{frame=\"{id}\"}} 1\n");
+            assert!(text.contains(&line), "the latest figures of {id}:\n{text}");
+        }
+        assert!(text.contains("splatd_frame_figures_age_seconds{frame=\"a\"} "));
+    }
+    assert_eq!(
+        app.renders.rendered(),
+        2,
+        "both renders still wait their pace"
+    );
+
+    // The writer stops: after one quiet spell each frame renders once, for both scrapes and
+    // for the wait below, which joins the render running.
+    writer.abort();
+    let frame = app.store.get("a").unwrap();
+    let far = tokio::time::Instant::now() + Duration::from_secs(60);
+    let (c, _) = latest_convergence(&app, &frame, far).await.unwrap();
+    assert_eq!(
+        c.samples,
+        frame.samples(),
+        "the figures of the frame as it is"
+    );
+    assert!(c.samples > 16);
+    let b = app.store.get("b").unwrap();
+    latest_convergence(&app, &b, far).await.unwrap();
+    assert_eq!(app.renders.rendered(), 4, "one more render per frame");
+}

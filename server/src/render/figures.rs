@@ -4,11 +4,20 @@
 //! A need map is one render like an image (see [`crate::render`]): requests for the same frame
 //! version and tile size share one resolve, which reserves its memory from the working budget.
 //! Every render of a new version also files the frame's whole-frame figures in the frame's
-//! [`History`](crate::frame::history::History), so `GET /v1/frames/{id}`, `/metrics` and the live page read the figures of the
-//! latest render instead of resolving again. The estimator does the arithmetic
-//! ([`splatd_estimator::NeedMap`]); this module only schedules it and keeps the history.
+//! [`History`](crate::frame::history::History), so `GET /v1/frames/{id}`, `/metrics` and the
+//! live page read the figures of the latest render instead of resolving again. The estimator
+//! does the arithmetic ([`splatd_estimator::NeedMap`]); this module only schedules it and keeps
+//! the history.
+//!
+//! A `/metrics` scrape waits for the figures of frames that changed at most [`SCRAPE_WAIT`],
+//! all frames at once: a frame that workers keep changing is rendered at its pace
+//! ([`crate::render::pace`]), which on a busy head can be longer than Prometheus waits for a
+//! scrape (10 s by default). A scrape that stops waiting reports the latest figures with their
+//! age and leaves the render running ([`Refreshes`]), so the next scrape finds them fresher.
 
-use std::sync::Arc;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
 
 use bytes::Bytes;
 use splatd_estimator::{self as estimator, NeedMap};
@@ -18,6 +27,10 @@ use crate::frame::ShardedFrame;
 use crate::render::RenderError;
 use crate::work::Busy;
 use crate::AppState;
+
+/// Most a `/metrics` scrape waits for figures of frames that changed since their last render,
+/// half of Prometheus' default scrape timeout.
+pub const SCRAPE_WAIT: Duration = Duration::from_secs(5);
 
 /// Why a need map or a frame's figures could not be computed.
 #[derive(Debug, thiserror::Error)]
@@ -111,6 +124,70 @@ pub async fn convergence(
     history
         .convergence(history.seconds(), samples, threshold)
         .ok_or_else(|| FiguresError::internal("convergence", "a render filed no figures"))
+}
+
+/// The renders of figures that scrapes started and that are still running, by frame serial: a
+/// scrape that stops waiting leaves its render running, and the next scrape waits for that one
+/// instead of starting another beside it.
+#[derive(Debug, Default)]
+pub struct Refreshes(Mutex<HashMap<u64, tokio::sync::watch::Receiver<()>>>);
+
+impl Refreshes {
+    /// A receiver whose `changed()` ends when the render of `frame`'s figures now running, or
+    /// one started now, has ended.
+    fn start(&self, app: &AppState, frame: &Arc<ShardedFrame>) -> tokio::sync::watch::Receiver<()> {
+        let mut running = self.0.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(done) = running.get(&frame.serial()) {
+            return done.clone();
+        }
+        let (ended, done) = tokio::sync::watch::channel(());
+        running.insert(frame.serial(), done.clone());
+        let (app, frame) = (app.clone(), frame.clone());
+        tokio::spawn(async move {
+            if let Err(e) = need_map(&app, &frame, estimator::DEFAULT_NEED_TILE).await {
+                tracing::warn!(frame = frame.id(), "no convergence figures: {e}");
+            }
+            let mut running = app.refreshes.0.lock().unwrap_or_else(|e| e.into_inner());
+            running.remove(&frame.serial());
+            drop(ended);
+        });
+        done
+    }
+}
+
+/// The frame's figures for a scrape, and their age in seconds (since the render they come
+/// from): the latest filed, after waiting until `deadline` at most for a render of the frame
+/// as it is now; `None` if no render ever filed any (it could not get working memory).
+pub async fn latest_convergence(
+    app: &AppState,
+    frame: &Arc<ShardedFrame>,
+    deadline: tokio::time::Instant,
+) -> Option<(api::Convergence, f64)> {
+    let wanted = frame.version();
+    // Twice at most: a render running may have read an older version than `wanted`.
+    for _ in 0..2 {
+        if frame
+            .history()
+            .latest_version()
+            .is_some_and(|v| v >= wanted)
+        {
+            break;
+        }
+        let mut done = app.refreshes.start(app, frame);
+        if tokio::time::timeout_at(deadline, done.changed())
+            .await
+            .is_err()
+        {
+            break;
+        }
+    }
+    let samples = frame.samples();
+    let threshold = frame.spec().request.converged_below;
+    let history = frame.history();
+    let now = history.seconds();
+    let c = history.convergence(now, samples, threshold)?;
+    let age = c.history.last().map_or(0.0, |p| (now - p.seconds).max(0.0));
+    Some((c, age))
 }
 
 /// The wire form of a need map.

@@ -153,6 +153,12 @@ impl Renders {
         &self.kept
     }
 
+    /// How often changing frames are rendered.
+    #[cfg(test)]
+    pub(crate) fn paces(&self) -> &pace::Paces {
+        &self.paces
+    }
+
     /// The budget renders reserve from.
     pub fn budget(&self) -> &Arc<WorkBudget> {
         &self.budget
