@@ -74,6 +74,9 @@ struct Args {
     /// Only the scrape-cost lines (no ingest phases), e.g. to profile them.
     #[arg(long)]
     scrape_only: bool,
+    /// The server's `--render-share` (its default if not given).
+    #[arg(long)]
+    render_share: Option<f64>,
 }
 
 /// Ingest with watchers / without.
@@ -196,11 +199,16 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[i]
 }
 
-fn start_server() -> Result<ServerProcess> {
+fn start_server(render_share: Option<f64>) -> Result<ServerProcess> {
     let binary = sibling_binary().map_err(anyhow::Error::msg)?;
+    let share = render_share.map(|s| s.to_string());
+    let args: Vec<&str> = match &share {
+        Some(s) => vec!["--render-share", s],
+        None => Vec::new(),
+    };
     ServerProcess::launch(&Options {
         log_level: "warn",
-        ..Options::new(binary, &[])
+        ..Options::new(binary, &args)
     })
     .map_err(anyhow::Error::msg)
 }
@@ -470,7 +478,7 @@ fn renders_total(metrics: &str) -> u64 {
 
 /// The scrape-cost lines: a fresh server with `scrape_frames` unchanged frames.
 async fn scrape_cost(args: &Args, tick: f64) -> Result<Vec<String>> {
-    let server = start_server()?;
+    let server = start_server(args.render_share)?;
     let pid = server.pid();
     let client = Client::new(&server.url)?;
     let http = reqwest::Client::new();
@@ -605,7 +613,7 @@ fn main() -> Result<()> {
         return Ok(());
     }
     let pool = Arc::new(make_pool(&args)?);
-    let server = start_server()?;
+    let server = start_server(args.render_share)?;
     let pid = server.pid();
     let url = server.url.clone();
     let stats = (0..3).map(|_| PhaseStats::default()).collect();
