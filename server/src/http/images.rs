@@ -66,7 +66,20 @@ pub async fn get_image(
     let kept = app.renders.kept().clone();
     let exr = app
         .renders
-        .get_or_render(&frame, key, cost, move |frame| {
+        .get_or_render(&frame, key, cost, move |frame, wanted| {
+            let provenance = Provenance {
+                layout: &frame.spec().layout,
+                params: &params,
+            };
+            // Without cascades, AOVs or a denoise the image needs the resolved layers only: a
+            // render of another kind that started with this one may just have made them.
+            if !query.cascades && oidn.is_none() && frame.spec().request.aovs.is_empty() {
+                return kept.with_resolved_since(frame, &params, threads, wanted, |resolved, _| {
+                    encode_exr_with(resolved, &[], &[], &provenance, Vec::new())
+                        .map(Bytes::from)
+                        .map_err(|e| ApiError::internal("EXR encoding", e))
+                });
+            }
             kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
                 let mut extra = if query.cascades {
                     cascade_layers(cut.cascade_means())
@@ -93,10 +106,6 @@ pub async fn get_image(
                 }
                 // The encoding needs nothing of the state.
                 drop(cut);
-                let provenance = Provenance {
-                    layout: &frame.spec().layout,
-                    params: &params,
-                };
                 encode_exr_with(resolved, &extra, &aovs, &provenance, more_attributes)
                     .map(Bytes::from)
                     .map_err(|e| ApiError::internal("EXR encoding", e))
@@ -201,11 +210,9 @@ pub async fn get_preview(
     let kept = app.renders.kept().clone();
     let png = app
         .renders
-        .get_or_render(&frame, key, cost, move |frame| {
+        .get_or_render(&frame, key, cost, move |frame, wanted| {
             // A layer that needs nothing of the state is answered by a resolve of the version
-            // this render began at or a later one, kept by a render of another kind (the
-            // renders' cache files these bytes under a version read before this one).
-            let wanted = frame.version();
+            // read before this render began or a later one, kept by a render of another kind.
             let encode = |resolved: &splatd_estimator::Resolved, denoised: Option<&[[f32; 3]]>| {
                 let exposure = query.exposure.unwrap_or_else(|| {
                     splatd_formats::preview::auto_exposure(&resolved.reweighted)

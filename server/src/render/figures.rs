@@ -3,8 +3,9 @@
 //!
 //! A need map is one render like an image (see [`crate::render`]): requests for the same frame
 //! version and tile size share one resolve, which reserves its memory from the working budget.
-//! Every render of a new version also files the frame's whole-frame figures in the frame's
-//! [`History`](crate::frame::history::History), so `GET /v1/frames/{id}`, `/metrics` and the
+//! Every render of a new version at the frame's own parameters, of whatever kind, also files the
+//! frame's whole-frame figures in the frame's [`History`](crate::frame::history::History)
+//! ([`crate::render::KeptResolves`]), so `GET /v1/frames/{id}`, `/metrics` and the
 //! live page read the figures of the latest render instead of resolving again. The estimator
 //! does the arithmetic ([`splatd_estimator::NeedMap`]); this module only schedules it and keeps
 //! the history.
@@ -86,18 +87,21 @@ pub async fn need_map(
     let kept = app.renders.kept().clone();
     let bytes = app
         .renders
-        .get_or_render(frame, format!("need {tile}"), cost, move |frame| {
-            let (map, version) = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
-                let map = NeedMap::build(&cut.band_refs(), resolved, &params, tile);
-                (map, cut.version)
-            });
-            let map = map.map_err(|e| FiguresError::internal("need map", e))?;
-            {
-                let mut history = frame.history();
-                let seconds = history.seconds();
-                history.record(version, seconds, map.convergence());
-            }
-            let body = to_api(frame.id(), &map);
+        .get_or_render(frame, format!("need {tile}"), cost, move |frame, wanted| {
+            // Every render at the frame's own parameters files its figures (see
+            // `KeptResolves`), and the need map at the default tile goes with the kept resolve:
+            // a render of another kind that started with this one may just have made it.
+            let body = if tile == estimator::DEFAULT_NEED_TILE {
+                kept.with_need_since(frame, threads, wanted, |map, _| to_api(frame.id(), map))
+            } else {
+                let map = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+                    NeedMap::build(&cut.band_refs(), resolved, &params, tile)
+                });
+                to_api(
+                    frame.id(),
+                    &map.map_err(|e| FiguresError::internal("need map", e))?,
+                )
+            };
             serde_json::to_vec(&body)
                 .map(Bytes::from)
                 .map_err(|e| FiguresError::internal("need map JSON", e))

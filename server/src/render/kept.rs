@@ -13,11 +13,20 @@
 //! resolve afresh), for at most [`MAX_KEPT`] frames, the most recently rendered: a kept resolve
 //! holds the resolved layers of the frame (44 bytes per pixel, 91 MB at 1080p) beyond the
 //! working budget, so their number is small and fixed.
+//!
+//! With each kept resolve goes the frame's need map at the default tile size, made from the
+//! same cut, whose figures are filed in the frame's history: a render of any kind files the
+//! figures of the version it read, and the renders of a changing frame that start together
+//! when its pace ends (an image, the live page's previews, a dashboard's figures) share one
+//! resolve instead of each patching the changes the one before it left.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
-use splatd_estimator::{resolve_bands_into, resolve_region_into, Rect, ResolveParams, Resolved};
+use splatd_estimator::{
+    resolve_bands_into, resolve_region_into, NeedMap, Rect, ResolveParams, Resolved,
+    DEFAULT_NEED_TILE,
+};
 
 use crate::frame::{FrameCut, ShardedFrame};
 
@@ -26,11 +35,12 @@ pub const MAX_KEPT: usize = 4;
 /// Most rectangles a patch is cut into (the estimator merges the frame's changes down to them).
 const MAX_PATCHES: usize = 16;
 
-/// One frame's kept resolve: of which version, and the layers.
+/// One frame's kept resolve: of which version, the layers and the need map made with them.
 #[derive(Debug, Default)]
 struct Kept {
     version: u64,
     resolved: Option<Resolved>,
+    need: Option<NeedMap>,
 }
 
 type Slot = Arc<Mutex<Kept>>;
@@ -102,6 +112,21 @@ impl KeptResolves {
             let resolved = cut.resolve(params, threads);
             return use_it(&resolved, cut, Made::Whole);
         }
+        self.bring_up_to_date(frame, threads, |kept, cut, made| {
+            use_it(kept.resolved.as_ref().expect("kept above"), cut, made)
+        })
+    }
+
+    /// Brings `frame`'s kept resolve (at the frame's own parameters) and need map up to a cut
+    /// taken now, files the need map's figures in the frame's history, and calls `use_it` with
+    /// them and the cut while the slot is still locked.
+    fn bring_up_to_date<T>(
+        &self,
+        frame: &ShardedFrame,
+        threads: usize,
+        use_it: impl FnOnce(&Kept, FrameCut, Made) -> T,
+    ) -> T {
+        let params = &frame.spec().resolve;
         let slot = self.slot(frame);
         let mut guard = slot.lock().unwrap_or_else(|e| e.into_inner());
         let kept = &mut *guard;
@@ -137,9 +162,41 @@ impl KeptResolves {
                 Made::Whole
             }
         };
+        if made != Made::Kept || kept.need.is_none() {
+            let resolved = kept.resolved.as_ref().expect("kept above");
+            let map = NeedMap::build(&bands, resolved, params, DEFAULT_NEED_TILE)
+                .expect("a frame's bands tile it");
+            let mut history = frame.history();
+            let seconds = history.seconds();
+            history.record(cut.version, seconds, map.convergence());
+            kept.need = Some(map);
+        }
         kept.version = cut.version;
         drop(bands);
-        use_it(kept.resolved.as_ref().expect("kept above"), cut, made)
+        use_it(kept, cut, made)
+    }
+
+    /// The need map at the default tile size of `frame` at its own parameters, and the version
+    /// it is of: the kept one if it is of version `wanted` or later (a render of another kind
+    /// that started with this one just made it), else one made as `with_resolved` makes it.
+    pub fn with_need_since<T>(
+        &self,
+        frame: &ShardedFrame,
+        threads: usize,
+        wanted: u64,
+        use_it: impl FnOnce(&NeedMap, u64) -> T,
+    ) -> T {
+        {
+            let slot = self.slot(frame);
+            let guard = slot.lock().unwrap_or_else(|e| e.into_inner());
+            if let Some(need) = guard.need.as_ref().filter(|_| guard.version >= wanted) {
+                return use_it(need, guard.version);
+            }
+        }
+        self.bring_up_to_date(frame, threads, |kept, cut, _| {
+            drop(cut);
+            use_it(kept.need.as_ref().expect("made above"), kept.version)
+        })
     }
 
     /// [`with_resolved`](Self::with_resolved) for a render that needs the resolved layers only,
@@ -260,5 +317,48 @@ mod tests {
             "a later version is patched"
         );
         assert_eq!(spp_at(frame.version()), (2, Made::Kept));
+    }
+
+    /// A render of any kind at the frame's own parameters files the figures of the version it
+    /// read, and the need map at the default tile goes with the kept resolve: asking for it at
+    /// that version or an older one resolves nothing, and it is the need map of a fresh cut.
+    #[test]
+    fn every_render_files_its_figures_and_the_need_map_is_kept() {
+        let (w, h) = (40, 30);
+        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let params = frame.spec().resolve;
+        let scene = FireflyScene::new(w, h, 3);
+        let batch = |seq: u64| {
+            let records = scene.pass(seq).map(|(x, y, rgb)| Record::new(x, y, rgb));
+            Batch::new("f", 1, seq, records.collect()).unwrap()
+        };
+        frame.ingest(&batch(0)).unwrap();
+        let kept = KeptResolves::default();
+        let asked = frame.version();
+        kept.with_resolved(&frame, &params, 1, |_, _, made| {
+            assert_eq!(made, Made::Whole)
+        });
+        assert_eq!(frame.history().latest_version(), Some(asked));
+        let oracle = {
+            let cut = frame.cut();
+            let resolved = cut.resolve(&params, 1);
+            NeedMap::build(&cut.band_refs(), &resolved, &params, DEFAULT_NEED_TILE).unwrap()
+        };
+
+        // A writer adds a pass; a render that started before it still gets the kept map.
+        frame.ingest(&batch(1)).unwrap();
+        let (tiles, version) = kept.with_need_since(&frame, 1, asked, |m, v| (m.tiles.clone(), v));
+        assert_eq!(version, asked);
+        assert_eq!(tiles, oracle.tiles);
+        assert_eq!(kept.patched(), 0, "nothing resolved again");
+
+        // Asked at the new version, it is brought up to date, and the figures are filed.
+        let now = frame.version();
+        let samples = kept.with_need_since(&frame, 1, now, |m, v| {
+            assert_eq!(v, now);
+            m.convergence().samples
+        });
+        assert_eq!(samples, u64::from(2 * w * h));
+        assert_eq!(frame.history().latest_version(), Some(now));
     }
 }

@@ -192,15 +192,18 @@ impl Renders {
     /// `render` on a thread of its own after reserving `cost` bytes of working memory and shared
     /// with everyone waiting for it.
     ///
-    /// The version is read before rendering (after the frame's pace, [`pace`]); if samples
-    /// arrive meanwhile, the bytes may show a slightly newer state than the version they are
-    /// filed under, never an older one.
+    /// The version is read before rendering (after the frame's pace, [`pace`]) and given to
+    /// `render`; if samples arrive meanwhile, the bytes may show a slightly newer state than the
+    /// version they are filed under, never an older one. So `render` may answer with anything
+    /// that holds that version: a kept resolve that a render of another kind, started at the
+    /// same moment, just made (the render threads run at a low priority, and on a busy head
+    /// writers post several times before the second of them gets to read the version itself).
     pub async fn get_or_render<E: Send + 'static>(
         &self,
         frame: &Arc<ShardedFrame>,
         query: String,
         cost: u64,
-        render: impl FnOnce(&ShardedFrame) -> Result<Bytes, E> + Send + 'static,
+        render: impl FnOnce(&ShardedFrame, u64) -> Result<Bytes, E> + Send + 'static,
     ) -> Result<Bytes, RenderError<E>> {
         let wanted = frame.version();
         let entry = self.entry(Key {
@@ -229,7 +232,7 @@ impl Renders {
         let paces = self.paces.clone();
         let rendered = on_render_thread(move || {
             let started = std::time::Instant::now();
-            let bytes = render(&frame);
+            let bytes = render(&frame, version);
             drop(reservation);
             if let Ok(bytes) = &bytes {
                 filed.file(version, bytes);
@@ -280,9 +283,9 @@ mod tests {
 
     fn counting(
         calls: &Arc<AtomicUsize>,
-    ) -> impl FnOnce(&ShardedFrame) -> Result<Bytes, String> + Send + 'static {
+    ) -> impl FnOnce(&ShardedFrame, u64) -> Result<Bytes, String> + Send + 'static {
         let calls = calls.clone();
-        move |f: &ShardedFrame| {
+        move |f: &ShardedFrame, _| {
             calls.fetch_add(1, Ordering::SeqCst);
             Ok(Bytes::from(format!("v{}", f.version())))
         }
@@ -337,7 +340,7 @@ mod tests {
             let (renders, f, calls) = (renders.clone(), f.clone(), calls.clone());
             tokio::spawn(async move {
                 renders
-                    .get_or_render(&f, "q".into(), 100, move |f: &ShardedFrame| {
+                    .get_or_render(&f, "q".into(), 100, move |f: &ShardedFrame, _| {
                         calls.fetch_add(1, Ordering::SeqCst);
                         let version = f.version();
                         started.send(()).unwrap();
@@ -398,7 +401,7 @@ mod tests {
         let renders = Renders::new(8, WorkBudget::new(1 << 20, Duration::ZERO));
         let before = nice();
         let seen = renders
-            .get_or_render(&frame(), "q".into(), 1, |_: &ShardedFrame| {
+            .get_or_render(&frame(), "q".into(), 1, |_: &ShardedFrame, _| {
                 Ok::<_, String>(Bytes::from(nice().to_string()))
             })
             .await
@@ -418,7 +421,7 @@ mod tests {
         let f = frame();
         for q in 0..5 {
             let bytes = renders
-                .get_or_render(&f, format!("q{q}"), 1, |_| {
+                .get_or_render(&f, format!("q{q}"), 1, |_, _| {
                     Ok::<_, String>(Bytes::from(vec![0u8; 40]))
                 })
                 .await
