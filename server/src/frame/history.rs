@@ -37,6 +37,11 @@ impl History {
         self.latest.map(|(v, _)| v)
     }
 
+    /// The latest figures filed and the version they are of.
+    pub fn latest(&self) -> Option<(u64, estimator::Convergence)> {
+        self.latest
+    }
+
     /// Seconds since the frame was taken in.
     pub fn seconds(&self) -> f64 {
         self.started.elapsed().as_secs_f64()

@@ -17,7 +17,7 @@
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, RwLock};
 
-use splatd_proto::api::FrameInfo;
+use splatd_proto::api::{self, FrameInfo};
 
 use splatd_estimator::{cell_len, cell_spp, AovSums, FrameState, Rect};
 
@@ -411,9 +411,39 @@ impl ShardedFrame {
         figures
     }
 
-    /// What the frame looks like now, for `GET /v1/frames/{id}`.
+    /// What the frame looks like now, its samples per pixel counted over its cells (counted
+    /// once per version).
     pub fn info(&self) -> FrameInfo {
-        let spp = self.spp_figures();
+        self.info_with(self.spp_figures())
+    }
+
+    /// [`info`](Self::info) with the samples per pixel of `c`, the figures of a render that read
+    /// the frame at the version asked about or later (`GET /v1/frames/{id}`): counting them
+    /// again reads the whole state under the bands' locks, and while workers keep changing the
+    /// frame every count was a new one, writers waiting on each.
+    pub fn info_rendered(&self, c: &api::Convergence) -> FrameInfo {
+        self.info_with(SppFigures {
+            min: c.spp_min,
+            mean: c.spp_mean,
+            max: c.spp_max,
+        })
+    }
+
+    /// [`info`](Self::info) for the frame list: the samples per pixel of the latest render if it
+    /// read the frame as it is now, else counted.
+    pub fn listed(&self) -> FrameInfo {
+        let filed = self.history().latest();
+        match filed {
+            Some((version, c)) if version == self.version() => self.info_with(SppFigures {
+                min: c.spp_min,
+                mean: c.spp_mean,
+                max: c.spp_max,
+            }),
+            _ => self.info(),
+        }
+    }
+
+    fn info_with(&self, spp: SppFigures) -> FrameInfo {
         let c = self.counter_values();
         let r = &self.spec.request;
         FrameInfo {

@@ -64,7 +64,7 @@ async fn create_or_get(
 pub async fn list(State(app): State<AppState>) -> Result<Json<FrameList>, ApiError> {
     let frames = app.store.list();
     let frames = blocking("frame list", move || {
-        Ok(frames.iter().map(|f| f.info()).collect())
+        Ok(frames.iter().map(|f| f.listed()).collect())
     })
     .await?;
     let quarantined = app
@@ -99,7 +99,10 @@ pub async fn info(
         }
         Err(e) => return Err(e.into()),
     };
-    let mut info = blocking("frame info", move || Ok(frame.info())).await?;
+    let mut info = match &convergence {
+        Some(c) => frame.info_rendered(c),
+        None => blocking("frame info", move || Ok(frame.info())).await?,
+    };
     info.convergence = convergence;
     Ok(Json(info))
 }

@@ -20,6 +20,13 @@ async fn info(app: &AppState, id: &str) -> serde_json::Value {
     reply.json()
 }
 
+async fn list(app: &AppState) -> serde_json::Value {
+    let request = Request::get("/v1/frames").body(Body::empty()).unwrap();
+    let reply = testing::send(app, request).await;
+    assert_eq!(reply.status, StatusCode::OK);
+    reply.json()
+}
+
 fn post(app: &AppState, id: &str, seq: u64) {
     let records = (0..16)
         .map(|i| Record::new(i % 8, i / 8, [1.0 + seq as f32, 2.0, 3.0]))
@@ -72,6 +79,41 @@ async fn polling_unchanged_frames_renders_nothing() {
     }
     assert_eq!(app.renders.rendered(), FRAMES as u64 + 1);
     assert_eq!(info(&app, "f7").await["convergence"]["samples"], 32);
+}
+
+/// An image of a frame files the frame's figures: reading them afterwards renders nothing.
+#[tokio::test]
+async fn an_image_files_the_figures_it_read() {
+    let app = testing::with_frame(AppState::new(Limits::default(), None, None), "i", 8, 8);
+    post(&app, "i", 0);
+    let request = Request::get("/v1/frames/i/image.exr")
+        .body(Body::empty())
+        .unwrap();
+    assert_eq!(testing::send(&app, request).await.status, StatusCode::OK);
+    assert_eq!(app.renders.rendered(), 1);
+    let shown = info(&app, "i").await;
+    assert_eq!(shown["convergence"]["samples"], 16);
+    assert_eq!(app.renders.rendered(), 1, "the figures came with the image");
+    // Its samples per pixel are the render's, and they are what counting the cells gives.
+    post(&app, "i", 1);
+    let (shown, listed) = (info(&app, "i").await, list(&app).await);
+    let counted = app.store.get("i").unwrap().info();
+    let spp = |v: &serde_json::Value| {
+        (
+            v["spp_min"].clone(),
+            v["spp_mean"].clone(),
+            v["spp_max"].clone(),
+        )
+    };
+    let want = (
+        counted.spp_min.into(),
+        counted.spp_mean.into(),
+        counted.spp_max.into(),
+    );
+    assert_eq!(spp(&shown), want);
+    assert_eq!(spp(&listed["frames"][0]), want);
+    // Two posts of a sample in each of 16 pixels of 64.
+    assert_eq!(want, (0.into(), 0.5.into(), 2.into()));
 }
 
 /// A writer that posts to each of `ids` now and every 10 ms (on tokio's clock), until aborted.
