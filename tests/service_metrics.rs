@@ -63,14 +63,11 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
             .post_batch(&Batch::new("m", 1, 3, bad).unwrap())
             .await
             .is_err());
-    });
-    // The first image renders the frame's first convergence point (every render files the
-    // figures of the version it read), at a time between this instant and the first scrape's end.
-    let first_image = Instant::now();
-    rt.block_on(async {
         client.image("m", &ImageQuery::default()).await.unwrap();
         client.image("m", &ImageQuery::default()).await.unwrap();
     });
+    // The first scrape renders the frame's first convergence point, at a time within it.
+    let first_scrape = Instant::now();
     let text = scrape(&server.url);
     let first_scraped = Instant::now();
     let m = parse(&text);
@@ -113,8 +110,8 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
 
     // 100 samples more, then a second scrape: a second point, and the rate over the time from
     // the first point (the newest at least a second old, or else the oldest) to this scrape:
-    // 100 samples over a time whose ends lie within the first image and scrape, and within this
-    // scrape, so within bounds measured here. If this scrape itself
+    // 100 samples over a time that lies between the two scrapes' ends (which the first point and
+    // this scrape's rate each lie within), so within bounds measured here. If this scrape itself
     // took a second or more, its own new point may be the one the rate starts from: then 0.
     // A second between the scrapes, so that their own durations leave the bounds tight.
     std::thread::sleep(Duration::from_secs(1));
@@ -129,7 +126,7 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
         .get("splatd_frame_samples_per_second{frame=\"m\"}")
         .unwrap_or_else(|| panic!("no rate in:\n{text}"));
     assert_eq!(m["splatd_frame_spp_max{frame=\"m\"}"], 130.0);
-    let longest = (second_scraped - first_image).as_secs_f64();
+    let longest = (second_scraped - first_scrape).as_secs_f64();
     let shortest = (second_scrape - first_scraped).as_secs_f64();
     let (low, high) = (100.0 / longest, 100.0 / shortest);
     let slow_scrape = second_scraped - second_scrape >= Duration::from_secs(1);

@@ -81,19 +81,24 @@ async fn polling_unchanged_frames_renders_nothing() {
     assert_eq!(info(&app, "f7").await["convergence"]["samples"], 32);
 }
 
-/// An image of a frame files the frame's figures: reading them afterwards renders nothing.
+/// The figures asked for after an image of the same version come from the image's resolve: a
+/// need map, no second resolve.
 #[tokio::test]
-async fn an_image_files_the_figures_it_read() {
+async fn figures_after_an_image_reuse_its_resolve() {
     let app = testing::with_frame(AppState::new(Limits::default(), None, None), "i", 8, 8);
     post(&app, "i", 0);
     let request = Request::get("/v1/frames/i/image.exr")
         .body(Body::empty())
         .unwrap();
     assert_eq!(testing::send(&app, request).await.status, StatusCode::OK);
-    assert_eq!(app.renders.rendered(), 1);
     let shown = info(&app, "i").await;
     assert_eq!(shown["convergence"]["samples"], 16);
-    assert_eq!(app.renders.rendered(), 1, "the figures came with the image");
+    let kept = app.renders.kept();
+    assert_eq!(
+        (kept.whole(), kept.patched()),
+        (1, 0),
+        "one resolve for both"
+    );
     // Its samples per pixel are the render's, and they are what counting the cells gives.
     post(&app, "i", 1);
     let (shown, listed) = (info(&app, "i").await, list(&app).await);

@@ -3,10 +3,11 @@
 //!
 //! A need map is one render like an image (see [`crate::render`]): requests for the same frame
 //! version and tile size share one resolve, which reserves its memory from the working budget.
-//! Every render of a new version at the frame's own parameters, of whatever kind, also files the
-//! frame's whole-frame figures in the frame's [`History`](crate::frame::history::History)
-//! ([`crate::render::KeptResolves`]), so `GET /v1/frames/{id}`, `/metrics` and the
-//! live page read the figures of the latest render instead of resolving again. The estimator
+//! The need map at the default tile goes with the frame's kept resolve
+//! ([`crate::render::KeptResolves`]), which files its whole-frame figures in the frame's
+//! [`History`](crate::frame::history::History), so `GET /v1/frames/{id}`, `/metrics` and the
+//! live page read the figures of the latest render instead of resolving again, and figures of a
+//! version an image was just rendered at cost a need map, not a resolve. The estimator
 //! does the arithmetic ([`splatd_estimator::NeedMap`]); this module only schedules it and keeps
 //! the history.
 //!
@@ -88,9 +89,8 @@ pub async fn need_map(
     let bytes = app
         .renders
         .get_or_render(frame, format!("need {tile}"), cost, move |frame, wanted| {
-            // Every render at the frame's own parameters files its figures (see
-            // `KeptResolves`), and the need map at the default tile goes with the kept resolve:
-            // a render of another kind that started with this one may just have made it.
+            // The need map at the default tile goes with the kept resolve, which files its
+            // figures: a render that started with this one may just have made both.
             let body = if tile == estimator::DEFAULT_NEED_TILE {
                 kept.with_need_since(frame, threads, wanted, |map, _| to_api(frame.id(), map))
             } else {

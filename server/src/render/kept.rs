@@ -14,11 +14,12 @@
 //! holds the resolved layers of the frame (44 bytes per pixel, 91 MB at 1080p) beyond the
 //! working budget, so their number is small and fixed.
 //!
-//! With each kept resolve goes the frame's need map at the default tile size, made from the
-//! same cut, whose figures are filed in the frame's history: a render of any kind files the
-//! figures of the version it read, and the renders of a changing frame that start together
-//! when its pace ends (an image, the live page's previews, a dashboard's figures) share one
-//! resolve instead of each patching the changes the one before it left.
+//! With a kept resolve can go the frame's need map at the default tile size, made from the same
+//! cut when figures are asked for, whose figures are filed in the frame's history. The renders
+//! of a changing frame that start together when its pace ends (an image, the live page's
+//! previews, a dashboard's figures) share one resolve instead of each patching the changes the
+//! one before it left, and figures asked for after an image of the same version cost a need
+//! map, not a resolve.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
@@ -49,8 +50,10 @@ type Slot = Arc<Mutex<Kept>>;
 #[derive(Debug, Default)]
 pub struct KeptResolves {
     slots: Mutex<VecDeque<(u64, Slot)>>,
-    /// Renders that patched a kept resolve (the rest resolved the whole frame).
+    /// Renders that patched a kept resolve.
     patched: std::sync::atomic::AtomicU64,
+    /// Renders that resolved the whole frame at its own parameters.
+    whole: std::sync::atomic::AtomicU64,
 }
 
 /// How a render got its resolve.
@@ -68,6 +71,11 @@ impl KeptResolves {
     /// How many renders patched a kept resolve so far.
     pub fn patched(&self) -> u64 {
         self.patched.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many renders resolved a whole frame at its own parameters so far.
+    pub fn whole(&self) -> u64 {
+        self.whole.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     fn slot(&self, frame: &ShardedFrame) -> Slot {
@@ -112,18 +120,19 @@ impl KeptResolves {
             let resolved = cut.resolve(params, threads);
             return use_it(&resolved, cut, Made::Whole);
         }
-        self.bring_up_to_date(frame, threads, |kept, cut, made| {
+        self.bring_up_to_date(frame, threads, false, |kept, cut, made| {
             use_it(kept.resolved.as_ref().expect("kept above"), cut, made)
         })
     }
 
-    /// Brings `frame`'s kept resolve (at the frame's own parameters) and need map up to a cut
-    /// taken now, files the need map's figures in the frame's history, and calls `use_it` with
-    /// them and the cut while the slot is still locked.
+    /// Brings `frame`'s kept resolve (at the frame's own parameters) up to a cut taken now, and
+    /// with `need` its need map too, whose figures it files in the frame's history; calls
+    /// `use_it` with them and the cut while the slot is still locked.
     fn bring_up_to_date<T>(
         &self,
         frame: &ShardedFrame,
         threads: usize,
+        need: bool,
         use_it: impl FnOnce(&Kept, FrameCut, Made) -> T,
     ) -> T {
         let params = &frame.spec().resolve;
@@ -162,7 +171,14 @@ impl KeptResolves {
                 Made::Whole
             }
         };
-        if made != Made::Kept || kept.need.is_none() {
+        if made != Made::Kept {
+            self.whole.fetch_add(
+                u64::from(made == Made::Whole),
+                std::sync::atomic::Ordering::Relaxed,
+            );
+            kept.need = None;
+        }
+        if need && kept.need.is_none() {
             let resolved = kept.resolved.as_ref().expect("kept above");
             let map = NeedMap::build(&bands, resolved, params, DEFAULT_NEED_TILE)
                 .expect("a frame's bands tile it");
@@ -177,8 +193,9 @@ impl KeptResolves {
     }
 
     /// The need map at the default tile size of `frame` at its own parameters, and the version
-    /// it is of: the kept one if it is of version `wanted` or later (a render of another kind
-    /// that started with this one just made it), else one made as `with_resolved` makes it.
+    /// it is of: the kept one if it is of version `wanted` or later (a render that started with
+    /// this one just made it), else one made from a cut taken now and the kept resolve brought
+    /// up to it (a frame unchanged since an image costs the need map only).
     pub fn with_need_since<T>(
         &self,
         frame: &ShardedFrame,
@@ -193,7 +210,7 @@ impl KeptResolves {
                 return use_it(need, guard.version);
             }
         }
-        self.bring_up_to_date(frame, threads, |kept, cut, _| {
+        self.bring_up_to_date(frame, threads, true, |kept, cut, _| {
             drop(cut);
             use_it(kept.need.as_ref().expect("made above"), kept.version)
         })
@@ -319,11 +336,12 @@ mod tests {
         assert_eq!(spp_at(frame.version()), (2, Made::Kept));
     }
 
-    /// A render of any kind at the frame's own parameters files the figures of the version it
-    /// read, and the need map at the default tile goes with the kept resolve: asking for it at
-    /// that version or an older one resolves nothing, and it is the need map of a fresh cut.
+    /// Figures asked for after an image of the same version cost a need map, made from a cut
+    /// of that version and the kept resolve (no resolve); the need map goes with the kept
+    /// resolve, so asking at that version or an older one makes nothing, and it is the need map
+    /// of a fresh resolve of the same cut.
     #[test]
-    fn every_render_files_its_figures_and_the_need_map_is_kept() {
+    fn the_need_map_goes_with_the_kept_resolve() {
         let (w, h) = (40, 30);
         let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
         let params = frame.spec().resolve;
@@ -338,19 +356,35 @@ mod tests {
         kept.with_resolved(&frame, &params, 1, |_, _, made| {
             assert_eq!(made, Made::Whole)
         });
-        assert_eq!(frame.history().latest_version(), Some(asked));
+        assert_eq!(
+            frame.history().latest_version(),
+            None,
+            "an image files no figures"
+        );
         let oracle = {
             let cut = frame.cut();
             let resolved = cut.resolve(&params, 1);
             NeedMap::build(&cut.band_refs(), &resolved, &params, DEFAULT_NEED_TILE).unwrap()
         };
+        let tiles = kept.with_need_since(&frame, 1, asked, |m, _| m.tiles.clone());
+        assert_eq!(tiles, oracle.tiles);
+        assert_eq!(frame.history().latest_version(), Some(asked));
+        assert_eq!(
+            (kept.whole(), kept.patched()),
+            (1, 0),
+            "no resolve for the figures"
+        );
 
         // A writer adds a pass; a render that started before it still gets the kept map.
         frame.ingest(&batch(1)).unwrap();
         let (tiles, version) = kept.with_need_since(&frame, 1, asked, |m, v| (m.tiles.clone(), v));
         assert_eq!(version, asked);
         assert_eq!(tiles, oracle.tiles);
-        assert_eq!(kept.patched(), 0, "nothing resolved again");
+        assert_eq!(
+            (kept.whole(), kept.patched()),
+            (1, 0),
+            "nothing resolved again"
+        );
 
         // Asked at the new version, it is brought up to date, and the figures are filed.
         let now = frame.version();
@@ -360,5 +394,6 @@ mod tests {
         });
         assert_eq!(samples, u64::from(2 * w * h));
         assert_eq!(frame.history().latest_version(), Some(now));
+        assert_eq!(kept.patched(), 1);
     }
 }
