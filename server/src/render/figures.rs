@@ -118,16 +118,24 @@ pub async fn convergence(
     app: &AppState,
     frame: &Arc<ShardedFrame>,
 ) -> Result<api::Convergence, FiguresError> {
-    let filed = frame.history().latest_version();
-    if filed != Some(frame.version()) {
+    if frame.history().latest_version() != Some(frame.version()) {
         need_map(app, frame, estimator::DEFAULT_NEED_TILE).await?;
     }
+    filed(frame)
+        .map(|(c, _)| c)
+        .ok_or_else(|| FiguresError::internal("convergence", "a render filed no figures"))
+}
+
+/// The latest figures filed for `frame`, with its sample count and rate now, and their age in
+/// seconds (since the render they come from); `None` if no render filed any.
+fn filed(frame: &ShardedFrame) -> Option<(api::Convergence, f64)> {
     let samples = frame.samples();
     let threshold = frame.spec().request.converged_below;
     let history = frame.history();
-    history
-        .convergence(history.seconds(), samples, threshold)
-        .ok_or_else(|| FiguresError::internal("convergence", "a render filed no figures"))
+    let now = history.seconds();
+    let c = history.convergence(now, samples, threshold)?;
+    let age = c.history.last().map_or(0.0, |p| (now - p.seconds).max(0.0));
+    Some((c, age))
 }
 
 /// The renders of figures that scrapes started and that are still running, by frame serial: a
@@ -185,13 +193,7 @@ pub async fn latest_convergence(
             break;
         }
     }
-    let samples = frame.samples();
-    let threshold = frame.spec().request.converged_below;
-    let history = frame.history();
-    let now = history.seconds();
-    let c = history.convergence(now, samples, threshold)?;
-    let age = c.history.last().map_or(0.0, |p| (now - p.seconds).max(0.0));
-    Some((c, age))
+    filed(frame)
 }
 
 /// The wire form of a need map.
