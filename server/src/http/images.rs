@@ -71,13 +71,19 @@ pub async fn get_image(
                 layout: &frame.spec().layout,
                 params: &params,
             };
+            let encode = |resolved: &splatd_estimator::Resolved,
+                          extra: &[ExtraLayer],
+                          aovs: &[(String, Vec<f32>)],
+                          more_attributes| {
+                encode_exr_with(resolved, extra, aovs, &provenance, more_attributes)
+                    .map(Bytes::from)
+                    .map_err(|e| ApiError::internal("EXR encoding", e))
+            };
             // Without cascades, AOVs or a denoise the image needs the resolved layers only: a
             // render of another kind that started with this one may just have made them.
             if !query.cascades && oidn.is_none() && frame.spec().request.aovs.is_empty() {
                 return kept.with_resolved_since(frame, &params, threads, wanted, |resolved, _| {
-                    encode_exr_with(resolved, &[], &[], &provenance, Vec::new())
-                        .map(Bytes::from)
-                        .map_err(|e| ApiError::internal("EXR encoding", e))
+                    encode(resolved, &[], &[], Vec::new())
                 });
             }
             kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
@@ -106,9 +112,7 @@ pub async fn get_image(
                 }
                 // The encoding needs nothing of the state.
                 drop(cut);
-                encode_exr_with(resolved, &extra, &aovs, &provenance, more_attributes)
-                    .map(Bytes::from)
-                    .map_err(|e| ApiError::internal("EXR encoding", e))
+                encode(resolved, &extra, &aovs, more_attributes)
             })
         })
         .await?;
