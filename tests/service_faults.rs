@@ -446,6 +446,69 @@ fn the_python_outbox_loses_no_pass_across_a_server_restart() {
     check_every_pass_once(server, &data, "py", &mean);
 }
 
+/// With passes in flight together (as `splatd post` sends them), the answers can come from the
+/// two server processes out of order: the pass started first answered by the new process, the
+/// one after it by the old one, which had taken it before it was killed. The outbox takes the
+/// answers in the order the passes were started and resends exactly what the old process
+/// acknowledged, each once: the pass before both and the late one; the sync then finds all
+/// three on disk, each counted once. (Before, the late answer made the outbox take the old
+/// process for the current one: it resent a pass the new one had, and the late one only on
+/// the next round.)
+#[test]
+fn a_late_answer_from_a_killed_server_is_resent_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let (files, _) = restart_passes(&dir.path().join("passes"));
+    let data = dir.path().join("data");
+    let args = common::durable_args(&data);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let first = Server::start(&args);
+    let forwarder = Forwarder::start(&first.addr);
+    create(&first, "late", PASS_W, PASS_H);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let client = splatd_proto::Client::new(&forwarder.url).unwrap();
+    let mut outbox = splatd_proto::Outbox::new(client, "late", 5).unwrap();
+    let pass = |i: usize| {
+        let bytes = std::fs::read(&files[i]).unwrap();
+        (i as u64 + 1, files[i].clone(), bytes::Bytes::from(bytes))
+    };
+    let (seq, path, bytes) = pass(0);
+    let before = runtime
+        .block_on(outbox.post_pass_file(seq, None, path, bytes))
+        .unwrap();
+    let (seq, path, bytes) = pass(1);
+    let started_first = outbox.start_pass_file(seq, None, path, bytes).unwrap();
+    let (seq, path, bytes) = pass(2);
+    let started_second = outbox.start_pass_file(seq, None, path, bytes).unwrap();
+    // The second reaches the old process; then it is killed, and the first reaches the new one.
+    let late = runtime.block_on(started_second.send());
+    first.kill();
+    let second = Server::start(&args);
+    forwarder.point_at(Some(&second.addr));
+    let early = runtime.block_on(started_first.send());
+    let a = runtime.block_on(outbox.received(early)).unwrap();
+    assert_ne!(
+        a.boot, before.boot,
+        "the first pass was answered by the new process"
+    );
+    assert_eq!(
+        outbox.resent(),
+        1,
+        "the pass before both, which the old process had"
+    );
+    let b = runtime.block_on(outbox.received(late)).unwrap();
+    assert_eq!(
+        b.boot, before.boot,
+        "the second was answered by the old process"
+    );
+    assert_eq!(outbox.resent(), 2, "and only the late one more");
+    let synced = runtime.block_on(outbox.sync()).unwrap();
+    assert!(synced.durable && synced.boot == a.boot, "{synced:?}");
+    assert_eq!(outbox.resent(), 2, "the sync found nothing more to send");
+    let info = get(&second, "/v1/frames/late");
+    assert_eq!(info["samples"], 3 * u64::from(PASS_W * PASS_H), "{info}");
+    assert_eq!(info["batches"], 3, "{info}");
+}
+
 /// A frame whose files are damaged or missing is set aside at start, listed by the API and
 /// reported by `/healthz`; every other frame is served.
 #[test]

@@ -75,6 +75,10 @@ pub struct Outbox {
     max_kept_bytes: usize,
     /// The server process last heard from.
     boot: Option<u64>,
+    /// Server processes heard from before it: gone. With several posts in flight, one sent
+    /// before a restart can be answered by the old process after a post answered by the new
+    /// one; such an answer does not bring the old process back.
+    gone: Vec<u64>,
     resent: u64,
 }
 
@@ -95,6 +99,7 @@ impl Outbox {
             kept_bytes: 0,
             max_kept_bytes: DEFAULT_MAX_KEPT_BYTES,
             boot: None,
+            gone: Vec::new(),
             resent: 0,
         })
     }
@@ -147,12 +152,56 @@ impl Outbox {
         path: PathBuf,
         exr: Bytes,
     ) -> Result<BatchAck, ClientError> {
+        let post = self.start_pass_file(seq, layer, path, exr)?;
+        let sent = post.send().await;
+        self.received(sent).await
+    }
+
+    /// [`Outbox::post_pass_file`] in two halves, so that several passes can be in flight: this
+    /// half checks the pass against those kept and returns the request, which owns all it
+    /// needs (run it anywhere, a spawned task say); [`Outbox::received`] takes its answer.
+    ///
+    /// Hand the answers to `received` in the order the posts were started: what the outbox
+    /// keeps and resends is then exactly what it would be with one post at a time, and a
+    /// post answered by a server process the outbox already knows is gone (sent before a
+    /// restart, answered after a later post was answered by the new process) is resent like
+    /// the others that process acknowledged.
+    pub fn start_pass_file(
+        &self,
+        seq: u64,
+        layer: Option<&str>,
+        path: PathBuf,
+        exr: Bytes,
+    ) -> Result<Post, ClientError> {
         let route = Route::Pass {
             layer: layer.map(str::to_owned),
         };
         let digest = xxhash_rust::xxh3::xxh3_64(&exr);
-        self.send_and_keep(seq, route, Body::File { path, digest }, exr)
-            .await
+        self.start(seq, route, Body::File { path, digest }, exr)
+    }
+
+    /// Keeps the body of a post answered as applied until it is durable, and resends what a
+    /// server restart lost (the second half of [`Outbox::start_pass_file`]).
+    pub async fn received(&mut self, sent: Sent) -> Result<BatchAck, ClientError> {
+        let Sent { post, answer } = sent;
+        let ack = answer?;
+        if ack.durable_floor.is_some() {
+            let in_memory = post.body.in_memory();
+            let kept = Kept {
+                route: post.route,
+                body: post.body,
+                boot: ack.boot,
+            };
+            if let Some(old) = self.kept.insert(post.seq, kept) {
+                self.kept_bytes -= old.body.in_memory();
+            }
+            self.kept_bytes += in_memory;
+        }
+        self.heard(ack.clone()).await?;
+        if self.kept_bytes > self.max_kept_bytes {
+            self.sync().await?;
+        }
+        Ok(ack)
     }
 
     /// Returns once everything this outbox had acknowledged is on disk,
@@ -166,7 +215,7 @@ impl Outbox {
                 return Ok(ack);
             }
             let stale = self.acknowledged_elsewhere(ack.boot);
-            self.boot = Some(ack.boot);
+            self.now_at(ack.boot);
             if stale.is_empty() {
                 self.forget(|_| true);
                 return Ok(ack);
@@ -194,6 +243,13 @@ impl Outbox {
         body: Body,
         bytes: Bytes,
     ) -> Result<BatchAck, ClientError> {
+        let post = self.start(seq, route, body, bytes)?;
+        let sent = post.send().await;
+        self.received(sent).await
+    }
+
+    /// A post of `bytes` as `seq`, refused if `seq` is kept with other content.
+    fn start(&self, seq: u64, route: Route, body: Body, bytes: Bytes) -> Result<Post, ClientError> {
         if let Some(kept) = self.kept.get(&seq) {
             let same = match &kept.body {
                 Body::Memory(b) => *b == bytes,
@@ -206,43 +262,53 @@ impl Outbox {
                 )));
             }
         }
-        let ack = self.send(&route, seq, bytes).await?;
-        if ack.durable_floor.is_some() {
-            let in_memory = body.in_memory();
-            let kept = Kept {
-                route,
-                body,
-                boot: ack.boot,
-            };
-            if let Some(old) = self.kept.insert(seq, kept) {
-                self.kept_bytes -= old.body.in_memory();
-            }
-            self.kept_bytes += in_memory;
-        }
-        self.heard(ack.clone()).await?;
-        if self.kept_bytes > self.max_kept_bytes {
-            self.sync().await?;
-        }
-        Ok(ack)
+        Ok(Post {
+            client: self.client.clone(),
+            frame: self.frame.clone(),
+            worker: self.worker,
+            seq,
+            route,
+            body,
+            bytes,
+        })
     }
 
     /// Forgets what `ack` reports durable; resends the rest if the server restarted.
     async fn heard(&mut self, mut ack: BatchAck) -> Result<(), ClientError> {
         for _ in 0..MAX_RESTARTS {
             if let Some(floor) = ack.durable_floor {
+                // On disk is on disk, whichever process wrote it: the next one recovers it.
                 self.forget(|seq| seq < floor);
             }
-            let restarted = self.boot.is_some_and(|b| b != ack.boot);
-            self.boot = Some(ack.boot);
-            if !restarted {
+            let Some(last) = self.boot else {
+                self.boot = Some(ack.boot);
+                return Ok(());
+            };
+            if ack.boot == last {
                 return Ok(());
             }
-            let stale = self.acknowledged_elsewhere(ack.boot);
-            if let Some(last) = self.resend(&stale).await? {
-                ack = last;
+            // A new process, or a late answer of one already gone (which stays gone): either
+            // way, what a process other than the current one acknowledged is sent again.
+            if !self.gone.contains(&ack.boot) {
+                self.now_at(ack.boot);
+            }
+            let current = self.boot.expect("set above");
+            let stale = self.acknowledged_elsewhere(current);
+            match self.resend(&stale).await? {
+                Some(again) => ack = again,
+                None => return Ok(()),
             }
         }
         Err(ClientError::Restarting(self.frame.clone()))
+    }
+
+    /// Records that `boot` is the server process now answering; the one before it is gone.
+    fn now_at(&mut self, boot: u64) {
+        if let Some(old) = self.boot.filter(|&b| b != boot) {
+            self.gone.push(old);
+        }
+        self.gone.retain(|&b| b != boot);
+        self.boot = Some(boot);
     }
 
     /// Resends kept bodies, lowest number first; returns the last answer, or the first one
@@ -255,7 +321,15 @@ impl Outbox {
                 Body::Memory(b) => b.clone(),
                 Body::File { path, digest } => read_same(path, *digest)?,
             };
-            let again = self.send(&kept.route, seq, bytes).await?;
+            let again = send(
+                &self.client,
+                &self.frame,
+                self.worker,
+                &kept.route,
+                seq,
+                bytes,
+            )
+            .await?;
             self.resent += 1;
             if let Some(k) = self.kept.get_mut(&seq) {
                 k.boot = again.boot;
@@ -267,17 +341,6 @@ impl Outbox {
             }
         }
         Ok(last)
-    }
-
-    async fn send(&self, route: &Route, seq: u64, bytes: Bytes) -> Result<BatchAck, ClientError> {
-        match route {
-            Route::Samples => self.client.post_encoded(&self.frame, bytes).await,
-            Route::Pass { layer } => {
-                self.client
-                    .post_pass_layer(&self.frame, self.worker, seq, layer.as_deref(), bytes)
-                    .await
-            }
-        }
     }
 
     /// The kept bodies last acknowledged by another server process than `boot`, lowest first.
@@ -295,6 +358,63 @@ impl Outbox {
             if let Some(k) = self.kept.remove(&seq) {
                 self.kept_bytes -= k.body.in_memory();
             }
+        }
+    }
+}
+
+/// A post started by [`Outbox::start_pass_file`]: everything the request needs, owned, so that
+/// it can run while the outbox starts the next one.
+#[derive(Debug)]
+pub struct Post {
+    client: Client,
+    frame: String,
+    worker: u64,
+    seq: u64,
+    route: Route,
+    body: Body,
+    bytes: Bytes,
+}
+
+impl Post {
+    /// Sends the request (retrying what the client retries) and returns its answer, for
+    /// [`Outbox::received`].
+    pub async fn send(mut self) -> Sent {
+        // The bytes go with the request; what is kept to resend is `body`.
+        let bytes = std::mem::take(&mut self.bytes);
+        let answer = send(
+            &self.client,
+            &self.frame,
+            self.worker,
+            &self.route,
+            self.seq,
+            bytes,
+        )
+        .await;
+        Sent { post: self, answer }
+    }
+}
+
+/// A [`Post`] and the server's answer to it.
+#[derive(Debug)]
+pub struct Sent {
+    post: Post,
+    answer: Result<BatchAck, ClientError>,
+}
+
+async fn send(
+    client: &Client,
+    frame: &str,
+    worker: u64,
+    route: &Route,
+    seq: u64,
+    bytes: Bytes,
+) -> Result<BatchAck, ClientError> {
+    match route {
+        Route::Samples => client.post_encoded(frame, bytes).await,
+        Route::Pass { layer } => {
+            client
+                .post_pass_layer(frame, worker, seq, layer.as_deref(), bytes)
+                .await
         }
     }
 }
