@@ -287,21 +287,64 @@ fn post(args: PostArgs) -> Result<()> {
             .expect("valid template"),
         );
         // The outbox keeps every pass (as its path) until the server has it on disk, and
-        // resends what a server restart lost.
+        // resends what a server restart lost. `IN_FLIGHT` passes are sent at a time, so the
+        // server decodes one while it adds the one before and the next file is read meanwhile;
+        // their answers go to the outbox in the order the passes were started.
         let mut outbox = splatd_proto::Outbox::new(client.clone(), &args.frame, worker)?;
-        let (mut samples, mut duplicates) = (0u64, 0u64);
-        for path in &args.passes {
-            let bytes =
-                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-            let seq = pass_seq(&bytes);
-            let ack = outbox
-                .post_pass_file(seq, args.layer.as_deref(), path.clone(), bytes.into())
-                .await
-                .with_context(|| format!("posting {}", path.display()))?;
-            samples += ack.accepted;
-            duplicates += u64::from(ack.duplicate);
-            bar.set_message(format!("{samples} samples"));
-            bar.inc(1);
+        let (mut samples, mut duplicates, mut posted) = (0u64, 0u64, 0usize);
+        let mut flying = std::collections::VecDeque::new();
+        let mut failed = None;
+        let mut passes = args.passes.iter();
+        loop {
+            // A pass that fails stops the posting, but the passes already in flight are still
+            // answered and counted: each was sent, and may be applied.
+            let next = if failed.is_none() {
+                passes.next()
+            } else {
+                None
+            };
+            if let Some(path) = next {
+                let started = std::fs::read(path)
+                    .with_context(|| format!("reading {}", path.display()))
+                    .and_then(|bytes| {
+                        let seq = pass_seq(&bytes);
+                        outbox
+                            .start_pass_file(seq, args.layer.as_deref(), path.clone(), bytes.into())
+                            .with_context(|| format!("posting {}", path.display()))
+                    });
+                match started {
+                    Ok(post) => flying.push_back((path, tokio::spawn(post.send()))),
+                    Err(e) => failed = Some(e),
+                }
+                if flying.len() < IN_FLIGHT && failed.is_none() {
+                    continue;
+                }
+            }
+            let Some((path, sending)) = flying.pop_front() else {
+                break;
+            };
+            let answer = match sending.await {
+                Ok(sent) => outbox.received(sent).await.map_err(anyhow::Error::from),
+                Err(e) => Err(anyhow::Error::from(e).context("the request's task")),
+            };
+            match answer.with_context(|| format!("posting {}", path.display())) {
+                Ok(ack) => {
+                    samples += ack.accepted;
+                    duplicates += u64::from(ack.duplicate);
+                    posted += 1;
+                    bar.set_message(format!("{samples} samples"));
+                    bar.inc(1);
+                }
+                Err(e) if failed.is_none() => failed = Some(e),
+                Err(e) => eprintln!("also failed: {e:#}"),
+            }
+        }
+        if let Some(e) = failed {
+            bar.abandon();
+            return Err(e.context(format!(
+                "{posted} of {} passes were posted ({samples} samples) before it stopped",
+                args.passes.len()
+            )));
         }
         bar.finish();
         // On a server with a data directory, exit only once the passes are on disk, resending
@@ -340,6 +383,10 @@ fn post(args: PostArgs) -> Result<()> {
         Ok(())
     })
 }
+
+/// Passes `splatd post` has in flight at once. Two keep both of a head's cores busy (one pass
+/// decoded while the one before is added); more only queue in the server's memory.
+const IN_FLIGHT: usize = 2;
 
 /// The worker id `splatd post` sends passes under unless `--worker` is given.
 // "SPLATPOS" in ASCII, cut to 53 bits so it stays exact in JSON numbers read as doubles.

@@ -307,3 +307,42 @@ fn multilayer_passes_from_a_worker_with_a_write_token() {
     );
     assert_eq!(after.samples, u64::from(W * H));
 }
+
+/// `splatd post` sends two passes at a time, so when one is refused the next is already on its
+/// way: the tool stops starting passes, still takes the answer of the one in flight, exits
+/// non-zero naming the refused file, and says how many passes it posted, which is exactly what
+/// the frame holds.
+#[test]
+fn a_refused_pass_stops_splatd_post_and_what_it_posted_is_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    write_passes(dir.path());
+    let bad = dir.path().join("truncated.exr");
+    let good = std::fs::read(dir.path().join("pass1.half.exr")).unwrap();
+    std::fs::write(&bad, &good[..good.len() / 2]).unwrap();
+    let files = [
+        dir.path().join("pass0.half.exr"),
+        dir.path().join("pass0.uint.exr"),
+        bad.clone(),
+        dir.path().join("pass1.uint.exr"),
+        dir.path().join("pass2.half.exr"),
+    ];
+    let server = Server::start(&[]);
+    let out = Command::new(env!("CARGO_BIN_EXE_splatd"))
+        .args(["post", "--url", &server.url, "--frame", "stops", "--create"])
+        .args(&files)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "{said}");
+    assert!(
+        said.contains(&format!("posting {}", bad.display())),
+        "{said}"
+    );
+    // The two before it, and the one sent beside it; not the one after.
+    assert!(said.contains("3 of 5 passes were posted"), "{said}");
+    let rt = runtime();
+    let client = Client::new(&server.url).unwrap();
+    let info = rt.block_on(client.frame_info("stops")).unwrap();
+    assert_eq!(info.samples, 3 * u64::from(W * H), "{said}");
+    assert_eq!(info.batches, 3, "{said}");
+}
