@@ -45,6 +45,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::Duration;
 
+use super::frame::dedup::Seen;
 use super::frame::{FrameCut, ShardedFrame};
 
 use error::io_err;
@@ -202,8 +203,8 @@ impl Durable {
             // The encoding and writing at low priority: on a saturated machine they take the
             // cores that ingest leaves idle, and durability lags instead of ingest slowing.
             crate::priority::on_low_priority_thread("splatd-snapshot", move || {
-                this.write_snapshot(&f, &cut)
-                    .map(|()| (cut.seen, cut.version))
+                let version = cut.version;
+                this.write_snapshot(&f, cut).map(|seen| (seen, version))
             })
             .await
         }
@@ -231,9 +232,11 @@ impl Durable {
         Ok(())
     }
 
-    fn write_snapshot(&self, frame: &ShardedFrame, cut: &FrameCut) -> Result<(), DurableError> {
+    /// Writes the snapshot of `cut` and syncs it; returns the cut's applied set, now on disk.
+    /// The cut's bands are let go of as they are written, before the sync ([`format::Snapshot`]).
+    fn write_snapshot(&self, frame: &ShardedFrame, cut: FrameCut) -> Result<Seen, DurableError> {
         let dir = self.frame_dir(frame.id());
-        let snapshot = format::Snapshot::new(frame, cut);
+        let (snapshot, seen) = format::Snapshot::new(frame, cut);
         write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, |w| snapshot.write_to(w))?;
         // From now on a missing snapshot is damage, not a frame that never had one. Marked only
         // after a snapshot exists: a first snapshot that failed (a full disk) leaves the frame
@@ -245,7 +248,7 @@ impl Durable {
                 .map_err(io_err("creating", &marker))?;
             sync_dir(&dir)?;
         }
-        Ok(())
+        Ok(seen)
     }
 
     /// Snapshots every changed frame until `stop` changes (spawned by the server). A round in

@@ -469,4 +469,15 @@ impl ShardedFrame {
 }
 
 #[cfg(test)]
+impl ShardedFrame {
+    /// Bands a cut still holds (which a writer changing them would copy first).
+    pub(crate) fn bands_held_by_cuts(&self) -> usize {
+        self.bands
+            .iter()
+            .filter(|b| Arc::strong_count(&lock(b)) > 1)
+            .count()
+    }
+}
+
+#[cfg(test)]
 mod tests;
