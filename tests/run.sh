@@ -24,14 +24,18 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-as_root() {
-    if [ "$(id -u)" -eq 0 ]; then "$@"; else sudo -n "$@"; fi
-}
-
+# Set-up runs one run at a time on the machine: two runs side by side on a fresh machine would
+# otherwise install the same packages at once (apt-get fails at once on dpkg's lock, and two pip
+# installs of one package can race). The lock is let go of before the tests start.
+if command -v flock >/dev/null 2>&1; then
+    exec 9>"${TMPDIR:-/tmp}/splatd-setup.lock"
+    flock 9
+fi
 if ! command -v python3 >/dev/null 2>&1 || ! python3 -m pip --version >/dev/null 2>&1; then
-    as_root apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive as_root apt-get install -y -qq --no-install-recommends \
-        python3 python3-pip python3-venv >/dev/null
+    . tests/setup/apt.sh
+    need_apt python3
+    apt_get update -qq
+    apt_get install -y -qq --no-install-recommends python3 python3-pip python3-venv >/dev/null
 fi
 python3 -m pip install --quiet --disable-pip-version-check --root-user-action=ignore \
     -r tests/requirements.txt 2>/dev/null \
@@ -67,6 +71,7 @@ for blender in blender bpy; do
 done
 bash tests/setup/oiio.sh >/dev/null || echo "oiiotool could not be installed; not used"
 bash tests/setup/chromium.sh >/dev/null
+exec 9>&-
 
 cargo test --workspace
 python3 proto/python/test_splatd_client.py

@@ -16,10 +16,10 @@ fi
 need_apt blender
 
 export DEBIAN_FRONTEND=noninteractive
-apt_install() { $SUDO apt-get install -y -q --no-install-recommends "$@" >&2; }
+apt_install() { apt_get install -y -q --no-install-recommends "$@" >&2; }
 # Try with the package lists as they are first; refresh them only if that fails.
 if ! apt_install blender; then
-    $SUDO apt-get update -q >&2
+    apt_get update -q >&2
     apt_install blender
 fi
 

@@ -35,14 +35,14 @@ need_apt chromium/chromedriver
 
 export DEBIAN_FRONTEND=noninteractive
 apt_install() {
-    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q --no-install-recommends \
+    apt_get install -y -q --no-install-recommends \
         -o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold \
         chromium chromium-driver >&2
 }
 
 # Try with the package lists as they are first; refresh them only if that fails.
 if ! apt_install; then
-    $SUDO apt-get update -q >&2
+    apt_get update -q >&2
     apt_install
 fi
 

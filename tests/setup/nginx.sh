@@ -29,13 +29,13 @@ cleanup() { if [ -n "$policy_added" ]; then rm -f /usr/sbin/policy-rc.d; fi; }
 trap cleanup EXIT
 
 apt_install() {
-    $SUDO apt-get install -y -q --no-install-recommends \
+    apt_get install -y -q --no-install-recommends \
         -o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold "$@" >&2
 }
 
 # Try with the package lists as they are first; refresh them only if that fails.
 if ! apt_install nginx-light && ! apt_install nginx; then
-    $SUDO apt-get update -q >&2
+    apt_get update -q >&2
     apt_install nginx-light || apt_install nginx
 fi
 

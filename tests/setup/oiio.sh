@@ -15,9 +15,9 @@ fi
 need_apt openimageio-tools
 
 export DEBIAN_FRONTEND=noninteractive
-apt_install() { $SUDO apt-get install -y -q --no-install-recommends "$@" >&2; }
+apt_install() { apt_get install -y -q --no-install-recommends "$@" >&2; }
 if ! apt_install openimageio-tools; then
-    $SUDO apt-get update -q >&2
+    apt_get update -q >&2
     apt_install openimageio-tools
 fi
 

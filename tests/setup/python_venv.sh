@@ -19,9 +19,9 @@ if ! command -v python3 >/dev/null 2>&1 || ! can_venv; then
     . "$(dirname "$0")/apt.sh"
     need_apt "python3 with venv and pip"
     export DEBIAN_FRONTEND=noninteractive
-    apt_install() { $SUDO apt-get install -y -q --no-install-recommends "$@" >&2; }
+    apt_install() { apt_get install -y -q --no-install-recommends "$@" >&2; }
     if ! apt_install python3 python3-venv python3-pip; then
-        $SUDO apt-get update -q >&2
+        apt_get update -q >&2
         apt_install python3 python3-venv python3-pip
     fi
     if ! can_venv; then
