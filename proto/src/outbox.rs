@@ -123,8 +123,8 @@ impl Outbox {
     /// Posts an encoded batch of this worker numbered `seq` (see
     /// [`crate::Batch::encode`]).
     pub async fn post_batch(&mut self, seq: u64, body: Bytes) -> Result<BatchAck, ClientError> {
-        self.send_and_keep(seq, Route::Samples, Body::Memory(body.clone()), body)
-            .await
+        let post = self.start(seq, Route::Samples, Body::Memory(body.clone()), body)?;
+        self.send_and_keep(post).await
     }
 
     /// Posts a rendered pass (OpenEXR bytes) numbered `seq`, its beauty in
@@ -138,8 +138,8 @@ impl Outbox {
         let route = Route::Pass {
             layer: layer.map(str::to_owned),
         };
-        self.send_and_keep(seq, route, Body::Memory(exr.clone()), exr)
-            .await
+        let post = self.start(seq, route, Body::Memory(exr.clone()), exr)?;
+        self.send_and_keep(post).await
     }
 
     /// [`Outbox::post_pass`] of the bytes read from `path`: only the path is
@@ -153,8 +153,7 @@ impl Outbox {
         exr: Bytes,
     ) -> Result<BatchAck, ClientError> {
         let post = self.start_pass_file(seq, layer, path, exr)?;
-        let sent = post.send().await;
-        self.received(sent).await
+        self.send_and_keep(post).await
     }
 
     /// [`Outbox::post_pass_file`] in two halves, so that several passes can be in flight: this
@@ -236,14 +235,8 @@ impl Outbox {
         self.resent
     }
 
-    async fn send_and_keep(
-        &mut self,
-        seq: u64,
-        route: Route,
-        body: Body,
-        bytes: Bytes,
-    ) -> Result<BatchAck, ClientError> {
-        let post = self.start(seq, route, body, bytes)?;
+    /// Both halves of a post, one after the other.
+    async fn send_and_keep(&mut self, post: Post) -> Result<BatchAck, ClientError> {
         let sent = post.send().await;
         self.received(sent).await
     }
