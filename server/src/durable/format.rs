@@ -4,10 +4,9 @@ use std::collections::HashMap;
 use std::fs::File;
 use std::io::{self, Read, Write};
 use std::path::Path;
-
-use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
+use serde::{Deserialize, Serialize};
 use splatd_estimator::{AovSums, FrameState};
 use splatd_proto::StateDump;
 
