@@ -15,7 +15,6 @@ fi
 . "$(dirname "$0")/apt.sh"
 need_apt blender
 
-export DEBIAN_FRONTEND=noninteractive
 apt_install() { apt_get install -y -q --no-install-recommends "$@" >&2; }
 # Try with the package lists as they are first; refresh them only if that fails.
 if ! apt_install blender; then

@@ -33,7 +33,6 @@ fi
 . "$(dirname "$0")/apt.sh"
 need_apt chromium/chromedriver
 
-export DEBIAN_FRONTEND=noninteractive
 apt_install() {
     apt_get install -y -q --no-install-recommends \
         -o Dpkg::Options::=--force-confdef -o Dpkg::Options::=--force-confold \

@@ -17,7 +17,6 @@ fi
 . "$(dirname "$0")/apt.sh"
 need_apt nginx
 
-export DEBIAN_FRONTEND=noninteractive
 # Don't let the package start a system nginx on port 80: the tests run their own.
 policy_added=""
 if [ ! -e /usr/sbin/policy-rc.d ] && [ -z "$SUDO" ]; then

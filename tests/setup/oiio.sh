@@ -14,7 +14,6 @@ fi
 . "$(dirname "$0")/apt.sh"
 need_apt openimageio-tools
 
-export DEBIAN_FRONTEND=noninteractive
 apt_install() { apt_get install -y -q --no-install-recommends "$@" >&2; }
 if ! apt_install openimageio-tools; then
     apt_get update -q >&2

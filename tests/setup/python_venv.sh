@@ -18,7 +18,6 @@ can_venv() {
 if ! command -v python3 >/dev/null 2>&1 || ! can_venv; then
     . "$(dirname "$0")/apt.sh"
     need_apt "python3 with venv and pip"
-    export DEBIAN_FRONTEND=noninteractive
     apt_install() { apt_get install -y -q --no-install-recommends "$@" >&2; }
     if ! apt_install python3 python3-venv python3-pip; then
         apt_get update -q >&2
