@@ -741,6 +741,33 @@ impl From<&crate::WireError> for ErrorBody {
     }
 }
 
+/// Query of `GET /v1/frames/{id}`: which convergence figures the answer carries.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InfoQuery {
+    /// `fresh` when omitted.
+    #[serde(default)]
+    pub convergence: InfoConvergence,
+}
+
+/// The convergence figures `GET /v1/frames/{id}` answers with (`convergence=`).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum InfoConvergence {
+    /// Figures of a render of the frame as it is: rendered now if the frame changed since its
+    /// latest figures, which on a frame that workers keep changing waits for its render pace.
+    #[default]
+    Fresh,
+    /// The latest figures at once, never waiting for a render: if the frame changed since they
+    /// were made, one render of its figures is started for later requests. `convergence.samples`
+    /// (and the spp figures, which come from the same render) say what they saw; absent until a
+    /// first render filed any. What a worker that asks "converged?" before each pass, and the
+    /// live page, ask for.
+    Latest,
+    /// No figures: the counts alone (a count of the frame's cells), which never cost a render.
+    None,
+}
+
 /// Query of `GET /v1/frames/{id}/image.exr`: overrides of the frame's
 /// [`ResolveParams`], plus `cascades=1` to add the raw cascade layers.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

@@ -280,8 +280,27 @@ impl Client {
 
     /// `GET /v1/frames/{id}`: the state of a frame.
     pub async fn frame_info(&self, id: &str) -> Result<FrameInfo, ClientError> {
+        self.get_info(id, "").await
+    }
+
+    /// `GET /v1/frames/{id}?convergence=latest`: the frame's latest convergence figures at
+    /// once, never waiting for a render (see [`InfoConvergence::Latest`]).
+    ///
+    /// [`InfoConvergence::Latest`]: crate::api::InfoConvergence::Latest
+    pub async fn frame_info_latest(&self, id: &str) -> Result<FrameInfo, ClientError> {
+        self.get_info(id, "?convergence=latest").await
+    }
+
+    /// `GET /v1/frames/{id}?convergence=none`: the frame's counts (samples, batches, spp)
+    /// without its convergence, which never wait for a render: what a tool that reports the
+    /// frame's totals after posting asks for.
+    pub async fn frame_counts(&self, id: &str) -> Result<FrameInfo, ClientError> {
+        self.get_info(id, "?convergence=none").await
+    }
+
+    async fn get_info(&self, id: &str, query: &str) -> Result<FrameInfo, ClientError> {
         validate_frame_id(id)?;
-        let path = format!("/v1/frames/{id}");
+        let path = format!("/v1/frames/{id}{query}");
         let (status, bytes) = self.send(Method::GET, &path, None).await?;
         parse_json(&format!("GET {path}"), status, &bytes)
     }

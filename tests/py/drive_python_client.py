@@ -93,6 +93,9 @@ def main(url, out):
     every = sc.neediest_tiles(need, 20)
     assert len(every) == 9 and sum(w * h for _, _, w, h in every) == W * H, every
     assert info["convergence"]["spp_min"] == PASSES, info
+    counts = client.frame_info("py", convergence="none")
+    assert "convergence" not in counts, counts
+    assert (counts["samples"], counts["spp_min"], counts["spp_max"]) == (PASSES * W * H, PASSES, PASSES), counts
     np.stack(passes).astype("<f4").tofile(os.path.join(out, "samples.f32"))
     with open(os.path.join(out, "served.exr"), "wb") as f:
         f.write(client.image("py"))

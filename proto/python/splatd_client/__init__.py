@@ -359,10 +359,16 @@ class Client:
             req["denoise_guides"] = dict(denoise_guides)
         return self._request("PUT", f"/v1/frames/{id}", json.dumps(req).encode(), "application/json")
 
-    def frame_info(self, id: str) -> Dict[str, Any]:
-        """``GET /v1/frames/{id}``."""
+    def frame_info(self, id: str, convergence: str = "fresh") -> Dict[str, Any]:
+        """``GET /v1/frames/{id}?convergence=...``: ``"fresh"`` figures of a render of the frame
+        as it is (on a frame that workers keep changing this waits for its render pace),
+        ``"latest"`` the latest figures at once (their ``samples`` say what they saw), or
+        ``"none"``: the counts alone, which never wait for a render."""
         validate_frame_id(id)
-        return self._request("GET", f"/v1/frames/{id}")
+        if convergence not in ("fresh", "latest", "none"):
+            raise ValueError(f"convergence must be 'fresh', 'latest' or 'none', not {convergence!r}")
+        query = "" if convergence == "fresh" else f"?convergence={convergence}"
+        return self._request("GET", f"/v1/frames/{id}{query}")
 
     def post_batch(self, frame: str, worker: int, seq: int, xs: Any, ys: Any, rgb: Any) -> Dict[str, Any]:
         """Encodes once and sends (retrying with the same bytes); returns the BatchAck.

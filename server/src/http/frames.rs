@@ -2,11 +2,13 @@
 
 use axum::extract::{Path, State};
 use axum::http::StatusCode;
-use splatd_proto::api::{CreateFrame, FrameInfo, FrameList, PutFrame, QuarantinedFrame};
+use splatd_proto::api::{
+    CreateFrame, FrameInfo, FrameList, InfoConvergence, InfoQuery, PutFrame, QuarantinedFrame,
+};
 
 use crate::http::blocking::blocking;
 use crate::http::error::ApiError;
-use crate::http::extract::{Frame, Json};
+use crate::http::extract::{Frame, Json, Query};
 use crate::render::figures::FiguresError;
 use crate::store::Created;
 use crate::AppState;
@@ -85,19 +87,31 @@ pub async fn list(State(app): State<AppState>) -> Result<Json<FrameList>, ApiErr
     }))
 }
 
-/// `GET /v1/frames/{id}`, with the frame's convergence from its latest render (rendered now
-/// if the frame changed since; without it when the working memory stayed busy).
+/// `GET /v1/frames/{id}`, with the frame's convergence figures as the query asks
+/// ([`InfoConvergence`]): from a render of the frame as it is (`fresh`, rendered now if the
+/// frame changed since; without them when the working memory stayed busy), the latest at once
+/// (`latest`), or none (`none`: the counts alone, which never wait for a render).
 pub async fn info(
     State(app): State<AppState>,
+    Query(query): Query<InfoQuery>,
     Frame(frame): Frame,
 ) -> Result<Json<FrameInfo>, ApiError> {
-    let convergence = match crate::render::figures::convergence(&app, &frame).await {
-        Ok(c) => Some(c),
-        Err(FiguresError::Busy(busy)) => {
-            tracing::warn!(frame = frame.id(), "frame info without convergence: {busy}");
-            None
+    let convergence = match query.convergence {
+        InfoConvergence::None => None,
+        InfoConvergence::Latest => {
+            let now = tokio::time::Instant::now();
+            crate::render::figures::latest_convergence(&app, &frame, now)
+                .await
+                .map(|(c, _age)| c)
         }
-        Err(e) => return Err(e.into()),
+        InfoConvergence::Fresh => match crate::render::figures::convergence(&app, &frame).await {
+            Ok(c) => Some(c),
+            Err(FiguresError::Busy(busy)) => {
+                tracing::warn!(frame = frame.id(), "frame info without convergence: {busy}");
+                None
+            }
+            Err(e) => return Err(e.into()),
+        },
     };
     let mut info = match &convergence {
         Some(c) => frame.info_rendered(c),

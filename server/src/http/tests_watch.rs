@@ -213,3 +213,139 @@ async fn a_scrape_of_frames_that_keep_changing_waits_its_bound_once() {
     latest_convergence(&app, &b, far).await.unwrap();
     assert_eq!(app.renders.rendered(), 4, "one more render per frame");
 }
+
+/// `GET /v1/frames/{id}?convergence=none` answers the counts of a frame that workers keep changing
+/// at once, while its renders wait their pace (a worker reporting the frame's spp after each
+/// pass must not wait on it), renders nothing, and counts every sample acknowledged before it.
+/// A value other than fresh, latest or none is refused, naming it. On tokio's paused clock.
+#[tokio::test(start_paused = true)]
+async fn counts_alone_never_wait_for_a_busy_frames_render() {
+    use std::time::Duration;
+    let app = testing::with_frame(AppState::new(Limits::default(), None, None), "c", 8, 8);
+    post(&app, "c", 0);
+    info(&app, "c").await;
+    assert_eq!(app.renders.rendered(), 1);
+    let frame = app.store.get("c").unwrap();
+    app.renders
+        .paces()
+        .rendered(&frame, frame.version(), Duration::from_secs(100));
+    let writer = keep_writing(&app, &["c"]);
+    for _ in 0..3 {
+        tokio::time::sleep(Duration::from_millis(25)).await;
+        let started = tokio::time::Instant::now();
+        let request = Request::get("/v1/frames/c?convergence=none")
+            .body(Body::empty())
+            .unwrap();
+        let reply = testing::send(&app, request).await;
+        assert_eq!(
+            started.elapsed(),
+            Duration::ZERO,
+            "the counts waited for a render"
+        );
+        assert_eq!(reply.status, StatusCode::OK);
+        let shown: serde_json::Value = reply.json();
+        assert!(shown.get("convergence").is_none(), "{shown}");
+        // The writer posts 16 samples at a time, one in each of the first 16 pixels of 64.
+        let samples = frame.samples();
+        assert_eq!(shown["samples"], samples);
+        assert_eq!(shown["spp_max"], samples / 16);
+        assert_eq!(shown["spp_min"], 0);
+        assert_eq!(shown["spp_mean"], samples as f64 / 64.0);
+    }
+    writer.abort();
+    assert_eq!(app.renders.rendered(), 1, "the counts rendered nothing");
+
+    let request = Request::get("/v1/frames/c?convergence=soon")
+        .body(Body::empty())
+        .unwrap();
+    let reply = testing::send(&app, request).await;
+    assert_eq!(reply.status, StatusCode::BAD_REQUEST);
+    let error: serde_json::Value = reply.json();
+    assert_eq!(error["error"], "bad_query", "{error}");
+    assert!(
+        error["message"]
+            .as_str()
+            .unwrap()
+            .contains("unknown variant `soon`"),
+        "{error}"
+    );
+}
+
+/// `GET /v1/frames/{id}?convergence=latest` answers at once with the latest figures while a
+/// busy frame's renders wait their pace (a worker asking "converged?" before each pass must not
+/// wait on it): the figures and their spp say what they saw, the counts are the frame's now, and
+/// the render it started gives the next request the frame's figures once the writers stop. On
+/// tokio's paused clock.
+#[tokio::test(start_paused = true)]
+async fn the_latest_figures_never_wait_for_a_busy_frames_render() {
+    use crate::render::figures::latest_convergence;
+    use std::time::Duration;
+    let app = testing::with_frame(AppState::new(Limits::default(), None, None), "l", 8, 8);
+    post(&app, "l", 0);
+    let latest = |app: AppState| async move {
+        let started = tokio::time::Instant::now();
+        let request = Request::get("/v1/frames/l?convergence=latest")
+            .body(Body::empty())
+            .unwrap();
+        let reply = testing::send(&app, request).await;
+        assert_eq!(
+            started.elapsed(),
+            Duration::ZERO,
+            "the latest figures waited for a render"
+        );
+        assert_eq!(reply.status, StatusCode::OK);
+        reply.json()
+    };
+    // No figures yet: none, and a render of them is started.
+    let first = latest(app.clone()).await;
+    assert!(first.get("convergence").is_none(), "{first}");
+    assert_eq!(first["samples"], 16);
+    let frame = app.store.get("l").unwrap();
+    let far = tokio::time::Instant::now() + Duration::from_secs(60);
+    latest_convergence(&app, &frame, far).await.unwrap();
+    assert_eq!(
+        app.renders.rendered(),
+        1,
+        "the render the first request started"
+    );
+    assert_eq!(latest(app.clone()).await["convergence"]["samples"], 16);
+
+    // The frame turns busy, and its next render waits a 400 s pace.
+    app.renders
+        .paces()
+        .rendered(&frame, frame.version(), Duration::from_secs(100));
+    let writer = keep_writing(&app, &["l"]);
+    for _ in 0..3 {
+        tokio::time::sleep(Duration::from_millis(25)).await;
+        let shown = latest(app.clone()).await;
+        let c = &shown["convergence"];
+        assert_eq!(
+            (&c["samples"], &c["spp_max"]),
+            (&16.into(), &1.into()),
+            "{c}"
+        );
+        assert_eq!(
+            shown["spp_max"], 1,
+            "the spp of the render the figures come from"
+        );
+        assert!(
+            shown["samples"].as_u64().unwrap() > 16,
+            "the counts are the frame's now"
+        );
+        assert_eq!(c["converged"], false);
+    }
+    assert_eq!(
+        app.renders.rendered(),
+        1,
+        "the figures' render waits its pace"
+    );
+
+    // The writers stop: after one quiet spell the render started runs, and the latest figures
+    // are the frame's.
+    writer.abort();
+    latest_convergence(&app, &frame, far).await.unwrap();
+    assert_eq!(app.renders.rendered(), 2);
+    let shown = latest(app.clone()).await;
+    assert_eq!(shown["convergence"]["samples"], frame.samples());
+    assert_eq!(shown["samples"], frame.samples());
+}
