@@ -230,7 +230,7 @@ async fn render(opts: &DemoOptions, base: &str) -> Result<(u64, bytes::Bytes, by
     }
     progress.finish_and_clear();
 
-    let info = client.frame_info(FRAME_ID).await?;
+    let info = client.frame_counts(FRAME_ID).await?;
     if info.samples != expected || info.rejected_samples != 0 {
         bail!(
             "the server holds {} samples ({} rejected), expected {expected}",

@@ -360,7 +360,7 @@ fn post(args: PostArgs) -> Result<()> {
             );
         }
         // A worker's token may have `write` only: then the frame's totals are not its to read.
-        let total = match client.frame_info(&args.frame).await {
+        let total = match client.frame_counts(&args.frame).await {
             Ok(info) => format!("; it now has {:.1} spp on average", info.spp_mean),
             Err(splatd_proto::ClientError::Rejected { status: 403, .. }) => String::new(),
             Err(e) => return Err(e).context("reading the frame's totals"),

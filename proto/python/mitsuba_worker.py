@@ -419,7 +419,7 @@ def main(argv):
             image = np.array(mi.render(scene, spp=1, seed=seq))
         ack, zeroed = post_image(outbox, seq, image)
         zeroed_total += zeroed
-        info = client.frame_info(args.frame)
+        info = client.frame_info(args.frame, convergence="none")
         print(
             f"pass {seq}: {ack['accepted']} samples{' (duplicate)' if ack['duplicate'] else ''}, "
             f"frame at {info['spp_mean']:.1f} spp, {time.time() - start:.1f} s",

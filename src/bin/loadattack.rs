@@ -409,7 +409,7 @@ async fn silent(addr: &str, n: usize, hold: Duration) -> Result<Answers> {
 /// exactly the samples acknowledged.
 async fn active(url: &str, n: usize) -> Result<Answers> {
     let client = splatd_proto::Client::new(url)?;
-    let before = client.frame_info(FRAME).await?.samples;
+    let before = client.frame_counts(FRAME).await?.samples;
     let answers = Arc::new(Mutex::new(Answers::new()));
     // Batches answered 200 (applied now, or recognised as applied by an earlier attempt whose
     // answer was lost): each is in the frame exactly once.
@@ -466,7 +466,7 @@ async fn active(url: &str, n: usize) -> Result<Answers> {
     for t in tasks {
         t.await?;
     }
-    let after = client.frame_info(FRAME).await?.samples;
+    let after = client.frame_counts(FRAME).await?.samples;
     let acked = 64 * *acknowledged.lock().unwrap();
     println!(
         "  (frame gained {} samples; {} were acknowledged, {} posted)",

@@ -284,7 +284,7 @@ async fn post_all(url: &str, args: &Args, load: &Load, round: usize) -> Result<f
         t.await??;
     }
     let seconds = start.elapsed().as_secs_f64();
-    let info = client.frame_info("bench").await?;
+    let info = client.frame_counts("bench").await?;
     if info.samples as usize != load.samples {
         bail!(
             "round {round}: server counted {} samples, {} were posted",

@@ -387,7 +387,7 @@ async fn recreate(url: String, stop: Arc<AtomicBool>, figures: Arc<Figures>) -> 
                 continue;
             }
         }
-        let info = patiently(|| client.frame_info("scratch")).await?;
+        let info = patiently(|| client.frame_counts("scratch")).await?;
         if info.spp_max != 0 && round > 0 {
             eprintln!("a deleted frame came back: {info:?}");
             figures.came_back.fetch_add(1, Ordering::Relaxed);
