@@ -14,9 +14,10 @@
 //! * `none`: the writers alone;
 //! * `watch`: plus a dashboard polling `GET /v1/frames/{id}` and `GET /metrics` once a second, a
 //!   live page (the server's own, emulated: every second `GET /v1/frames` and
-//!   `GET /v1/frames/{id}`, then both `preview.png` layers when the sample count moved, as
-//!   `server/src/http/web/index.html` polls; like `setInterval` it does not wait for the last
-//!   refresh, up to 4 in flight) and an `image.exr` fetched every 5 s;
+//!   `GET /v1/frames/{id}?convergence=latest`, then both `preview.png` layers when the sample
+//!   count moved and none are loading, as `server/src/http/web/index.html` polls; like
+//!   `setInterval` it does not wait for the last refresh, up to 4 in flight) and an `image.exr`
+//!   fetched every 5 s;
 //! * `loop`: plus one client fetching `image.exr` back to back.
 //!
 //! It prints ingest samples/s and batch post latency (p50, p99, max) per phase, the server's CPU
@@ -309,31 +310,48 @@ async fn dashboard(shared: Arc<Shared>) -> Result<()> {
     Ok(())
 }
 
-/// One refresh of the live page (index.html's `refresh` and `refreshImages`).
-async fn live_refresh(shared: Arc<Shared>, last: Arc<Mutex<i64>>, phase: usize) -> Result<()> {
+/// What the emulated live page keeps between refreshes (index.html's `view`).
+#[derive(Default)]
+struct Page {
+    /// The sample count the images were last asked for at.
+    last: Mutex<i64>,
+    /// Both previews are being fetched (one set at a time, as the page does).
+    loading: AtomicBool,
+    /// The first error of a refresh or a preview fetch.
+    failed: Mutex<Option<anyhow::Error>>,
+}
+
+/// One refresh of the live page (index.html's `refresh`: the list, then the frame's latest
+/// figures, then both previews when the sample count moved and none are loading, without
+/// waiting for them, as `refreshImages` runs).
+async fn live_refresh(shared: Arc<Shared>, page: Arc<Page>, phase: usize) -> Result<()> {
     shared.get(phase, "live /v1/frames", "/v1/frames").await?;
     let info = shared
-        .get(phase, "live info", &format!("/v1/frames/{FRAME}"))
+        .get(
+            phase,
+            "live info",
+            &format!("/v1/frames/{FRAME}?convergence=latest"),
+        )
         .await?;
     let info: serde_json::Value = serde_json::from_slice(&info)?;
     let samples = info["samples"].as_i64().unwrap_or(-1);
-    let changed = {
-        let mut last = last.lock().unwrap();
-        let changed = *last != samples;
-        *last = samples;
-        changed
-    };
-    if changed {
-        let base = format!("/v1/frames/{FRAME}/preview.png");
-        let q = format!("&stops=0&samples={samples}");
-        let mean = format!("{base}?layer=mean{q}");
-        let reweighted = format!("{base}?layer=reweighted{q}");
-        let (a, b) = tokio::join!(
-            shared.get(phase, "live preview.png mean", &mean),
-            shared.get(phase, "live preview.png reweighted", &reweighted)
-        );
-        a?;
-        b?;
+    let changed = *page.last.lock().unwrap() != samples;
+    if changed && !page.loading.swap(true, Ordering::SeqCst) {
+        *page.last.lock().unwrap() = samples;
+        tokio::spawn(async move {
+            let base = format!("/v1/frames/{FRAME}/preview.png");
+            let q = format!("&stops=0&samples={samples}");
+            let mean = format!("{base}?layer=mean{q}");
+            let reweighted = format!("{base}?layer=reweighted{q}");
+            let (a, b) = tokio::join!(
+                shared.get(phase, "live preview.png mean", &mean),
+                shared.get(phase, "live preview.png reweighted", &reweighted)
+            );
+            if let Err(e) = a.and(b) {
+                page.failed.lock().unwrap().get_or_insert(e);
+            }
+            page.loading.store(false, Ordering::SeqCst);
+        });
     }
     Ok(())
 }
@@ -342,12 +360,14 @@ async fn live_refresh(shared: Arc<Shared>, last: Arc<Mutex<i64>>, phase: usize) 
 async fn live_page(shared: Arc<Shared>) -> Result<()> {
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let last = Arc::new(Mutex::new(-1));
+    let page = Arc::new(Page {
+        last: Mutex::new(-1),
+        ..Page::default()
+    });
     let running = Arc::new(AtomicUsize::new(0));
-    let failed = Arc::new(Mutex::new(None::<anyhow::Error>));
     while !shared.stop.load(Ordering::SeqCst) {
         tick.tick().await;
-        if let Some(e) = failed.lock().unwrap().take() {
+        if let Some(e) = page.failed.lock().unwrap().take() {
             return Err(e);
         }
         let phase = shared.phase();
@@ -359,15 +379,10 @@ async fn live_page(shared: Arc<Shared>) -> Result<()> {
             continue;
         }
         running.fetch_add(1, Ordering::SeqCst);
-        let (shared, last, running, failed) = (
-            shared.clone(),
-            last.clone(),
-            running.clone(),
-            failed.clone(),
-        );
+        let (shared, page, running) = (shared.clone(), page.clone(), running.clone());
         tokio::spawn(async move {
-            if let Err(e) = live_refresh(shared, last, phase).await {
-                *failed.lock().unwrap() = Some(e);
+            if let Err(e) = live_refresh(shared, page.clone(), phase).await {
+                page.failed.lock().unwrap().get_or_insert(e);
             }
             running.fetch_sub(1, Ordering::SeqCst);
         });
