@@ -5,7 +5,7 @@
 //! importing into a frame that has samples of its own adds the two exactly.
 
 use splatd_proto::api::AovSpec;
-use splatd_proto::{Applied, Origin, Runs, StateDump, StateError};
+use splatd_proto::{Applied, Origin, Runs, StateDump, StateError, StateWrite};
 
 use splatd_estimator::{
     add_aov_pixel, add_cell, aov_words, cell_spp, check_aov_pixel, check_pixels, AovCellsError,
@@ -179,7 +179,9 @@ pub fn encoded_len(state: &FrameState, aovs: Aovs<'_>, frame: &str) -> u64 {
 
 /// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) and
 /// holding the samples of `batches` to `out`: the same bytes as [`dump`] of the merged frame,
-/// without merging or copying the bands.
+/// without merging or copying the bands. `out` is handed the long stretches of cells by the
+/// number of their band in `bands` ([`StateWrite::write_cells`]), so that a writer holding
+/// the bands can send those from where they lie.
 ///
 /// # Panics
 /// If `bands` is empty.
@@ -189,7 +191,7 @@ pub fn write_bands(
     frame: &str,
     origin: Option<Origin>,
     batches: Vec<Applied>,
-    out: &mut impl std::io::Write,
+    out: &mut impl StateWrite,
 ) -> std::io::Result<()> {
     let first = &bands[0];
     debug_assert!(
@@ -207,7 +209,7 @@ pub fn write_bands(
         },
         aovs,
     )
-    .write_with_cell_parts(&parts, out)
+    .write_with_cell_parts_to(&parts, out)
 }
 
 /// A dump without cells describing `state`'s frame and layout for `rows`.

@@ -5,14 +5,14 @@ use std::sync::atomic::Ordering;
 use std::sync::{Arc, MutexGuard};
 
 use splatd_proto::api::AovSpec;
-use splatd_proto::{Applied, Origin};
+use splatd_proto::{Applied, Origin, StateWrite};
 
 use splatd_estimator::{AovCellsError, AovSums, FrameState, MergeError, MAX_PIXEL_SAMPLES};
 
 use splatd_formats::names::describe_aovs;
 use splatd_formats::state::Importable;
 
-use super::{lock, ImportRefused, ShardedFrame};
+use super::{lock, FrameCut, ImportRefused, ShardedFrame};
 
 impl ShardedFrame {
     pub(super) fn check_fits(&self, state: &FrameState) -> Result<(), MergeError> {
@@ -209,10 +209,11 @@ impl ShardedFrame {
     }
 
     /// Writes the frame's state with the batches it holds, in the state wire format, to `out`
-    /// (`GET .../state`), encoded from a [`ShardedFrame::cut`] a 64 KiB block at a time:
-    /// writers go on meanwhile, and no copy of the whole encoding is made.
-    pub fn write_state(&self, out: &mut impl std::io::Write) -> std::io::Result<()> {
-        let cut = self.cut();
+    /// (`GET .../state`), encoded from `cut` (a [`ShardedFrame::cut`] of this frame): writers
+    /// go on meanwhile, and no copy of the whole encoding is made. `out` is handed the long
+    /// stretches of cells by the number of their band in `cut.bands`
+    /// ([`StateWrite::write_cells`]), so it may send them from the cut itself.
+    pub fn write_state(&self, cut: &FrameCut, out: &mut impl StateWrite) -> std::io::Result<()> {
         let bands: Vec<&FrameState> = cut.bands.iter().map(|b| &**b).collect();
         let aovs = cut
             .aovs
