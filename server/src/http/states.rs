@@ -22,7 +22,6 @@ use crate::http::extract::{Frame, FrameBody, Json, Upload};
 use crate::memory::BodyPool;
 use crate::work::Reservation;
 use crate::AppState;
-use splatd_formats::state::Importable;
 
 /// Room for the applied batches in a state body, beyond its cells: 32 MiB, about four million
 /// batches (a soak of a 64x64 frame reached 120 KB of them in three minutes).
@@ -291,31 +290,31 @@ pub async fn import(
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
-    let threads = app.resolve_threads;
-    let (samples, applied) = blocking("import", move || {
+    let added = blocking("import", move || {
         let _reservation = reservation;
         let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
         // Refused before its AOV words are expanded (at most the frame's, reserved above).
         target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
-        let state = splatd_formats::state::load_runs(dump, runs, aov_runs, threads)?;
+        // Its cells are checked as they are added.
+        let state = splatd_formats::state::load_runs(dump, runs, aov_runs)?;
         let dump = &state.dump;
-        let applied = target.import(
+        Ok(target.import(
             &dump.frame,
             &state,
             state.aovs(),
             dump.origin.as_ref(),
             &dump.batches,
-        )?;
-        Ok((state.samples(), applied))
+        )?)
     })
     .await?;
+    let applied = added.is_some();
     // A pusher forgets a delta once it is acknowledged, so make it durable first.
     app.sync(&frame).await?;
     metrics::counter!(crate::meters::IMPORTS, "result" => if applied { "applied" } else { "duplicate" })
         .increment(1);
     Ok(Json(ImportAck {
         frame: frame.id().to_owned(),
-        samples: if applied { samples } else { 0 },
+        samples: added.unwrap_or(0),
         duplicate: !applied,
     }))
 }
