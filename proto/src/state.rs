@@ -990,10 +990,12 @@ impl<'a> Runs<'a> {
             for (i, piece) in cells.chunks(max_pixels * pixel_bytes).enumerate() {
                 let first = first + (i * max_pixels) as u64;
                 // A run's pixels all hold something (the runs are maximal).
-                if let Some(p) = piece
-                    .chunks_exact(pixel_bytes)
-                    .position(|p| p.iter().all(|&b| b == 0))
-                {
+                // Eight bytes at a time: a pixel's first word that is not 0 settles it.
+                let empty = |p: &[u8]| {
+                    p.chunks_exact(8)
+                        .all(|w| u64::from_ne_bytes(w.try_into().expect("8 bytes")) == 0)
+                };
+                if let Some(p) = piece.chunks_exact(pixel_bytes).position(empty) {
                     return Err(StateError::Malformed(format!(
                         "pixel {} is in a run but holds nothing",
                         first + p as u64
@@ -1193,24 +1195,40 @@ impl<'a> Pixels<'a> {
         self.starts[self.starts.len() - 1]
     }
 
-    /// Whether each pixel holds something, in order.
-    fn occupied(&self) -> impl Iterator<Item = bool> + '_ {
-        self.parts
-            .iter()
-            .flat_map(|p| p.chunks_exact(self.cell_len))
-            .map(|cell| cell.iter().any(|&c| c != 0))
+    /// The first pixel from `from` on that holds something (`holds`) or nothing (`!holds`), or
+    /// the number of pixels if there is none: a scan of each part's cells in turn, a pixel's
+    /// first word that is not 0 settling that it holds something.
+    fn next(&self, from: usize, holds: bool) -> usize {
+        // The part `from` lies in (the last of those starting there, if some are empty).
+        let mut part = self
+            .starts
+            .partition_point(|&s| s <= from)
+            .saturating_sub(1);
+        let mut at = from;
+        while part < self.parts.len() {
+            let skip = (at - self.starts[part]) * self.cell_len;
+            let found = self.parts[part][skip..]
+                .chunks_exact(self.cell_len)
+                .position(|cell| cell.iter().any(|&c| c != 0) == holds);
+            if let Some(i) = found {
+                return at + i;
+            }
+            part += 1;
+            at = self.starts[part];
+        }
+        self.count()
     }
 
     /// The maximal runs of pixels that hold something.
     fn runs(&self) -> impl Iterator<Item = Range<usize>> + '_ {
-        let mut occupied = self.occupied().enumerate().peekable();
+        let mut next = 0;
         std::iter::from_fn(move || {
-            let start = occupied.find(|&(_, o)| o)?.0;
-            let mut end = start + 1;
-            while occupied.next_if(|&(_, o)| o).is_some() {
-                end += 1;
+            let start = self.next(next, true);
+            if start >= self.count() {
+                return None;
             }
-            Some(start..end)
+            next = self.next(start + 1, false);
+            Some(start..next)
         })
     }
 
@@ -1416,6 +1434,13 @@ mod tests {
         let mut parts = Vec::new();
         sparse.write_with_cell_parts(&[a, b], &mut parts).unwrap();
         assert_eq!(parts, bytes);
+        // Empty parts anywhere change nothing; nor does a seam inside a run (pixels 100, 101).
+        let (c, d) = sparse.cells.split_at(101 * cell);
+        for split in [vec![&[][..], a, &[], &[], b, &[]], vec![c, &[], d]] {
+            let mut parts = Vec::new();
+            sparse.write_with_cell_parts(&split, &mut parts).unwrap();
+            assert_eq!(parts, bytes);
+        }
     }
 
     /// A [`StateWrite`] is handed each stretch of cells at least a block long by where it lies
