@@ -216,7 +216,8 @@ impl ShardedFrame {
                 } else {
                     check_pixels(width, y0, cascades, first, cells)?
                 };
-                // No pixel holds more than its band: the cells need reading only near the limit.
+                // A pixel holds at most its band's samples, and a piece's pixel at most the
+                // piece's: the band's cells need reading only near the limit.
                 for band in group.iter() {
                     if band.total_samples().saturating_add(samples) > MAX_PIXEL_SAMPLES {
                         band.check_room_for_pixels(y0, first, cells)?;
