@@ -49,7 +49,7 @@ pub use resolve_spread::{
     DEFAULT_SPREAD_SUPPORT, SPREAD_RADII,
 };
 pub use state::{
-    add_cell, cascade_units, cell_len, cell_spp, check_pixels, check_sample, top_sum, CellsError,
-    FrameState, Kernel, MergeError, SampleError, ShapeError, SplatReport, LOW_SHARE_MAX,
-    TOP_SHARE_MAX,
+    add_cell, cascade_units, cell_len, cell_spp, check_pixels, check_sample, sub_cell, top_sum,
+    CellsError, FrameState, Kernel, MergeError, SampleError, ShapeError, SplatReport,
+    LOW_SHARE_MAX, TOP_SHARE_MAX,
 };

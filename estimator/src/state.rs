@@ -361,6 +361,27 @@ pub fn add_cell(dst: &mut [u64], src: &[u64]) {
     dst[4 * k] = hi;
 }
 
+/// Subtracts cell `src` from cell `dst` (same `K`): the exact inverse of [`add_cell`], so
+/// `dst` is again what it was before `src` was added to it, bit for bit (the top cascade's sums
+/// borrow from the high word as adding carried into it). For a holder that takes back an
+/// addition.
+#[inline]
+pub fn sub_cell(dst: &mut [u64], src: &[u64]) {
+    let k = dst.len() / 4;
+    let top = 4 * (k - 1);
+    for (d, s) in dst[..top].iter_mut().zip(&src[..top]) {
+        *d = d.wrapping_sub(*s);
+    }
+    let mut hi = dst[4 * k].wrapping_sub(src[4 * k]);
+    for c in 0..3 {
+        let (diff, borrow) = dst[top + c].overflowing_sub(src[top + c]);
+        dst[top + c] = diff;
+        hi = hi.wrapping_sub(u64::from(borrow) << (HI_BITS * c as u32));
+    }
+    dst[top + 3] = dst[top + 3].wrapping_sub(src[top + 3]);
+    dst[4 * k] = hi;
+}
+
 /// Checks the cells of consecutive whole pixels of a state with `cascades` cascades
 /// (`cell_len(cascades)` words each) against the bounds of the module docs, as
 /// [`FrameState::from_cells`] does, and returns the samples they hold; `first` is the number of
@@ -1065,6 +1086,24 @@ impl FrameState {
         added
     }
 
+    /// Takes back [`FrameState::add_pixels`] of the same `cells` (at the same `y0` and
+    /// `first`): the pixels are again what they were before, bit for bit; returns the samples
+    /// taken back.
+    pub fn sub_pixels(&mut self, y0: u32, first: u64, cells: &[u64]) -> u64 {
+        let Some((dst, src)) = self.shared_pixels(y0, first, cells) else {
+            return 0;
+        };
+        let stride = cell_len(self.layout.cascades());
+        let mut taken = 0;
+        let dst = self.cells[dst].chunks_exact_mut(stride);
+        for (d, s) in dst.zip(cells[src].chunks_exact(stride)) {
+            taken += cell_spp(s);
+            sub_cell(d, s);
+        }
+        self.samples -= taken;
+        taken
+    }
+
     /// The rows this state shares with `other`, as cell ranges of `self` and of `other`.
     fn shared_cells(&self, other: &FrameState) -> Option<(Range<usize>, Range<usize>)> {
         let (ours, theirs) = (self.rows(), other.rows());
@@ -1347,6 +1386,27 @@ fn add_share_carry(cascade: &mut [u64], s: [f64; 3], units: f64, count: u64) -> 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Subtracting a cell takes back adding it, bit for bit, carries into the high word
+    /// included.
+    #[test]
+    fn sub_cell_takes_back_add_cell_exactly() {
+        let k = 3;
+        let top = 4 * (k - 1);
+        let mut dst: Vec<u64> = (0..cell_len(k) as u64).map(|i| i * 1000 + 7).collect();
+        let src: Vec<u64> = (0..cell_len(k) as u64).map(|i| i * 31 + 1).collect();
+        // The top cascade's r and b sums carry into their high fields; g does not.
+        dst[top] = u64::MAX - 5;
+        dst[top + 2] = u64::MAX;
+        let before = dst.clone();
+        add_cell(&mut dst, &src);
+        assert_eq!(
+            dst[4 * k],
+            before[4 * k] + src[4 * k] + 1 + (1 << (2 * HI_BITS))
+        );
+        sub_cell(&mut dst, &src);
+        assert_eq!(dst, before);
+    }
     use crate::layout::REC709_LUMINANCE;
 
     fn layout() -> CascadeLayout {

@@ -5,7 +5,7 @@
 //! importing into a frame that has samples of its own adds the two exactly.
 
 use splatd_proto::api::AovSpec;
-use splatd_proto::{Applied, Origin, Runs, StateDump, StateError};
+use splatd_proto::{Applied, Origin, Runs, StateDump, StateError, StateWrite};
 
 use splatd_estimator::{
     add_aov_pixel, add_cell, aov_words, cell_spp, check_aov_pixel, check_pixels, AovCellsError,
@@ -15,29 +15,57 @@ use splatd_estimator::{
 
 /// What [`Importable::pieces`] hands each piece to: the number of the piece's first pixel and
 /// its cells.
-pub type PieceVisitor<'a> = dyn FnMut(u64, &[u64]) -> Result<(), MergeError> + 'a;
+pub type PieceVisitor<'a> = dyn FnMut(u64, &[u64]) -> Result<(), PieceError> + 'a;
 
-/// A state that a server frame's import adds to the frame: held whole ([`FrameState`]) or as the
-/// runs of a body being decoded ([`Decoded`]), whose cells are checked already.
+/// Why a visit of an importing state's pieces stopped.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PieceError {
+    /// The state's cells cannot be used: a pixel holds what no checked samples could have made,
+    /// or a pixel in a run holds nothing.
+    #[error(transparent)]
+    Invalid(#[from] ImportError),
+    /// The piece does not fit the frame it is being added to.
+    #[error(transparent)]
+    Merge(#[from] MergeError),
+}
+
+impl From<CellsError> for PieceError {
+    fn from(e: CellsError) -> PieceError {
+        PieceError::Invalid(e.into())
+    }
+}
+
+impl From<StateError> for PieceError {
+    fn from(e: StateError) -> PieceError {
+        PieceError::Invalid(e.into())
+    }
+}
+
+/// A state that a server frame's import adds to the frame: held whole ([`FrameState`], whose
+/// cells are valid by construction) or as the runs of a body being decoded ([`Decoded`]), whose
+/// cells the import checks as it adds them.
 pub trait Importable: Sync {
     /// Width, height and cascade layout of its frame.
     fn geometry(&self) -> (u32, u32, &CascadeLayout);
     /// The first row it holds: its pixels are numbered row-major from 0 there.
     fn first_row(&self) -> u32;
-    /// The samples it holds.
-    fn samples(&self) -> u64;
     /// The pixels of the rows it holds, empty ones included.
     fn pixels(&self) -> u64;
+    /// Whether its cells are known to be valid ([`check_pixels`]) already: if not, whoever adds
+    /// them checks each piece first.
+    fn checked(&self) -> bool;
     /// Hands the cells of its pixels numbered in `within` to `f` in order, in pieces of
     /// consecutive whole pixels with the number of each piece's first pixel; stops at `f`'s
-    /// first error and returns it. Threads may each visit a share of the pixels.
+    /// first error, or at a piece that is malformed (a pixel in a run that holds nothing), and
+    /// returns it. Handing out the same pixels again gives the same pieces. Threads may each
+    /// visit a share of the pixels.
     fn pieces_in(
         &self,
         within: std::ops::Range<u64>,
         f: &mut PieceVisitor<'_>,
-    ) -> Result<(), MergeError>;
+    ) -> Result<(), PieceError>;
     /// [`Importable::pieces_in`] for all its pixels.
-    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), MergeError> {
+    fn pieces(&self, f: &mut PieceVisitor<'_>) -> Result<(), PieceError> {
         self.pieces_in(0..u64::MAX, f)
     }
 }
@@ -51,19 +79,19 @@ impl Importable for FrameState {
         self.rows().start
     }
 
-    fn samples(&self) -> u64 {
-        self.total_samples()
-    }
-
     fn pixels(&self) -> u64 {
         self.width() as u64 * self.rows().len() as u64
+    }
+
+    fn checked(&self) -> bool {
+        true
     }
 
     fn pieces_in(
         &self,
         within: std::ops::Range<u64>,
         f: &mut PieceVisitor<'_>,
-    ) -> Result<(), MergeError> {
+    ) -> Result<(), PieceError> {
         let pixels = Importable::pixels(self);
         let stride = 4 * self.layout().cascades() + 1;
         let (start, end) = (within.start.min(pixels), within.end.min(pixels));
@@ -179,7 +207,9 @@ pub fn encoded_len(state: &FrameState, aovs: Aovs<'_>, frame: &str) -> u64 {
 
 /// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) and
 /// holding the samples of `batches` to `out`: the same bytes as [`dump`] of the merged frame,
-/// without merging or copying the bands.
+/// without merging or copying the bands. `out` is handed the long stretches of cells by the
+/// number of their band in `bands` ([`StateWrite::write_cells`]), so that a writer holding
+/// the bands can send those from where they lie.
 ///
 /// # Panics
 /// If `bands` is empty.
@@ -189,7 +219,7 @@ pub fn write_bands(
     frame: &str,
     origin: Option<Origin>,
     batches: Vec<Applied>,
-    out: &mut impl std::io::Write,
+    out: &mut impl StateWrite,
 ) -> std::io::Result<()> {
     let first = &bands[0];
     debug_assert!(
@@ -207,7 +237,7 @@ pub fn write_bands(
         },
         aovs,
     )
-    .write_with_cell_parts(&parts, out)
+    .write_with_cell_parts_to(&parts, out)
 }
 
 /// A dump without cells describing `state`'s frame and layout for `rows`.
@@ -255,9 +285,10 @@ pub fn load(dump: StateDump) -> Result<FrameState, ImportError> {
 }
 
 /// A state body decoded for import without expanding its cells ([`StateDump::decode_runs`]):
-/// its header, its AOVs, and its runs read in place from the body, every pixel of them checked
-/// like [`load`] checks a whole state. Importing it adds the runs straight into the frame's bands
-/// (the server frame's `import`), so the only full-size buffer of an import is the
+/// its header, its checked AOVs, and its runs read in place from the body. Its cells are not
+/// checked yet: importing it checks each piece of them as it adds it straight into the frame's
+/// bands (the server frame's `import`, which takes back what it added if a later piece is
+/// refused), so the body is read once, and the only full-size buffer of an import is the
 /// body itself (and the AOV sums of a state that has AOVs).
 pub struct Decoded<'a> {
     /// The header (no cells, no AOVs).
@@ -266,7 +297,6 @@ pub struct Decoded<'a> {
     pub aovs: Option<(Vec<AovSpec>, AovSums)>,
     layout: CascadeLayout,
     runs: Runs<'a>,
-    samples: u64,
 }
 
 impl Decoded<'_> {
@@ -292,15 +322,14 @@ pub fn shares(pixels: u64, threads: usize) -> Vec<std::ops::Range<u64>> {
 }
 
 /// Checks a state decoded without its cells ([`StateDump::decode_runs`]) like [`load`] and
-/// [`take_aovs`] check a whole one: the precision, the cascade parameters and every pixel of
-/// every run (one pass over the runs, a cache-sized piece at a time, by up to `threads` threads
-/// each taking a share of the pixels; a refusal names the first bad pixel, as one thread
-/// would), then the AOV words (the AOV runs, expanded into the sums of the rows held).
+/// [`take_aovs`] check a whole one, except its cells: the precision, the cascade parameters
+/// and the AOV words (the AOV runs, expanded into the sums of the rows held). Its cells are
+/// checked by whoever adds them ([`Importable::checked`] is false): a pass over them here would
+/// read the whole body once more.
 pub fn load_runs<'a>(
     mut dump: StateDump,
     runs: Runs<'a>,
     aov_runs: Option<Runs<'_>>,
-    threads: usize,
 ) -> Result<Decoded<'a>, ImportError> {
     if dump.frac_bits != FRAC_BITS {
         return Err(ImportError::FracBits {
@@ -308,36 +337,6 @@ pub fn load_runs<'a>(
         });
     }
     let layout = CascadeLayout::new(dump.base, dump.cascades, dump.lowest_scale, dump.luminance)?;
-    let check = |within: std::ops::Range<u64>| {
-        let mut samples = 0;
-        runs.try_for_each_in(within, |first, cells| {
-            samples += check_pixels(dump.width, dump.rows_start, layout.cascades(), first, cells)?;
-            Ok::<(), ImportError>(())
-        })
-        .map(|()| samples)
-    };
-    let shares = shares(runs.pixels(), threads);
-    let checked: Vec<Result<u64, ImportError>> = match shares.as_slice() {
-        [all] => vec![check(all.clone())],
-        _ => std::thread::scope(|scope| {
-            let workers: Vec<_> = shares[1..]
-                .iter()
-                .map(|share| scope.spawn(|| check(share.clone())))
-                .collect();
-            let mut checked = vec![check(shares[0].clone())];
-            checked.extend(
-                workers
-                    .into_iter()
-                    .map(|w| w.join().expect("a state check does not panic")),
-            );
-            checked
-        }),
-    };
-    // In pixel order: the first share's refusal is the first bad pixel.
-    let mut samples = 0;
-    for share in checked {
-        samples += share?;
-    }
     let words = aov_runs.map(|r| r.expand()).transpose()?;
     let specs = std::mem::take(&mut dump.aovs);
     let aovs = aov_sums(&dump, specs, words.unwrap_or_default())?;
@@ -346,7 +345,6 @@ pub fn load_runs<'a>(
         aovs,
         layout,
         runs,
-        samples,
     })
 }
 
@@ -359,32 +357,21 @@ impl Importable for Decoded<'_> {
         self.dump.rows_start
     }
 
-    fn samples(&self) -> u64 {
-        self.samples
-    }
-
     fn pixels(&self) -> u64 {
         self.runs.pixels()
+    }
+
+    fn checked(&self) -> bool {
+        false
     }
 
     fn pieces_in(
         &self,
         within: std::ops::Range<u64>,
         f: &mut PieceVisitor<'_>,
-    ) -> Result<(), MergeError> {
-        /// The runs' own refusals were all found by [`load_runs`]; only `f`'s remain.
-        enum Stop {
-            Merge(MergeError),
-        }
-        impl From<StateError> for Stop {
-            fn from(e: StateError) -> Stop {
-                unreachable!("the runs were checked when the state was loaded: {e}")
-            }
-        }
+    ) -> Result<(), PieceError> {
         let within = within.start.min(self.runs.pixels())..within.end.min(self.runs.pixels());
-        self.runs
-            .try_for_each_in(within, |first, cells| f(first, cells).map_err(Stop::Merge))
-            .map_err(|Stop::Merge(e)| e)
+        self.runs.try_for_each_in(within, f)
     }
 }
 
@@ -848,39 +835,6 @@ mod tests {
         let mut dense = b.clone();
         dense.merge(&a).unwrap();
         assert_eq!(band.encode(vec![]), bytes(&dense));
-    }
-
-    /// Checked by several threads, a state gives the samples one thread counts, and a refusal
-    /// names the first bad pixel whichever share it lies in.
-    #[test]
-    fn shared_checks_agree_with_one_thread() {
-        let (w, h) = (256, 160);
-        let scene = FireflyScene::new(w, h, 5);
-        let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
-        state.splat_all(scene.pass(0));
-        assert!(shares(w as u64 * h as u64, 4).len() > 1);
-        let load = |d: &StateDump, threads| {
-            let bytes = d.encode();
-            let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, u64::MAX).unwrap();
-            load_runs(dump, runs, aov_runs, threads).map(|s| Importable::samples(&s))
-        };
-        let good = dump(&state, None, "f", None, vec![]);
-        assert_eq!(load(&good, 4), Ok(state.total_samples()));
-        assert_eq!(load(&good, 1), Ok(state.total_samples()));
-        let stride = 4 * state.layout().cascades() + 1;
-        let mut bad = good.clone();
-        // Counts that overflow, in the last share and then also in the first.
-        for pixel in [w as usize * (h as usize - 3) + 7, 300] {
-            bad.cells[pixel * stride + 3] = u64::MAX;
-            bad.cells[pixel * stride + 7] = u64::MAX;
-            let one = load(&bad, 1).unwrap_err();
-            assert_eq!(load(&bad, 4).unwrap_err(), one);
-            let (x, y) = ((pixel % w as usize) as u32, (pixel / w as usize) as u32);
-            assert!(
-                matches!(one, ImportError::Cells(CellsError::Invalid { x: ex, y: ey, .. }) if (ex, ey) == (x, y)),
-                "{one}"
-            );
-        }
     }
 
     #[test]

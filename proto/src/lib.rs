@@ -73,7 +73,7 @@ pub use batch::{records_digest_of, validate_frame_id, Batch, DecodeLimits, Recor
 pub use client::{Client, ClientError, RetryPolicy};
 #[cfg(feature = "client")]
 pub use outbox::{Outbox, Post, Sent};
-pub use state::{Applied, Origin, Runs, StateDump, StateError, STATE_CONTENT_TYPE};
+pub use state::{Applied, Origin, Runs, StateDump, StateError, StateWrite, STATE_CONTENT_TYPE};
 #[cfg(feature = "client")]
 pub use writer::BatchWriter;
 

@@ -363,6 +363,17 @@ impl StateDump {
         parts: &[&[u64]],
         out: &mut impl std::io::Write,
     ) -> std::io::Result<()> {
+        self.write_version(STATE_VERSION, parts, &mut Copying(out))
+    }
+
+    /// [`StateDump::write_with_cell_parts`] to a [`StateWrite`], which is handed the long
+    /// stretches of the parts' cells by where they lie ([`StateWrite::write_cells`]), so that a
+    /// writer holding the parts can send them without copying them.
+    pub fn write_with_cell_parts_to(
+        &self,
+        parts: &[&[u64]],
+        out: &mut impl StateWrite,
+    ) -> std::io::Result<()> {
         self.write_version(STATE_VERSION, parts, out)
     }
 
@@ -372,7 +383,7 @@ impl StateDump {
     pub fn encode_v2(&self) -> Vec<u8> {
         assert!(self.aovs.is_empty(), "version 2 has no AOVs");
         let mut out = Vec::new();
-        self.write_version(STATE_VERSION_2, &[&self.cells], &mut out)
+        self.write_version(STATE_VERSION_2, &[&self.cells], &mut Copying(&mut out))
             .expect("writing into a Vec<u8> is infallible");
         out
     }
@@ -381,23 +392,27 @@ impl StateDump {
         &self,
         version: u16,
         parts: &[&[u64]],
-        out: &mut impl std::io::Write,
+        out: &mut impl StateWrite,
     ) -> std::io::Result<()> {
         out.write_all(&STATE_MAGIC)?;
         out.write_all(&version.to_le_bytes())?;
         out.write_all(&self.header_bytes())?;
         let pixels = Pixels::new(parts, self.cell_len());
-        // Converted into a 64 KiB block (a plain copy on a little-endian machine), one write per
-        // block rather than one per cell.
+        // Run headers and short runs are gathered into a 64 KiB block, one write per block
+        // rather than one per run; a stretch of cells at least as long as the block goes to
+        // `out` as it lies, so it is copied once at most (by `out`), not first into the block.
         let mut block = Block {
             bytes: vec![0; 8 * PIECE_CELLS],
             used: 0,
         };
         for run in pixels.runs() {
             block.put(&[run.start as u32, (run.end - run.start) as u32], out)?;
-            for cells in pixels.cells(run) {
-                for chunk in cells.chunks(PIECE_CELLS) {
-                    block.put_cells(chunk, out)?;
+            for (part, words, cells) in pixels.cells(run) {
+                if cells.len() >= PIECE_CELLS {
+                    block.flush(out)?;
+                    out.write_cells(part, words, cells)?;
+                } else {
+                    block.put_cells(cells, out)?;
                 }
             }
         }
@@ -470,7 +485,7 @@ impl StateDump {
         for run in pixels.runs() {
             out.extend_from_slice(&(run.start as u32).to_le_bytes());
             out.extend_from_slice(&((run.end - run.start) as u32).to_le_bytes());
-            for words in pixels.cells(run) {
+            for (_, _, words) in pixels.cells(run) {
                 out.extend(words.iter().flat_map(|w| w.to_le_bytes()));
             }
         }
@@ -975,10 +990,12 @@ impl<'a> Runs<'a> {
             for (i, piece) in cells.chunks(max_pixels * pixel_bytes).enumerate() {
                 let first = first + (i * max_pixels) as u64;
                 // A run's pixels all hold something (the runs are maximal).
-                if let Some(p) = piece
-                    .chunks_exact(pixel_bytes)
-                    .position(|p| p.iter().all(|&b| b == 0))
-                {
+                // Eight bytes at a time: a pixel's first word that is not 0 settles it.
+                let empty = |p: &[u8]| {
+                    p.chunks_exact(8)
+                        .all(|w| u64::from_ne_bytes(w.try_into().expect("8 bytes")) == 0)
+                };
+                if let Some(p) = piece.chunks_exact(pixel_bytes).position(empty) {
                     return Err(StateError::Malformed(format!(
                         "pixel {} is in a run but holds nothing",
                         first + p as u64
@@ -1048,6 +1065,69 @@ fn le_cells(bytes: &[u8], cells: &mut [u64]) {
     }
 }
 
+/// Where a state's encoding is written ([`StateDump::write_with_cell_parts_to`]): its bytes
+/// through [`std::io::Write`], and the long stretches of its cells through
+/// [`StateWrite::write_cells`], which names where they lie in the parts being written, so a
+/// writer that holds those parts may send them from there instead of copying them.
+pub trait StateWrite: std::io::Write {
+    /// Writes `cells` as little-endian bytes, in order after everything written before: the
+    /// words `words` of part `part` of the parts being written. By default, a copy through
+    /// [`std::io::Write::write_all`].
+    fn write_cells(
+        &mut self,
+        part: usize,
+        words: Range<usize>,
+        cells: &[u64],
+    ) -> std::io::Result<()> {
+        let _ = (part, words);
+        write_le_cells(cells, self)
+    }
+}
+
+impl StateWrite for Vec<u8> {}
+
+/// A [`std::io::Write`] as a [`StateWrite`] that copies every cell.
+struct Copying<W>(W);
+
+impl<W: std::io::Write> std::io::Write for Copying<W> {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        self.0.write(buf)
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> std::io::Result<()> {
+        self.0.write_all(buf)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.0.flush()
+    }
+}
+
+impl<W: std::io::Write> StateWrite for Copying<W> {}
+
+/// `cells` as their little-endian bytes, where those are their bytes in memory (a
+/// little-endian machine): so they can be written, or sent, from where they lie.
+pub fn le_bytes(cells: &[u64]) -> Option<&[u8]> {
+    cfg!(target_endian = "little").then(|| bytemuck::cast_slice(cells))
+}
+
+/// Writes `cells` as little-endian bytes to `out`: as they lie on a little-endian machine,
+/// else converted a 64 KiB block at a time.
+fn write_le_cells(cells: &[u64], out: &mut (impl std::io::Write + ?Sized)) -> std::io::Result<()> {
+    if let Some(bytes) = le_bytes(cells) {
+        return out.write_all(bytes);
+    }
+    let mut block = vec![0u8; 8 * PIECE_CELLS];
+    for chunk in cells.chunks(PIECE_CELLS) {
+        let dst = &mut block[..8 * chunk.len()];
+        for (d, c) in dst.chunks_exact_mut(8).zip(chunk) {
+            d.copy_from_slice(&c.to_le_bytes());
+        }
+        out.write_all(dst)?;
+    }
+    Ok(())
+}
+
 /// A buffer that the run list is encoded into before it is written.
 struct Block {
     bytes: Vec<u8>,
@@ -1115,33 +1195,56 @@ impl<'a> Pixels<'a> {
         self.starts[self.starts.len() - 1]
     }
 
-    /// Whether each pixel holds something, in order.
-    fn occupied(&self) -> impl Iterator<Item = bool> + '_ {
-        self.parts
-            .iter()
-            .flat_map(|p| p.chunks_exact(self.cell_len))
-            .map(|cell| cell.iter().any(|&c| c != 0))
+    /// The first pixel from `from` on that holds something (`holds`) or nothing (`!holds`), or
+    /// the number of pixels if there is none: a scan of each part's cells in turn, a pixel's
+    /// first word that is not 0 settling that it holds something.
+    fn next(&self, from: usize, holds: bool) -> usize {
+        // The part `from` lies in (the last of those starting there, if some are empty).
+        let mut part = self
+            .starts
+            .partition_point(|&s| s <= from)
+            .saturating_sub(1);
+        let mut at = from;
+        while part < self.parts.len() {
+            let skip = (at - self.starts[part]) * self.cell_len;
+            let found = self.parts[part][skip..]
+                .chunks_exact(self.cell_len)
+                .position(|cell| cell.iter().any(|&c| c != 0) == holds);
+            if let Some(i) = found {
+                return at + i;
+            }
+            part += 1;
+            at = self.starts[part];
+        }
+        self.count()
     }
 
     /// The maximal runs of pixels that hold something.
     fn runs(&self) -> impl Iterator<Item = Range<usize>> + '_ {
-        let mut occupied = self.occupied().enumerate().peekable();
+        let mut next = 0;
         std::iter::from_fn(move || {
-            let start = occupied.find(|&(_, o)| o)?.0;
-            let mut end = start + 1;
-            while occupied.next_if(|&(_, o)| o).is_some() {
-                end += 1;
+            let start = self.next(next, true);
+            if start >= self.count() {
+                return None;
             }
-            Some(start..end)
+            next = self.next(start + 1, false);
+            Some(start..next)
         })
     }
 
-    /// The cells of the pixels `run`, as slices of the parts.
-    fn cells(&self, run: Range<usize>) -> impl Iterator<Item = &'a [u64]> + '_ {
+    /// The cells of the pixels `run`, as slices of the parts: each with the number of its part
+    /// and where it lies in that part (in words).
+    fn cells(
+        &self,
+        run: Range<usize>,
+    ) -> impl Iterator<Item = (usize, Range<usize>, &'a [u64])> + '_ {
         self.parts.iter().enumerate().filter_map(move |(i, part)| {
             let (lo, hi) = (self.starts[i], self.starts[i + 1]);
             let (a, b) = (run.start.max(lo), run.end.min(hi));
-            (a < b).then(|| &part[(a - lo) * self.cell_len..(b - lo) * self.cell_len])
+            (a < b).then(|| {
+                let words = (a - lo) * self.cell_len..(b - lo) * self.cell_len;
+                (i, words.clone(), &part[words])
+            })
         })
     }
 }
@@ -1331,6 +1434,77 @@ mod tests {
         let mut parts = Vec::new();
         sparse.write_with_cell_parts(&[a, b], &mut parts).unwrap();
         assert_eq!(parts, bytes);
+        // Empty parts anywhere change nothing; nor does a seam inside a run (pixels 100, 101).
+        let (c, d) = sparse.cells.split_at(101 * cell);
+        for split in [vec![&[][..], a, &[], &[], b, &[]], vec![c, &[], d]] {
+            let mut parts = Vec::new();
+            sparse.write_with_cell_parts(&split, &mut parts).unwrap();
+            assert_eq!(parts, bytes);
+        }
+    }
+
+    /// A [`StateWrite`] is handed each stretch of cells at least a block long by where it lies
+    /// in the parts, and everything else (headers, short runs) as bytes; in order, they are
+    /// the bytes of the encoding.
+    #[test]
+    fn long_stretches_of_cells_are_handed_over_where_they_lie() {
+        /// Writes what it is given, and notes each stretch handed over by where it lies.
+        #[derive(Default)]
+        struct Noting {
+            bytes: Vec<u8>,
+            stretches: Vec<(usize, Range<usize>, *const u64)>,
+        }
+        impl std::io::Write for Noting {
+            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+                self.bytes.write(buf)
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        impl StateWrite for Noting {
+            fn write_cells(
+                &mut self,
+                part: usize,
+                words: Range<usize>,
+                cells: &[u64],
+            ) -> std::io::Result<()> {
+                self.stretches.push((part, words, cells.as_ptr()));
+                self.bytes
+                    .extend(cells.iter().flat_map(|c| c.to_le_bytes()));
+                Ok(())
+            }
+        }
+        let cell = 4 * 2 + 1;
+        let (width, height) = (1000, 40);
+        let mut state = StateDump {
+            width,
+            height,
+            rows_end: height,
+            cells: vec![1; (width * height) as usize * cell],
+            ..dump()
+        };
+        // Row 10 holds one short run (3 pixels) between empty pixels; the rest are long runs.
+        let row = |y: usize| y * width as usize * cell..(y + 1) * width as usize * cell;
+        state.cells[row(10)].fill(0);
+        state.cells[row(10).start + 500 * cell..row(10).start + 503 * cell].fill(2);
+        let (a, b) = state.cells.split_at(row(25).start);
+        let mut noting = Noting::default();
+        state
+            .write_with_cell_parts_to(&[a, b], &mut noting)
+            .unwrap();
+        assert_eq!(noting.bytes, state.encode());
+        // Rows 0..10, then rows 11.. up to the parts' seam, then the rest; the short run is
+        // copied with the run headers.
+        let next = row(11).start;
+        assert_eq!(
+            noting.stretches,
+            vec![
+                (0, 0..row(10).start, a.as_ptr()),
+                (0, next..a.len(), a[next..].as_ptr()),
+                (1, 0..b.len(), b.as_ptr()),
+            ]
+        );
     }
 
     /// A decoder accepts only the canonical encoding: runs apart and full, workers in order.

@@ -1,6 +1,7 @@
 //! What ingest and import report: a batch applied or recognised, and why one was refused.
 
 use splatd_estimator::{MergeError, SampleError};
+use splatd_formats::state::ImportError;
 
 /// Why a batch was refused. Nothing of a refused batch is applied.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -86,6 +87,10 @@ pub struct Ingested {
 /// Why an imported state was refused. Nothing of it is applied.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum ImportRefused {
+    /// The state's cells cannot be used (found as they were being added: what was added of
+    /// them has been taken back).
+    #[error(transparent)]
+    Invalid(ImportError),
     /// Size, rows or cascade layout differ from the frame's.
     #[error("state does not fit frame {frame:?}: {error}")]
     Mismatch {

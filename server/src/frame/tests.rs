@@ -3,11 +3,12 @@
 use std::sync::Arc;
 
 use splatd_estimator::{
-    self as estimator, CascadeLayout, FrameState, MergeError, SampleError, MAX_PIXEL_SAMPLES,
+    self as estimator, CascadeLayout, CellsError, FrameState, MergeError, SampleError,
+    MAX_PIXEL_SAMPLES,
 };
-use splatd_formats::state::Importable;
+use splatd_formats::state::ImportError;
 use splatd_proto::api::{AovSpec, CreateFrame};
-use splatd_proto::{Batch, Origin};
+use splatd_proto::{Batch, Origin, StateError};
 
 use super::*;
 use splatd_proto::Record;
@@ -155,8 +156,14 @@ fn imports_add_exactly_and_deltas_count_once() {
         node: "n1".into(),
         seq: 0,
     };
-    assert!(frame.import("f", &other, None, Some(&origin), &[]).unwrap());
-    assert!(!frame.import("f", &other, None, Some(&origin), &[]).unwrap());
+    assert_eq!(
+        frame.import("f", &other, None, Some(&origin), &[]),
+        Ok(Some(other.total_samples()))
+    );
+    assert_eq!(
+        frame.import("f", &other, None, Some(&origin), &[]),
+        Ok(None)
+    );
     let mut expected = other.clone();
     expected.merge(&other).unwrap();
     assert_eq!(frame.cut().whole(), expected);
@@ -289,7 +296,10 @@ fn imports_are_all_or_nothing() {
         node: "n".into(),
         seq: 0,
     };
-    assert!(frame.import("f", &part, None, Some(&origin), &[]).unwrap());
+    assert_eq!(
+        frame.import("f", &part, None, Some(&origin), &[]),
+        Ok(Some(part.total_samples()))
+    );
     assert_eq!(frame.cut().whole(), whole);
     assert_eq!(frame.version(), 1);
 
@@ -349,7 +359,10 @@ fn too_bright_samples_and_full_pixels_are_refused_whole() {
         let copy = full.clone();
         full.merge(&copy).unwrap();
     }
-    assert!(frame.import("f", &full, None, None, &[]).unwrap());
+    assert_eq!(
+        frame.import("f", &full, None, None, &[]),
+        Ok(Some(full.total_samples()))
+    );
     let before = frame.cut().whole();
     let recs = vec![
         Record::new(0, 0, [1.0; 3]),
@@ -461,7 +474,10 @@ fn a_pass_is_ingested_as_the_batch_of_its_records() {
     }
     let top = full.delta_since(&six).unwrap();
     for frame in [&by_pass, &by_records] {
-        assert!(frame.import("f", &top, None, None, &[]).unwrap());
+        assert_eq!(
+            frame.import("f", &top, None, None, &[]),
+            Ok(Some(top.total_samples()))
+        );
         assert_eq!(frame.cut().whole().spp(2, 3), MAX_PIXEL_SAMPLES);
     }
     let before = by_pass.cut().whole();
@@ -494,8 +510,7 @@ fn imports_from_runs_match_imports_of_states() {
         let bytes = splatd_formats::state::dump(state, None, "f", None, vec![]).encode();
         let (dump, runs, aov_runs) =
             splatd_proto::StateDump::decode_runs(&bytes, u64::MAX).unwrap();
-        let decoded = splatd_formats::state::load_runs(dump, runs, aov_runs, 2).unwrap();
-        assert_eq!(decoded.samples(), state.total_samples());
+        let decoded = splatd_formats::state::load_runs(dump, runs, aov_runs).unwrap();
         frame.import("f", &decoded, decoded.aovs(), None, &[])
     };
     let scene = FireflyScene::new(16, 64, 9);
@@ -517,8 +532,9 @@ fn imports_from_runs_match_imports_of_states() {
     );
     assert!(runs.bands.len() >= 8, "the test needs several bands");
     for _ in 0..2 {
-        assert!(states.import("f", &part, None, None, &[]).unwrap());
-        assert!(import_runs(&runs, &part).unwrap());
+        let added = Ok(Some(part.total_samples()));
+        assert_eq!(states.import("f", &part, None, None, &[]), added);
+        assert_eq!(import_runs(&runs, &part), added);
     }
     assert_eq!(runs.cut().whole(), states.cut().whole());
     assert_eq!(runs.info().samples, 2 * part.total_samples());
@@ -531,7 +547,7 @@ fn imports_from_runs_match_imports_of_states() {
         let copy = full.clone();
         full.merge(&copy).unwrap();
     }
-    assert!(import_runs(&small, &full).unwrap());
+    assert_eq!(import_runs(&small, &full), Ok(Some(full.total_samples())));
     let before = small.cut().whole();
     let mut one = FrameState::new(4, 40, small.spec().layout.clone());
     one.splat(0, 0, [1.0; 3]).unwrap();
@@ -544,6 +560,131 @@ fn imports_from_runs_match_imports_of_states() {
         }
     );
     assert_eq!(small.cut().whole(), before, "nothing of it applied");
+}
+
+/// `bytes` (a state body) imported as the server imports a body: decoded in place, its cells
+/// checked as they are added.
+fn import_body(
+    frame: &ShardedFrame,
+    bytes: &[u8],
+    origin: Option<&Origin>,
+) -> Result<Option<u64>, ImportRefused> {
+    let (dump, runs, aov_runs) = splatd_proto::StateDump::decode_runs(bytes, u64::MAX).unwrap();
+    let decoded = splatd_formats::state::load_runs(dump, runs, aov_runs).unwrap();
+    frame.import("f", &decoded, decoded.aovs(), origin, &[])
+}
+
+/// A state's cells are checked as they are added, so a bad pixel may be found after much of
+/// the state was added (by every thread adding a share): the import is refused, naming the
+/// first bad pixel in pixel order, and the frame is left bit for bit as it was (what was added
+/// is taken back), its samples, version and applied origins too. A good state adds after that.
+#[test]
+fn a_refusal_found_while_adding_leaves_the_frame_as_it_was() {
+    let (w, h) = (256, 160);
+    let frame = ShardedFrame::new(spec(w, h));
+    let layout = CascadeLayout::with_defaults();
+    let stride = estimator::cell_len(layout.cascades());
+    let scene = FireflyScene::new(w, h, 21);
+    let mut state = FrameState::new(w, h, layout.clone());
+    state.splat_all(scene.pass(0));
+    assert_eq!(
+        frame.import("f", &state, None, None, &[]),
+        Ok(Some(state.total_samples()))
+    );
+    state.splat_all(scene.pass(1));
+    let good = splatd_formats::state::dump(&state, None, "f", None, vec![]);
+    assert_eq!(
+        good.cells.len(),
+        (w * h) as usize * stride,
+        "every pixel is held"
+    );
+    let before = frame.cut().whole();
+    let (version, samples) = (frame.version(), frame.info().samples);
+    let origin = Origin {
+        node: "n".into(),
+        seq: 7,
+    };
+    let unchanged = |what: &str| {
+        assert!(frame.cut().whole() == before, "{what}: the frame changed");
+        assert_eq!(frame.version(), version, "{what}");
+        assert_eq!(frame.info().samples, samples, "{what}");
+        assert!(!frame.cut().seen.nodes.contains_key("n"), "{what}");
+    };
+    let pixel = |x: u32, y: u32| (y * w + x) as usize;
+
+    // Counts that are not whole samples: in the last rows, in the middle, and in both (the
+    // first is named, whichever share of the pixels it lies in).
+    for bad in [
+        vec![(7, h - 2)],
+        vec![(3, h / 2 - 1)],
+        vec![(200, h - 1), (5, 40)],
+    ] {
+        let mut dump = good.clone();
+        for &(x, y) in &bad {
+            dump.cells[pixel(x, y) * stride + 3] += 1;
+        }
+        let first = *bad.iter().min_by_key(|&&(x, y)| pixel(x, y)).unwrap();
+        let err = import_body(&frame, &dump.encode(), Some(&origin)).unwrap_err();
+        assert!(
+            matches!(
+                &err,
+                ImportRefused::Invalid(ImportError::Cells(CellsError::Invalid { x, y, .. }))
+                    if (*x, *y) == first
+            ),
+            "{bad:?}: {err}"
+        );
+        unchanged(&format!("{bad:?}"));
+    }
+
+    // A pixel of a run that holds nothing, near the end: the state is one run of every pixel,
+    // so its cells lie after the run header at a known place.
+    let mut bytes = good.encode();
+    let cells_at = bytes.len() - 8 * good.cells.len() - 8 - 8 - 8;
+    assert_eq!(bytes[cells_at - 8..cells_at - 4], 0u32.to_le_bytes());
+    assert_eq!(bytes[cells_at - 4..cells_at], (w * h).to_le_bytes());
+    let p = pixel(9, h - 3);
+    bytes[cells_at + 8 * p * stride..cells_at + 8 * (p + 1) * stride].fill(0);
+    let err = import_body(&frame, &bytes, Some(&origin)).unwrap_err();
+    assert!(
+        matches!(&err, ImportRefused::Invalid(ImportError::State(StateError::Malformed(m))) if m.contains(&format!("pixel {p} "))),
+        "{err}"
+    );
+    unchanged("a pixel holding nothing");
+
+    // A pixel with no room left, near the end: filled to 2^32 samples in a frame of its own.
+    let full_frame = ShardedFrame::new(spec(w, h));
+    let mut full = FrameState::new(w, h, layout.clone());
+    full.splat(250, h - 4, [1.0; 3]).unwrap();
+    for _ in 0..32 {
+        let copy = full.clone();
+        full.merge(&copy).unwrap();
+    }
+    full_frame.import("f", &full, None, None, &[]).unwrap();
+    let full_before = full_frame.cut().whole();
+    let err = import_body(&full_frame, &good.encode(), Some(&origin)).unwrap_err();
+    assert_eq!(
+        err,
+        ImportRefused::Mismatch {
+            frame: "f".into(),
+            error: MergeError::TooManySamples { x: 250, y: h - 4 }
+        }
+    );
+    assert!(
+        full_frame.cut().whole() == full_before,
+        "the full frame changed"
+    );
+    assert!(!full_frame.cut().seen.nodes.contains_key("n"));
+
+    // The good state adds whole.
+    assert_eq!(
+        import_body(&frame, &good.encode(), Some(&origin)),
+        Ok(Some(state.total_samples()))
+    );
+    let mut expected = before.clone();
+    expected.merge(&state).unwrap();
+    assert!(frame.cut().whole() == expected);
+    assert_eq!(frame.info().samples, samples + state.total_samples());
+    assert!(frame.cut().seen.nodes.contains_key("n"));
 }
 
 /// A state's header is checked before its AOV words are expanded, with the refusals that

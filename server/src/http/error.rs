@@ -160,6 +160,7 @@ impl From<IngestError> for ApiError {
 impl From<ImportRefused> for ApiError {
     fn from(e: ImportRefused) -> ApiError {
         match e {
+            ImportRefused::Invalid(e) => e.into(),
             ImportRefused::WrongFrame { .. } => {
                 ApiError::bad_request("frame_mismatch", e.to_string())
             }

@@ -1,6 +1,7 @@
 //! Frame states: export (`GET .../state`) for merging elsewhere, and import (`POST .../state`)
 //! of another node's state or a pushed delta.
 
+use std::ops::Range;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
@@ -9,8 +10,10 @@ use axum::body::{Body, Bytes};
 use axum::extract::State;
 use axum::http::header;
 use axum::response::IntoResponse;
+use splatd_estimator::FrameState;
 use splatd_proto::api::ImportAck;
-use splatd_proto::{StateDump, STATE_CONTENT_TYPE};
+use splatd_proto::state::le_bytes;
+use splatd_proto::{StateDump, StateWrite, STATE_CONTENT_TYPE};
 
 use crate::frame::ShardedFrame;
 use crate::http::blocking::blocking;
@@ -19,7 +22,6 @@ use crate::http::extract::{Frame, FrameBody, Json, Upload};
 use crate::memory::BodyPool;
 use crate::work::Reservation;
 use crate::AppState;
-use splatd_formats::state::Importable;
 
 /// Room for the applied batches in a state body, beyond its cells: 32 MiB, about four million
 /// batches (a soak of a 64x64 frame reached 120 KB of them in three minutes).
@@ -75,17 +77,19 @@ const EXPORT_PIECES: u64 = EXPORT_AHEAD as u64 + 3;
 /// `GET /v1/frames/{id}/state`: the frame's accumulated cascades, for merging elsewhere.
 ///
 /// Streamed (chunked): the state is encoded from a cut of the frame on the blocking pool, a
-/// piece at a time, while the connection sends the pieces before it. Nothing as large as the
-/// state is allocated for it (on a VM a fresh buffer of a 1080p state's 550 MB cost more in page
-/// faults than sending it), and no pass over the cells is spent finding the length first. A
+/// piece at a time, while the connection sends the pieces before it. Run headers and short runs
+/// are copied into pieces; long runs are sent from the cut's bands themselves, with no copy.
+/// Nothing as large as the state is allocated for it (on a VM a fresh buffer of a 1080p state's
+/// 550 MB cost more in page faults than sending it), and no pass over the cells is spent
+/// finding the length first. A
 /// response that stops short (the encoder failed) ends without the last chunk, so a client sees
 /// a cut-off body, never a short state.
 pub async fn export(
     State(app): State<AppState>,
     Frame(frame): Frame,
 ) -> Result<impl IntoResponse, ApiError> {
-    // While the encoding runs, the cut it encodes shares the frame's bands: writers copy a band
-    // they change meanwhile, up to the frame's cells. Then the pieces in flight.
+    // Until the response is sent, the cut it is sent from shares the frame's bands: writers
+    // copy a band they change meanwhile, up to the frame's cells. Then the pieces in flight.
     let budget = app.renders.budget();
     let cut_room = budget
         .reserve(frame.spec().memory_bytes())
@@ -98,14 +102,16 @@ pub async fn export(
     let (pieces, rx) = tokio::sync::mpsc::channel(EXPORT_AHEAD);
     tokio::task::spawn_blocking(move || {
         let free = Arc::new(BodyPool::new(EXPORT_PIECES as usize));
+        let cut = frame.cut();
         let mut out = PieceWriter {
             pieces,
             piece: free.take(EXPORT_PIECE),
             free,
+            bands: cut.bands.clone(),
         };
-        let written = frame.write_state(&mut out).and_then(|()| out.finish());
-        // The cut is gone once the encoding is: its room goes back with it.
-        drop(cut_room);
+        let written = frame
+            .write_state(&cut, &mut out)
+            .and_then(|()| out.finish());
         if let Err(e) = written {
             // The client went away (the connection dropped the pieces' receiver).
             tracing::debug!(frame = %frame.id(), "export stopped: {e}");
@@ -115,7 +121,8 @@ pub async fn export(
     let body = StreamedState {
         pieces: rx,
         ended: false,
-        _reservation: pieces_room,
+        // The pieces queued share the cut's bands: its room goes back once they are all sent.
+        _reservations: [pieces_room, cut_room],
     };
     Ok((
         [(header::CONTENT_TYPE, STATE_CONTENT_TYPE)],
@@ -125,12 +132,15 @@ pub async fn export(
 
 /// Cuts what is written into pieces of [`EXPORT_PIECE`] bytes and queues each for the
 /// connection (`Some`; `None` once the encoding is whole), waiting while [`EXPORT_AHEAD`] are
-/// queued; fails once the connection is gone.
+/// queued; fails once the connection is gone. A long stretch of a band's cells is queued as it
+/// lies in the cut's band, not copied.
 struct PieceWriter {
     pieces: tokio::sync::mpsc::Sender<Option<Bytes>>,
     piece: Vec<u8>,
     /// The export's idle piece buffers, reused so that a piece lands in memory already mapped.
     free: Arc<BodyPool>,
+    /// The bands of the cut being written, top to bottom.
+    bands: Vec<Arc<FrameState>>,
 }
 
 impl PieceWriter {
@@ -174,6 +184,39 @@ impl std::io::Write for PieceWriter {
     }
 }
 
+impl StateWrite for PieceWriter {
+    fn write_cells(
+        &mut self,
+        part: usize,
+        words: Range<usize>,
+        cells: &[u64],
+    ) -> std::io::Result<()> {
+        let band = self.bands[part].clone();
+        debug_assert!(std::ptr::eq(&band.cells()[words.clone()], cells));
+        if le_bytes(cells).is_none() {
+            // A big-endian machine: its cells are not their wire bytes.
+            let bytes: Vec<u8> = cells.iter().flat_map(|c| c.to_le_bytes()).collect();
+            return std::io::Write::write_all(self, &bytes);
+        }
+        // What was gathered before them goes first.
+        self.send()?;
+        self.queue(Some(Bytes::from_owner(BandCells { band, words })))
+    }
+}
+
+/// Cells of a cut's band, sent from where they lie: the band is kept until they are sent.
+struct BandCells {
+    band: Arc<FrameState>,
+    words: Range<usize>,
+}
+
+impl AsRef<[u8]> for BandCells {
+    fn as_ref(&self) -> &[u8] {
+        le_bytes(&self.band.cells()[self.words.clone()])
+            .expect("queued only where cells are their bytes")
+    }
+}
+
 /// A piece that goes back to its export's free list once the connection has sent it.
 struct Recycled {
     bytes: Vec<u8>,
@@ -193,13 +236,14 @@ impl Drop for Recycled {
 }
 
 /// The response body of an export: the pieces as the encoder queues them, until the encoder
-/// marks the encoding whole (`ended`), holding the pieces' working memory until it is dropped.
+/// marks the encoding whole (`ended`), holding the working memory of the pieces and of the cut
+/// they share until it is dropped.
 /// An encoder that stops short (a panic) ends the body with an error instead, so the client
 /// sees a cut-off response rather than a short state.
 struct StreamedState {
     pieces: tokio::sync::mpsc::Receiver<Option<Bytes>>,
     ended: bool,
-    _reservation: Reservation,
+    _reservations: [Reservation; 2],
 }
 
 impl http_body::Body for StreamedState {
@@ -246,31 +290,31 @@ pub async fn import(
     // Held until the acknowledgement is ready, so a deletion is answered after it.
     let _lease = crate::http::extract::lease(&frame).await?;
     let target = frame.clone();
-    let threads = app.resolve_threads;
-    let (samples, applied) = blocking("import", move || {
+    let added = blocking("import", move || {
         let _reservation = reservation;
         let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
         // Refused before its AOV words are expanded (at most the frame's, reserved above).
         target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
-        let state = splatd_formats::state::load_runs(dump, runs, aov_runs, threads)?;
+        // Its cells are checked as they are added.
+        let state = splatd_formats::state::load_runs(dump, runs, aov_runs)?;
         let dump = &state.dump;
-        let applied = target.import(
+        Ok(target.import(
             &dump.frame,
             &state,
             state.aovs(),
             dump.origin.as_ref(),
             &dump.batches,
-        )?;
-        Ok((state.samples(), applied))
+        )?)
     })
     .await?;
+    let applied = added.is_some();
     // A pusher forgets a delta once it is acknowledged, so make it durable first.
     app.sync(&frame).await?;
     metrics::counter!(crate::meters::IMPORTS, "result" => if applied { "applied" } else { "duplicate" })
         .increment(1);
     Ok(Json(ImportAck {
         frame: frame.id().to_owned(),
-        samples: if applied { samples } else { 0 },
+        samples: added.unwrap_or(0),
         duplicate: !applied,
     }))
 }
