@@ -463,12 +463,12 @@ struct SatRing<T> {
 const NARROW_SAT_SPP: u64 = 1 << 27;
 
 /// The integers [`SatRing`] sums support in (wrapping).
-trait Units: Copy + Default {
+trait Units: Copy + Default + Ord {
     fn of(word: f32) -> Self;
     fn add(self, other: Self) -> Self;
     fn sub(self, other: Self) -> Self;
-    /// The sum in samples, rounded once.
-    fn samples(self) -> f64;
+    /// `units` in this type, if it fits.
+    fn fit(units: u128) -> Option<Self>;
 }
 
 impl Units for u64 {
@@ -484,9 +484,8 @@ impl Units for u64 {
     fn sub(self, other: Self) -> Self {
         self.wrapping_sub(other)
     }
-    #[inline(always)]
-    fn samples(self) -> f64 {
-        units_to_samples(self as u128)
+    fn fit(units: u128) -> Option<Self> {
+        units.try_into().ok()
     }
 }
 
@@ -503,9 +502,8 @@ impl Units for u128 {
     fn sub(self, other: Self) -> Self {
         self.wrapping_sub(other)
     }
-    #[inline(always)]
-    fn samples(self) -> f64 {
-        units_to_samples(self)
+    fn fit(units: u128) -> Option<Self> {
+        Some(units)
     }
 }
 
@@ -522,6 +520,27 @@ pub(crate) fn support_units(word: f32) -> u128 {
     );
     // Below 2^63: `as i64` is one instruction.
     own as i64 as u128
+}
+
+/// The fewest units whose sum, rounded once to `f64` samples ([`units_to_samples`]), reaches
+/// `support`: a window's support reaches `support` exactly where its sum in units reaches this,
+/// since rounding to nearest never reverses an order and scaling by a power of two is exact
+/// (`units_to_samples` never decreases), so the window search compares integers, without a
+/// conversion per box. `None`: no sum does (not with a support of at most `1e6`).
+fn least_units(support: f64) -> Option<u128> {
+    let (mut lo, mut hi) = (0u128, u128::MAX);
+    if units_to_samples(hi) < support {
+        return None;
+    }
+    while lo < hi {
+        let mid = lo + (hi - lo) / 2;
+        if units_to_samples(mid) >= support {
+            hi = mid;
+        } else {
+            lo = mid + 1;
+        }
+    }
+    Some(lo)
 }
 
 /// An exact support sum in units, rounded once to `f64` samples.
@@ -574,9 +593,10 @@ impl<T: Units> SatRing<T> {
         }
     }
 
-    /// The box sums over columns `x0..x1` and rows `y0..y1` (table rows in the ring).
+    /// The box sums over columns `x0..x1` and rows `y0..y1` (table rows in the ring): support
+    /// in units, solid pixels.
     #[inline(always)]
-    fn boxed(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> (f64, u64) {
+    fn boxed(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> (T, u64) {
         let (r0, r1) = (
             (y0 & self.mask) * self.stride,
             (y1 & self.mask) * self.stride,
@@ -584,8 +604,7 @@ impl<T: Units> SatRing<T> {
         let n = self.n[r1 + x1]
             .sub(self.n[r0 + x1])
             .sub(self.n[r1 + x0])
-            .add(self.n[r0 + x0])
-            .samples();
+            .add(self.n[r0 + x0]);
         let solid = self.solid[r1 + x1]
             .wrapping_sub(self.solid[r0 + x1])
             .wrapping_sub(self.solid[r1 + x0])
@@ -641,6 +660,8 @@ fn windows<T: Units>(
         ..
     } = params.spread();
     let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= max_radius);
+    // `n >= support` for a box of `n` units is `n >= least` (`None`: never).
+    let least = least_units(support).and_then(T::fit);
     sat.reset();
     band.rows.resize_with(h, Vec::new);
     band.rows.iter_mut().for_each(Vec::clear);
@@ -663,7 +684,7 @@ fn windows<T: Units>(
                 }
                 break;
             }
-            if n >= support {
+            if least.is_some_and(|least| n >= least) {
                 window = Some((x0, x1, y0, y1));
                 break;
             }
@@ -992,6 +1013,18 @@ mod tests {
             sum(&early.removed) > 1.0,
             "at 16 spp the test has something to remove"
         );
+    }
+
+    #[test]
+    fn the_least_units_reaching_a_support_are_where_the_f64_comparison_turns() {
+        use super::{least_units, units_to_samples};
+        for support in [
+            1.0, 1.5, 3.3, 8.0, 63.999_999, 64.0, 64.000_001, 1000.1, 1e6,
+        ] {
+            let least = least_units(support).expect("reachable");
+            assert!(units_to_samples(least) >= support, "{support}");
+            assert!(units_to_samples(least - 1) < support, "{support}");
+        }
     }
 
     #[test]
