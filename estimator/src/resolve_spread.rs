@@ -335,19 +335,18 @@ pub(crate) fn spread(
         ..
     } = scratch;
     debug_assert!(support.len() == k * pixels);
-    // Per band, its lists of sources (parts top to bottom, each part's columns left to right).
-    let lists: Vec<Vec<&[Source]>> = (0..k)
+    // Per band, its lists of sources: per part (top to bottom), per column (left to right).
+    let lists: Vec<Vec<Vec<&[Source]>>> = (0..k)
         .map(|j| {
             sources
                 .iter()
-                .flatten()
-                .map(|column| &column[j][..])
+                .map(|part| part.iter().map(|column| &column[j][..]).collect())
                 .collect()
         })
         .collect();
     let busy: Vec<bool> = lists
         .iter()
-        .map(|l| l.iter().any(|list| !list.is_empty()))
+        .map(|l| l.iter().flatten().any(|list| !list.is_empty()))
         .collect();
     let busy_count = busy.iter().filter(|&&b| b).count();
     if busy_count == 0 {
@@ -624,18 +623,29 @@ fn two_rows<T>(table: &mut [T], a: usize, b: usize, stride: usize) -> (&[T], &mu
     }
 }
 
-/// The sources of several lists, each in row-major order, merged into row-major order.
-fn merged<'l, 's>(lists: &'l [&'s [Source]]) -> impl Iterator<Item = &'s Source> + 'l {
-    let mut heads = vec![0usize; lists.len()];
-    std::iter::from_fn(move || {
-        let (i, _) = lists
-            .iter()
-            .zip(&heads)
-            .enumerate()
-            .filter_map(|(i, (list, &at))| list.get(at).map(|s| (i, (s.y, s.x))))
-            .min_by_key(|&(_, p)| p)?;
-        heads[i] += 1;
-        Some(&lists[i][heads[i] - 1])
+/// A band's sources in row-major order, from the paper stage's lists: per part (rows, top to
+/// bottom), per column (pixels, left to right), each in row-major order. Within a part, each
+/// row is the run of that row at the head of each column's list in turn (a step per source,
+/// not a search of every list's head).
+fn merged<'l, 's>(parts: &'l [Vec<&'s [Source]>]) -> impl Iterator<Item = &'s Source> + 'l {
+    parts.iter().flat_map(|columns| {
+        let mut rest = columns.clone();
+        // The row being given, and the column whose run of it is next.
+        let (mut y, mut c) = (0, rest.len());
+        std::iter::from_fn(move || loop {
+            if let Some(list) = rest.get_mut(c) {
+                match list.split_first() {
+                    Some((source, tail)) if source.y == y => {
+                        *list = tail;
+                        return Some(source);
+                    }
+                    _ => c += 1,
+                }
+            } else {
+                y = rest.iter().filter_map(|l| l.first()).map(|s| s.y).min()?;
+                c = 0;
+            }
+        })
     })
 }
 
@@ -644,7 +654,7 @@ fn merged<'l, 's>(lists: &'l [&'s [Source]]) -> impl Iterator<Item = &'s Source>
 #[allow(clippy::too_many_arguments)]
 fn windows<T: Units>(
     plane: &[f32],
-    sources: &[&[Source]],
+    sources: &[Vec<&[Source]>],
     spp: &[u64],
     w: usize,
     h: usize,

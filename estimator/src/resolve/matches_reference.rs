@@ -276,6 +276,28 @@ fn a_frame_wider_than_a_column_resolves_to_the_reference_bits() {
     check(&random_state(8, 1030, 2, &layout), 1).expect("same bits");
 }
 
+/// The spread stage merges each band's sources from every part's columns into row-major
+/// order: a frame of two columns of strips, cut into several parts, with settings that give
+/// back a lot.
+#[test]
+fn sources_of_several_parts_and_columns_give_back_the_reference_bits() {
+    let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
+    for state in [
+        splatted_state(11, 1061, 13, &layout),
+        random_state(12, 1030, 9, &layout),
+    ] {
+        for p in spread_params() {
+            let expected = bits(&reference::resolve_bands(&[&state], &p, 1).expect("frame"));
+            for threads in 1..=3 {
+                let mut out = Resolved::default();
+                resolve_bands_with(Kernel::detect(), &[&state], &p, threads, &mut out)
+                    .expect("frame");
+                assert!(bits(&out) == expected, "{threads} threads, {p:?}");
+            }
+        }
+    }
+}
+
 /// Spread settings that give back a lot: low support, every widest window.
 fn spread_params() -> Vec<ResolveParams> {
     let mut all = Vec::new();
