@@ -626,27 +626,20 @@ fn two_rows<T>(table: &mut [T], a: usize, b: usize, stride: usize) -> (&[T], &mu
 /// A band's sources in row-major order, from the paper stage's lists: per part (rows, top to
 /// bottom), per column (pixels, left to right), each in row-major order. Within a part, each
 /// row is the run of that row at the head of each column's list in turn (a step per source,
-/// not a search of every list's head).
-fn merged<'l, 's>(parts: &'l [Vec<&'s [Source]>]) -> impl Iterator<Item = &'s Source> + 'l {
-    parts.iter().flat_map(|columns| {
+/// not a search of every list's head), given to `f` in plain loops.
+#[inline(always)]
+fn for_each_merged(parts: &[Vec<&[Source]>], mut f: impl FnMut(&Source)) {
+    for columns in parts {
         let mut rest = columns.clone();
-        // The row being given, and the column whose run of it is next.
-        let (mut y, mut c) = (0, rest.len());
-        std::iter::from_fn(move || loop {
-            if let Some(list) = rest.get_mut(c) {
-                match list.split_first() {
-                    Some((source, tail)) if source.y == y => {
-                        *list = tail;
-                        return Some(source);
-                    }
-                    _ => c += 1,
-                }
-            } else {
-                y = rest.iter().filter_map(|l| l.first()).map(|s| s.y).min()?;
-                c = 0;
+        while let Some(y) = rest.iter().filter_map(|l| l.first()).map(|s| s.y).min() {
+            for list in &mut rest {
+                let run = list.iter().take_while(|s| s.y == y).count();
+                let (row, tail) = list.split_at(run);
+                row.iter().for_each(&mut f);
+                *list = tail;
             }
-        })
-    })
+        }
+    }
 }
 
 /// One band's windows (the smallest supported one around each source, see the module docs) as
@@ -675,7 +668,7 @@ fn windows<T: Units>(
     sat.reset();
     band.rows.resize_with(h, Vec::new);
     band.rows.iter_mut().for_each(Vec::clear);
-    for source in merged(sources) {
+    for_each_merged(sources, |source| {
         let (x, y) = (source.x as usize, source.y as usize);
         sat.build(plane, w, (y + max_radius + 1).min(h));
         let mut window = None;
@@ -700,7 +693,7 @@ fn windows<T: Units>(
             }
         }
         let Some((x0, x1, y0, y1)) = window else {
-            continue;
+            return;
         };
         // Every pixel of the window (clamped to the frame) gets an equal share.
         let area = ((x1 - x0) * (y1 - y0)) as i32;
@@ -724,7 +717,7 @@ fn windows<T: Units>(
                 ..event
             });
         }
-    }
+    });
 }
 
 /// A row's reweighted and removed pixels in some columns.
