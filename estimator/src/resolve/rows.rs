@@ -611,30 +611,29 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
                 part.support[j][at.first..at.first + at.count].copy_from_slice(&words[..at.count]);
                 if any {
-                    // Every pixel written in turn to the next free place, which moves on only
-                    // past a source: no branch per pixel, most of which are sources where any
-                    // is (measured: `bench speed`'s frame has a source at every pixel of its
-                    // two dimmest bands).
+                    // The strip's pixels appended in turn, then moved down over those that are
+                    // not sources: no branch per pixel, most of which are sources where any is
+                    // (measured: `bench speed`'s frame has a source at every pixel of its two
+                    // dimmest bands), and the test of each pixel in a vector loop first.
+                    let mut keep = [0usize; STRIP];
+                    for x in 0..STRIP {
+                        let some = (removed[0][x] != 0.0)
+                            | (removed[1][x] != 0.0)
+                            | (removed[2][x] != 0.0);
+                        keep[x] = ((n[x] != 0.0) & some) as usize;
+                    }
                     let sources = &mut part.sources[part.column][j];
                     let start = sources.len();
-                    let blank = Source {
-                        x: 0,
-                        y: 0,
-                        removed: [0.0; 3],
-                    };
-                    sources.resize(start + at.count, blank);
-                    let free = &mut sources[start..];
+                    sources.extend((0..at.count).map(|x| Source {
+                        x: (at.x0 + x) as u32,
+                        y: at.y as u32,
+                        removed: [removed[0][x], removed[1][x], removed[2][x]],
+                    }));
+                    let strip = &mut sources[start..];
                     let mut kept = 0;
-                    for x in 0..at.count {
-                        let rgb = [removed[0][x], removed[1][x], removed[2][x]];
-                        free[kept] = Source {
-                            x: (at.x0 + x) as u32,
-                            y: at.y as u32,
-                            removed: rgb,
-                        };
-                        kept += ((n[x] != 0.0)
-                            & ((rgb[0] != 0.0) | (rgb[1] != 0.0) | (rgb[2] != 0.0)))
-                            as usize;
+                    for x in 0..strip.len() {
+                        strip[kept] = strip[x];
+                        kept += keep[x];
                     }
                     sources.truncate(start + kept);
                 }
