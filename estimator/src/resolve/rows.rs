@@ -587,12 +587,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 // as vector instructions), then the sources pushed one by one.
                 let own = own(j);
                 // Energy is removed only where the weight is below 1 and the band has some.
-                // (Bitwise `&` and `|`, not `&&` and `||`: the same answer without a branch per
-                // pixel, so the loop is vector compares.)
                 let mut any = false;
                 for x in 0..STRIP {
-                    any |= (weight[x] < 1.0)
-                        & ((b[0][x] != 0.0) | (b[1][x] != 0.0) | (b[2][x] != 0.0));
+                    any |= weight[x] < 1.0 && (b[0][x] != 0.0 || b[1][x] != 0.0 || b[2][x] != 0.0);
                 }
                 let mut removed = [[0.0f32; STRIP]; 3];
                 if any {
@@ -610,32 +607,16 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                     words[x] = if n[x] != 0.0 { word } else { 0.0 };
                 }
                 part.support[j][at.first..at.first + at.count].copy_from_slice(&words[..at.count]);
-                if any {
-                    // The strip's pixels appended in turn, then moved down over those that are
-                    // not sources: no branch per pixel, most of which are sources where any is
-                    // (measured: `bench speed`'s frame has a source at every pixel of its two
-                    // dimmest bands), and the test of each pixel in a vector loop first.
-                    let mut keep = [0usize; STRIP];
-                    for x in 0..STRIP {
-                        let some = (removed[0][x] != 0.0)
-                            | (removed[1][x] != 0.0)
-                            | (removed[2][x] != 0.0);
-                        keep[x] = ((n[x] != 0.0) & some) as usize;
+                let sources = &mut part.sources[part.column][j];
+                for x in (0..at.count).filter(|_| any) {
+                    let rgb = [removed[0][x], removed[1][x], removed[2][x]];
+                    if n[x] != 0.0 && (rgb[0] != 0.0 || rgb[1] != 0.0 || rgb[2] != 0.0) {
+                        sources.push(Source {
+                            x: (at.x0 + x) as u32,
+                            y: at.y as u32,
+                            removed: rgb,
+                        });
                     }
-                    let sources = &mut part.sources[part.column][j];
-                    let start = sources.len();
-                    sources.extend((0..at.count).map(|x| Source {
-                        x: (at.x0 + x) as u32,
-                        y: at.y as u32,
-                        removed: [removed[0][x], removed[1][x], removed[2][x]],
-                    }));
-                    let strip = &mut sources[start..];
-                    let mut kept = 0;
-                    for x in 0..strip.len() {
-                        strip[kept] = strip[x];
-                        kept += keep[x];
-                    }
-                    sources.truncate(start + kept);
                 }
             }
         }
