@@ -46,9 +46,6 @@ the worker posts one pass's samples twice under different ids.
 
 ``--until-converged`` asks the server before every pass whether the frame has converged (its
 ``convergence.converged``, PROTOCOL.md) and stops when it has; ``--passes`` is then the budget.
-It asks for the latest figures (``convergence=latest``), which never wait for a render: on a
-frame that many workers keep changing, fresh figures wait for the frame's render pace, seconds
-before every pass on every render node, so the verdict may come one pass late instead.
 Reading a frame needs a token with the ``read`` role as well (roles ``read,write``).
 
 ``--aovs albedo,normal,depth`` renders those Cycles passes too (diffuse colour, normal, depth)
@@ -429,11 +426,10 @@ def render(scene, path, layer):
         raise WorkerError(f"Blender wrote no pass to {path}: {e}") from None
 
 
-def converged(client, frame, figures="latest"):
-    """The server's verdict on the frame (False while it has none), from its latest figures or
-    (``figures="fresh"``) from a render of the frame as it is."""
+def converged(client, frame):
+    """The server's verdict on the frame (False while it has none)."""
     try:
-        convergence = client.frame_info(frame, convergence=figures).get("convergence")
+        convergence = client.frame_info(frame).get("convergence")
     except sc.SplatdError as e:
         if e.status == 403:
             raise WorkerError("--until-converged reads the frame's convergence, which needs a "
@@ -513,7 +509,7 @@ def main(argv):
         else:
             if args.until_converged:
                 print(f"frame {frame}: {count} passes rendered, the budget, and "
-                      f"{'it has converged' if converged(client, frame, 'fresh') else 'it has not converged'}",
+                      f"{'it has converged' if converged(client, frame) else 'it has not converged'}",
                       flush=True)
     finally:
         camera.data.shift_x, camera.data.shift_y = base_x, base_y

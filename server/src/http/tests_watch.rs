@@ -214,6 +214,21 @@ async fn a_scrape_of_frames_that_keep_changing_waits_its_bound_once() {
     assert_eq!(app.renders.rendered(), 4, "one more render per frame");
 }
 
+/// The JSON answer to `GET path`, asserted to be 200 and to come at once (no time passes on
+/// tokio's paused clock: it waited for no render).
+async fn at_once(app: &AppState, path: &str) -> serde_json::Value {
+    let started = tokio::time::Instant::now();
+    let request = Request::get(path).body(Body::empty()).unwrap();
+    let reply = testing::send(app, request).await;
+    assert_eq!(
+        started.elapsed(),
+        std::time::Duration::ZERO,
+        "{path} waited for a render"
+    );
+    assert_eq!(reply.status, StatusCode::OK, "{path}");
+    reply.json()
+}
+
 /// `GET /v1/frames/{id}?convergence=none` answers the counts of a frame that workers keep changing
 /// at once, while its renders wait their pace (a worker reporting the frame's spp after each
 /// pass must not wait on it), renders nothing, and counts every sample acknowledged before it.
@@ -232,18 +247,7 @@ async fn counts_alone_never_wait_for_a_busy_frames_render() {
     let writer = keep_writing(&app, &["c"]);
     for _ in 0..3 {
         tokio::time::sleep(Duration::from_millis(25)).await;
-        let started = tokio::time::Instant::now();
-        let request = Request::get("/v1/frames/c?convergence=none")
-            .body(Body::empty())
-            .unwrap();
-        let reply = testing::send(&app, request).await;
-        assert_eq!(
-            started.elapsed(),
-            Duration::ZERO,
-            "the counts waited for a render"
-        );
-        assert_eq!(reply.status, StatusCode::OK);
-        let shown: serde_json::Value = reply.json();
+        let shown = at_once(&app, "/v1/frames/c?convergence=none").await;
         assert!(shown.get("convergence").is_none(), "{shown}");
         // The writer posts 16 samples at a time, one in each of the first 16 pixels of 64.
         let samples = frame.samples();
@@ -272,8 +276,8 @@ async fn counts_alone_never_wait_for_a_busy_frames_render() {
 }
 
 /// `GET /v1/frames/{id}?convergence=latest` answers at once with the latest figures while a
-/// busy frame's renders wait their pace (a worker asking "converged?" before each pass must not
-/// wait on it): the figures and their spp say what they saw, the counts are the frame's now, and
+/// busy frame's renders wait their pace (a page polling every second must not wait on it): the
+/// figures and their spp say what they saw, the counts are the frame's now, and
 /// the render it started gives the next request the frame's figures once the writers stop. On
 /// tokio's paused clock.
 #[tokio::test(start_paused = true)]
@@ -282,20 +286,8 @@ async fn the_latest_figures_never_wait_for_a_busy_frames_render() {
     use std::time::Duration;
     let app = testing::with_frame(AppState::new(Limits::default(), None, None), "l", 8, 8);
     post(&app, "l", 0);
-    let latest = |app: AppState| async move {
-        let started = tokio::time::Instant::now();
-        let request = Request::get("/v1/frames/l?convergence=latest")
-            .body(Body::empty())
-            .unwrap();
-        let reply = testing::send(&app, request).await;
-        assert_eq!(
-            started.elapsed(),
-            Duration::ZERO,
-            "the latest figures waited for a render"
-        );
-        assert_eq!(reply.status, StatusCode::OK);
-        reply.json()
-    };
+    let latest =
+        |app: AppState| async move { at_once(&app, "/v1/frames/l?convergence=latest").await };
     // No figures yet: none, and a render of them is started.
     let first = latest(app.clone()).await;
     assert!(first.get("convergence").is_none(), "{first}");
