@@ -761,8 +761,8 @@ pub enum InfoConvergence {
     /// The latest figures at once, never waiting for a render: if the frame changed since they
     /// were made, one render of its figures is started for later requests. `convergence.samples`
     /// (and the spp figures, which come from the same render) say what they saw; absent until a
-    /// first render filed any. What a worker that asks "converged?" before each pass, and the
-    /// live page, ask for.
+    /// first render filed any. What the live page asks for every second; a `converged` verdict
+    /// from them may be a render old.
     Latest,
     /// No figures: the counts alone (a count of the frame's cells), which never cost a render.
     None,
