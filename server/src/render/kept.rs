@@ -14,6 +14,14 @@
 //! holds the resolved layers of the frame (44 bytes per pixel, 91 MB at 1080p) beyond the
 //! working budget, so their number is small and fixed.
 //!
+//! The buffers of a resolve no longer kept (its frame deleted, or pushed out by a fifth) are
+//! held as one *spare*, which the next frame resolved whole for the first time resolves into.
+//! A farm fetches each frame's final, deletes the frame and starts the next one of the same
+//! size: a first resolve into fresh buffers faults in some 500 MB of new pages at 1080p (the
+//! layers, the spread stage's support planes and lists), about a third of an `image.exr`'s
+//! time on a virtual machine whose host hands out freed memory lazily (`passbench`). So at
+//! most `MAX_KEPT + 1` resolves are held, and the spare goes as soon as a frame takes it.
+//!
 //! With a kept resolve can go the frame's need map at the default tile size, made from the same
 //! cut when figures are asked for, whose figures are filed in the frame's history. The renders
 //! of a changing frame that start together when its pace ends (an image, the live page's
@@ -54,6 +62,8 @@ pub struct KeptResolves {
     patched: std::sync::atomic::AtomicU64,
     /// Renders that resolved the whole frame at its own parameters.
     whole: std::sync::atomic::AtomicU64,
+    /// The buffers of the last resolve that stopped being kept, for the next first resolve.
+    spare: Mutex<Option<Resolved>>,
 }
 
 /// How a render got its resolve.
@@ -87,16 +97,41 @@ impl KeptResolves {
         };
         slots.push_back((serial, slot.clone()));
         while slots.len() > MAX_KEPT {
-            slots.pop_front();
+            let (_, old) = slots.pop_front().expect("more than MAX_KEPT");
+            self.keep_spare(&old);
         }
         slot
     }
 
-    /// Forgets the kept resolve of `frame` (when it is deleted).
+    /// Forgets the kept resolve of `frame` (when it is deleted); its buffers become the spare.
     pub fn forget(&self, frame: &ShardedFrame) {
         let serial = frame.serial();
         let mut slots = self.slots.lock().unwrap_or_else(|e| e.into_inner());
-        slots.retain(|(s, _)| *s != serial);
+        if let Some(i) = slots.iter().position(|(s, _)| *s == serial) {
+            let (_, old) = slots.remove(i).expect("found");
+            self.keep_spare(&old);
+        }
+    }
+
+    /// Takes the buffers of a slot no longer kept as the spare, unless a render is using the
+    /// slot right now (then they go with it).
+    fn keep_spare(&self, old: &Slot) {
+        let Ok(mut kept) = old.try_lock() else {
+            return;
+        };
+        if let Some(resolved) = kept.resolved.take() {
+            kept.need = None;
+            *self.spare.lock().unwrap_or_else(|e| e.into_inner()) = Some(resolved);
+        }
+    }
+
+    /// Whether a spare is held (for tests).
+    #[cfg(test)]
+    fn has_spare(&self) -> bool {
+        self.spare
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .is_some()
     }
 
     /// Calls `use_it` with a cut of `frame` taken now and its resolve at `params` on `threads`:
@@ -167,7 +202,11 @@ impl KeptResolves {
                 }
             }
             None => {
-                kept.resolved = Some(cut.resolve(params, threads));
+                let spare = self.spare.lock().unwrap_or_else(|e| e.into_inner()).take();
+                let mut resolved = spare.unwrap_or_default();
+                resolve_bands_into(&bands, params, threads, &mut resolved)
+                    .expect("a frame's bands tile it");
+                kept.resolved = Some(resolved);
                 Made::Whole
             }
         };
@@ -302,6 +341,58 @@ mod tests {
         kept.with_resolved(&frame, &other, 1, |_, _, made| {
             assert_eq!(made, Made::Whole)
         });
+    }
+
+    /// A deleted frame's resolve buffers are the spare that the next frame's first resolve
+    /// fills (no fresh pages), and what it fills them with is that frame's own fresh resolve,
+    /// nothing left of the frame before; a frame pushed out of the kept set leaves its buffers
+    /// to the frame that pushed it out.
+    #[test]
+    fn a_deleted_frames_buffers_serve_the_next_frames_first_resolve() {
+        let (w, h) = (48, 40);
+        let make = |seed: u64| {
+            let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+            let scene = FireflyScene::new(w, h, seed);
+            let records = (0..3)
+                .flat_map(|p| scene.pass(p))
+                .map(|(x, y, rgb)| Record::new(x, y, rgb));
+            frame
+                .ingest(&Batch::new("f", 1, 0, records.collect()).unwrap())
+                .unwrap();
+            frame
+        };
+        let kept = KeptResolves::default();
+        let first = make(1);
+        let params = first.spec().resolve;
+        let pointer = kept.with_resolved(&first, &params, 1, |r, _, _| r.reweighted.as_ptr());
+        assert!(!kept.has_spare());
+        kept.forget(&first);
+        assert!(kept.has_spare(), "the deleted frame's buffers are kept");
+
+        let second = make(2);
+        let pointer = kept.with_resolved(&second, &params, 2, |r, cut, made| {
+            assert_eq!(made, Made::Whole);
+            assert_eq!(r.reweighted.as_ptr(), pointer, "resolved into the spare");
+            assert_eq!(
+                *r,
+                cut.resolve(&params, 1),
+                "the second frame's own resolve"
+            );
+            r.reweighted.as_ptr()
+        });
+        assert!(!kept.has_spare(), "the spare went to the second frame");
+
+        // The fifth frame after it pushes it out and resolves into its buffers.
+        let others: Vec<ShardedFrame> = (3..7).map(make).collect();
+        let pointers: Vec<_> = others
+            .iter()
+            .map(|frame| kept.with_resolved(frame, &params, 1, |r, _, _| r.reweighted.as_ptr()))
+            .collect();
+        assert_eq!(
+            pointers[3], pointer,
+            "the frame pushed out left its buffers"
+        );
+        assert!(!pointers[..3].contains(&pointer));
     }
 
     /// A render that needs only the resolved layers takes the kept resolve when it is of the
