@@ -465,30 +465,73 @@ impl FrameState {
         rows: std::ops::Range<u32>,
         layout: CascadeLayout,
     ) -> Self {
+        Self::band_in(width, height, rows, layout, Vec::new())
+    }
+
+    /// [`band`](Self::band) in the memory of `cells`, the cells of an earlier state
+    /// ([`into_cells`](Self::into_cells)): overwritten with zeros if they have room for the
+    /// band, else dropped for new ones. Memory a process has used before is cheaper to zero
+    /// than fresh pages are to fault in, which the kernel zeroes too.
+    ///
+    /// # Panics
+    /// If the rows do not lie inside the frame (a programming error, not an input error).
+    pub fn band_in(
+        width: u32,
+        height: u32,
+        rows: std::ops::Range<u32>,
+        layout: CascadeLayout,
+        mut cells: Vec<u64>,
+    ) -> Self {
         assert!(
             rows.start <= rows.end && rows.end <= height,
             "band {rows:?} outside a frame of height {height}"
         );
         let len = width as usize * rows.len() * cell_len(layout.cascades());
+        if cells.capacity() >= len {
+            cells.clear();
+            cells.resize(len, 0);
+        } else {
+            // Zeroed by the allocator, untouched until the first sample lands.
+            cells = vec![0; len];
+        }
         Self {
             width,
             height,
             y0: rows.start,
             rows: rows.end - rows.start,
             layout,
-            cells: vec![0; len],
+            cells,
             samples: 0,
         }
     }
 
+    /// The state's cells, whose memory [`band_in`](Self::band_in) can reuse.
+    pub fn into_cells(self) -> Vec<u64> {
+        self.cells
+    }
+
     /// Splits a frame into `n` bands of (nearly) equal height that tile it top to bottom.
     pub fn bands(width: u32, height: u32, n: u32, layout: &CascadeLayout) -> Vec<Self> {
+        Self::bands_in(width, height, n, layout, |_| Vec::new())
+    }
+
+    /// [`bands`](Self::bands), each band in the memory `cells(len)` gives for its `len` words
+    /// ([`band_in`](Self::band_in)).
+    pub fn bands_in(
+        width: u32,
+        height: u32,
+        n: u32,
+        layout: &CascadeLayout,
+        mut cells: impl FnMut(usize) -> Vec<u64>,
+    ) -> Vec<Self> {
         let n = n.clamp(1, height.max(1));
+        let stride = width as usize * cell_len(layout.cascades());
         (0..n)
             .map(|i| {
                 let start = (height as u64 * i as u64 / n as u64) as u32;
                 let end = (height as u64 * (i as u64 + 1) / n as u64) as u32;
-                Self::band(width, height, start..end, layout.clone())
+                let memory = cells(stride * (end - start) as usize);
+                Self::band_in(width, height, start..end, layout.clone(), memory)
             })
             .collect()
     }
@@ -1556,6 +1599,33 @@ mod tests {
             Err(MergeError::Rows { .. })
         ));
         assert_eq!(a, before);
+    }
+
+    /// A band made in the cells of another state is the empty band, whatever those held, in
+    /// the same memory; cells too small for it are replaced.
+    #[test]
+    fn a_band_in_used_cells_is_empty() {
+        let mut used = FrameState::band(4, 8, 2..6, layout());
+        for y in 2..6 {
+            used.splat_row(0, y, &[[3.0, 2.0, 900.0]; 4]);
+        }
+        let cells = used.into_cells();
+        let pointer = cells.as_ptr();
+        let band = FrameState::band_in(4, 8, 3..6, layout(), cells);
+        assert_eq!(band, FrameState::band(4, 8, 3..6, layout()));
+        assert_eq!(band.cells().as_ptr(), pointer, "the same memory");
+        let small = FrameState::band_in(4, 8, 0..8, layout(), band.into_cells());
+        assert_eq!(small, FrameState::band(4, 8, 0..8, layout()));
+        let mut lengths = Vec::new();
+        let bands = FrameState::bands_in(4, 8, 3, &layout(), |len| {
+            lengths.push(len);
+            vec![7; len]
+        });
+        assert_eq!(bands, FrameState::bands(4, 8, 3, &layout()));
+        assert_eq!(
+            lengths,
+            bands.iter().map(|b| b.cells().len()).collect::<Vec<_>>()
+        );
     }
 
     #[test]

@@ -17,6 +17,8 @@ pub const SAMPLES_REJECTED: &str = "splatd_samples_rejected_total";
 pub const INGEST_BYTES: &str = "splatd_ingest_bytes_total";
 /// Frames held (gauge).
 pub const FRAMES: &str = "splatd_frames";
+/// Bytes of deleted frames' cells kept for new frames (gauge; see `memory::CellPool`).
+pub const IDLE_CELL_BYTES: &str = "splatd_idle_cell_bytes";
 /// Seconds an `image.exr` took (histogram).
 pub const RESOLVE_SECONDS: &str = "splatd_resolve_seconds";
 /// Renders run for images, previews, need maps and convergence figures; requests that shared
@@ -69,7 +71,7 @@ pub const FRAME_CONVERGED_BELOW: &str = "splatd_frame_converged_below";
 pub const FRAME_FIGURES_AGE: &str = "splatd_frame_figures_age_seconds";
 
 /// Every name above.
-pub const ALL: [&str; 30] = [
+pub const ALL: [&str; 31] = [
     SAMPLES_INGESTED,
     BATCHES_INGESTED,
     BATCHES_DUPLICATE,
@@ -77,6 +79,7 @@ pub const ALL: [&str; 30] = [
     SAMPLES_REJECTED,
     INGEST_BYTES,
     FRAMES,
+    IDLE_CELL_BYTES,
     RESOLVE_SECONDS,
     RENDERS,
     RENDER_PACE_SECONDS,

@@ -119,6 +119,12 @@ impl Server {
                 stop.clone(),
             ))
         });
+        let sweeper = tokio::spawn(
+            app.store
+                .cell_pool()
+                .clone()
+                .release_idle_until(stop.clone()),
+        );
         let pusher = push.map(|cfg| {
             tracing::info!(upstream = cfg.upstream, node = cfg.node, "push mode");
             let mut stop = stop.clone();
@@ -132,7 +138,8 @@ impl Server {
         // A snapshot in progress finishes before the final ones; the pusher's final push
         // carries everything acknowledged, as no request is in flight any more.
         let _ = stop_tasks.send(true);
-        for task in snapshots.into_iter().chain(viewer).chain(pusher) {
+        let tasks = snapshots.into_iter().chain(viewer).chain(pusher);
+        for task in tasks.chain([sweeper]) {
             let _ = task.await;
         }
         if let Some(durable) = &app.durable {

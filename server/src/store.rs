@@ -7,6 +7,7 @@ use splatd_estimator::ParamError;
 use splatd_proto::api::CreateFrame;
 
 use super::frame::{FrameSpec, ShardedFrame};
+use super::memory::CellPool;
 use super::Limits;
 
 /// What `POST /v1/frames` did.
@@ -87,6 +88,9 @@ pub enum StoreError {
 pub struct FrameStore {
     frames: RwLock<BTreeMap<String, Arc<ShardedFrame>>>,
     limits: Limits,
+    /// The cells of deleted frames, for new ones ([`CellPool`]); with the frames' cells
+    /// within the cascade budget at every create.
+    pool: Arc<CellPool>,
 }
 
 impl FrameStore {
@@ -95,7 +99,13 @@ impl FrameStore {
         FrameStore {
             frames: RwLock::new(BTreeMap::new()),
             limits,
+            pool: Arc::default(),
         }
+    }
+
+    /// The cells of deleted frames waiting for new frames.
+    pub fn cell_pool(&self) -> &Arc<CellPool> {
+        &self.pool
     }
 
     /// The limits in force.
@@ -138,7 +148,7 @@ impl FrameStore {
             });
         }
         self.admit(&frames, &spec)?;
-        let frame = Arc::new(ShardedFrame::new(spec));
+        let frame = Arc::new(ShardedFrame::new_in(spec, &self.pool));
         frames.insert(frame.id().to_owned(), frame.clone());
         Ok(Created::New(frame))
     }
@@ -165,7 +175,8 @@ impl FrameStore {
     }
 
     /// Puts a frame restored from disk back (no limits: it was admitted before).
-    pub fn insert_restored(&self, frame: ShardedFrame) {
+    pub fn insert_restored(&self, mut frame: ShardedFrame) {
+        frame.give_cells_to(&self.pool);
         let mut frames = self.frames.write().unwrap_or_else(|e| e.into_inner());
         frames.insert(frame.id().to_owned(), Arc::new(frame));
     }
@@ -187,6 +198,12 @@ impl FrameStore {
                 used_mib: used.div_ceil(1 << 20),
                 max_mib: self.limits.max_memory_bytes >> 20,
             });
+        }
+        // The pool's cells count against the budget too: if the new frame cannot fit beside
+        // them, they go (it takes what fits its bands first, the rest is garbage then).
+        if used + wanted + self.pool.idle_bytes() > self.limits.max_memory_bytes {
+            self.pool
+                .release_idle(std::time::Instant::now(), std::time::Duration::ZERO);
         }
         Ok(())
     }
@@ -262,4 +279,94 @@ fn describe_difference(ours: &CreateFrame, theirs: &CreateFrame) -> String {
         ));
     }
     diffs.join("; ")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use splatd_proto::{Batch, Record};
+
+    fn spec(id: &str, w: u32, h: u32) -> FrameSpec {
+        FrameSpec::new(CreateFrame::new(id, w, h)).unwrap()
+    }
+
+    /// A deleted frame's cells wait in the pool, and the next frame of the same size takes
+    /// them all and starts empty; the pool frees what waits longer than its idle time.
+    #[test]
+    fn a_deleted_frames_cells_serve_the_next_frame() {
+        let store = FrameStore::new(Limits::default());
+        let Created::New(first) = store.create(spec("a", 64, 48)).unwrap() else {
+            panic!("a new frame")
+        };
+        let records = (0..48)
+            .map(|y| Record::new(y, y, [40.0, 1.0, 0.5]))
+            .collect();
+        first
+            .ingest(&Batch::new("a", 1, 0, records).unwrap())
+            .unwrap();
+        let bytes = first.spec().memory_bytes();
+        let pool = store.cell_pool().clone();
+        assert_eq!(pool.idle_bytes(), 0);
+        drop(store.remove("a").unwrap());
+        drop(first);
+        assert_eq!(pool.idle_bytes(), bytes, "every band's cells are kept");
+
+        let Created::New(second) = store.create(spec("b", 64, 48)).unwrap() else {
+            panic!("a new frame")
+        };
+        assert_eq!(pool.idle_bytes(), 0, "the new frame took them all");
+        let cut = second.cut();
+        assert!(
+            cut.band_refs()
+                .iter()
+                .all(|b| b.cells().iter().all(|&c| c == 0)),
+            "and starts empty"
+        );
+        assert_eq!(second.info().samples, 0);
+        drop(cut);
+
+        drop(store.remove("b").unwrap());
+        drop(second);
+        let now = std::time::Instant::now();
+        assert_eq!(pool.release_idle(now, crate::memory::CELL_POOL_IDLE), 0);
+        let later = now + crate::memory::CELL_POOL_IDLE;
+        assert_eq!(
+            pool.release_idle(later, crate::memory::CELL_POOL_IDLE),
+            bytes
+        );
+        assert_eq!(pool.idle_bytes(), 0);
+    }
+
+    /// A frame still held by a cut when it is deleted keeps those bands out of the pool (the
+    /// cut frees them); a new frame that cannot fit in the budget beside the pool frees it.
+    #[test]
+    fn the_pool_stays_within_the_budget() {
+        let one = spec("a", 64, 48).memory_bytes();
+        let store = FrameStore::new(Limits {
+            max_memory_bytes: 2 * one + one / 2,
+            ..Limits::default()
+        });
+        let Created::New(a) = store.create(spec("a", 64, 48)).unwrap() else {
+            panic!("a new frame")
+        };
+        let cut = a.cut();
+        drop(store.remove("a").unwrap());
+        drop(a);
+        assert_eq!(
+            store.cell_pool().idle_bytes(),
+            0,
+            "the cut holds every band"
+        );
+        drop(cut);
+
+        let Created::New(b) = store.create(spec("b", 64, 48)).unwrap() else {
+            panic!("a new frame")
+        };
+        drop(store.remove("b").unwrap());
+        drop(b);
+        assert_eq!(store.cell_pool().idle_bytes(), one);
+        // Twice the rows: it does not fit beside the kept cells (1 + 2 > 2.5 frames).
+        store.create(spec("c", 64, 96)).unwrap();
+        assert_eq!(store.cell_pool().idle_bytes(), 0, "the kept cells went");
+    }
 }

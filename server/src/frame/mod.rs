@@ -23,6 +23,8 @@ use splatd_estimator::{cell_len, cell_spp, AovSums, FrameState, Rect};
 
 use dedup::Seen;
 
+use crate::memory::CellPool;
+
 mod changes;
 mod cut;
 pub mod dedup;
@@ -91,6 +93,24 @@ pub struct ShardedFrame {
     /// Where each recent version changed the frame, written with the version under the shared
     /// gate (so a cut sees every change up to its version).
     changes: Mutex<changes::Changes>,
+    /// Where the cells go when the frame is dropped (frames of the store), for the next frame.
+    pool: Option<Arc<CellPool>>,
+}
+
+impl Drop for ShardedFrame {
+    /// Gives the bands' cells to the frame's pool, those no cut still holds (a cut frees its
+    /// bands when it ends).
+    fn drop(&mut self) {
+        let Some(pool) = self.pool.take() else {
+            return;
+        };
+        for band in self.bands.drain(..) {
+            let band = band.into_inner().unwrap_or_else(|e| e.into_inner());
+            if let Ok(state) = Arc::try_unwrap(band) {
+                pool.give(state.into_cells());
+            }
+        }
+    }
 }
 
 /// Held by a request that changes a frame until its answer is ready (see
@@ -146,14 +166,34 @@ fn on_groups<T: Send, R: Send>(
 impl ShardedFrame {
     /// An empty frame.
     pub fn new(spec: FrameSpec) -> ShardedFrame {
+        Self::new_with(spec, None)
+    }
+
+    /// An empty frame whose cells come from `pool` where it has them, and go back to it when
+    /// the frame is dropped.
+    pub fn new_in(spec: FrameSpec, pool: &Arc<CellPool>) -> ShardedFrame {
+        Self::new_with(spec, Some(pool.clone()))
+    }
+
+    /// Gives the frame's cells to `pool` when it is dropped (a frame restored from disk).
+    pub fn give_cells_to(&mut self, pool: &Arc<CellPool>) {
+        self.pool = Some(pool.clone());
+    }
+
+    fn new_with(spec: FrameSpec, pool: Option<Arc<CellPool>>) -> ShardedFrame {
         let (w, h) = (spec.request.width, spec.request.height);
         let n = (h / MIN_BAND_ROWS).clamp(1, MAX_BANDS);
-        let bands = FrameState::bands(w, h, n, &spec.layout);
-        // Fresh cells are not touched yet: ask for huge pages before the first sample does.
+        let bands = FrameState::bands_in(w, h, n, &spec.layout, |len| {
+            pool.as_ref().map_or_else(Vec::new, |p| p.take(len))
+        });
+        // Fresh cells are not touched yet: ask for huge pages before the first sample does
+        // (cells from the pool were asked for when they were fresh; asking again is harmless).
         for band in &bands {
             crate::memory::advise_or_log(band.cells());
         }
-        Self::from_bands(spec, bands, Seen::default(), CounterValues::default())
+        let mut frame = Self::from_bands(spec, bands, Seen::default(), CounterValues::default());
+        frame.pool = pool;
+        frame
     }
 
     /// A frame restored from a snapshot: its spec, a whole-frame state, its AOV sums (`None`:
@@ -242,6 +282,7 @@ impl ShardedFrame {
             history: Mutex::new(Default::default()),
             spp_figures: Mutex::new(None),
             changes: Mutex::new(changes::Changes::starting_at(0)),
+            pool: None,
         };
         frame.set_counters(counters);
         frame
