@@ -120,8 +120,9 @@ pub(super) fn compress_scan_lines(
             .flat_map(|w| w.join().expect("deflating does not panic"))
             .collect()
     });
+    // With room for the attributes `add_attributes` inserts into the header afterwards.
     let mut out = Vec::with_capacity(
-        table + 8 * packed.len() + packed.iter().map(|p| p.len() + 8).sum::<usize>(),
+        table + 8 * packed.len() + packed.iter().map(|p| p.len() + 8).sum::<usize>() + (1 << 16),
     );
     out.extend_from_slice(&uncompressed[..table]);
     out[compression] = ZIP_COMPRESSION;
