@@ -510,6 +510,18 @@ impl FrameState {
         self.cells
     }
 
+    /// A copy of this state in the memory of `cells` (the cells of an earlier state; grown if
+    /// they are too small), like [`clone`](Clone::clone) into memory already mapped.
+    pub fn clone_in(&self, mut cells: Vec<u64>) -> Self {
+        cells.clear();
+        cells.extend_from_slice(&self.cells);
+        Self {
+            layout: self.layout.clone(),
+            cells,
+            ..*self
+        }
+    }
+
     /// Splits a frame into `n` bands of (nearly) equal height that tile it top to bottom.
     pub fn bands(width: u32, height: u32, n: u32, layout: &CascadeLayout) -> Vec<Self> {
         Self::bands_in(width, height, n, layout, |_| Vec::new())
@@ -1602,9 +1614,15 @@ mod tests {
     }
 
     /// A band made in the cells of another state is the empty band, whatever those held, in
-    /// the same memory; cells too small for it are replaced.
+    /// the same memory; cells too small for it are replaced; a state copied into used cells is
+    /// the state.
     #[test]
     fn a_band_in_used_cells_is_empty() {
+        let used_again = |band: &FrameState| {
+            let mut copy = band.clone();
+            copy.splat_row(1, 4, &[[0.5, 7.0, 1.0]; 2]);
+            copy
+        };
         let mut used = FrameState::band(4, 8, 2..6, layout());
         for y in 2..6 {
             used.splat_row(0, y, &[[3.0, 2.0, 900.0]; 4]);
@@ -1614,7 +1632,11 @@ mod tests {
         let band = FrameState::band_in(4, 8, 3..6, layout(), cells);
         assert_eq!(band, FrameState::band(4, 8, 3..6, layout()));
         assert_eq!(band.cells().as_ptr(), pointer, "the same memory");
-        let small = FrameState::band_in(4, 8, 0..8, layout(), band.into_cells());
+        let want = used_again(&band);
+        let copy = want.clone_in(band.into_cells());
+        assert_eq!(copy, want, "a copy in used cells is the state");
+        assert_eq!(copy.cells().as_ptr(), pointer, "in the same memory");
+        let small = FrameState::band_in(4, 8, 0..8, layout(), copy.into_cells());
         assert_eq!(small, FrameState::band(4, 8, 0..8, layout()));
         let mut lengths = Vec::new();
         let bands = FrameState::bands_in(4, 8, 3, &layout(), |len| {

@@ -337,6 +337,55 @@ mod tests {
         assert_eq!(pool.idle_bytes(), 0);
     }
 
+    /// A writer that changes bands a cut holds copies them into cells the pool has, and the
+    /// bands a snapshot (a cut) is done with go back to the pool once the frame has moved on
+    /// to a copy; the frame holds exactly what it was sent all along.
+    #[test]
+    fn copies_on_write_take_the_cells_cuts_gave_back() {
+        let store = FrameStore::new(Limits::default());
+        let Created::New(frame) = store.create(spec("a", 64, 48)).unwrap() else {
+            panic!("a new frame")
+        };
+        let pool = store.cell_pool().clone();
+        let batch = |seq: u64| {
+            let records = (0..48).map(|y| Record::new(y, y, [seq as f32 + 0.5, 1.0, 9.0]));
+            Batch::new("a", 1, seq, records.collect()).unwrap()
+        };
+        let mut oracle = splatd_estimator::FrameState::new(64, 48, frame.spec().layout.clone());
+        let mut send = |seq: u64| {
+            let b = batch(seq);
+            frame.ingest(&b).unwrap();
+            for r in &b.records {
+                oracle.splat(r.x, r.y, r.rgb).unwrap();
+            }
+        };
+        send(0);
+        let first = frame.cut();
+        send(1); // copies every band: the pool has nothing yet
+        assert_eq!(pool.idle_bytes(), 0);
+        for band in first.bands {
+            frame.recycle(band);
+        }
+        let bytes = frame.spec().memory_bytes();
+        assert_eq!(pool.idle_bytes(), bytes, "the cut's bands, given back");
+        let second = frame.cut();
+        send(2); // copies every band again, into the cells given back
+        assert_eq!(pool.idle_bytes(), 0, "the copies took them");
+        for band in second.bands {
+            frame.recycle(band);
+        }
+        let held = frame.cut().whole();
+        assert!(held == oracle, "the frame holds the three batches");
+        assert_eq!(frame.info().samples, 3 * 48);
+        // A band the frame still shares is not given back.
+        let third = frame.cut();
+        let before = pool.idle_bytes();
+        for band in third.bands {
+            frame.recycle(band);
+        }
+        assert_eq!(pool.idle_bytes(), before);
+    }
+
     /// A frame still held by a cut when it is deleted keeps those bands out of the pool (the
     /// cut frees them); a new frame that cannot fit in the budget beside the pool frees it.
     #[test]

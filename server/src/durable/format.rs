@@ -132,7 +132,9 @@ impl<'a> Snapshot<'a> {
             // Length-prefixed, so a reader can bound each band before decoding it.
             w.write_all(&encoded_len(&band, aovs, frame.id())?.to_le_bytes())?;
             splatd_formats::state::write(&band, aovs, frame.id(), None, &mut w)?;
-            // `band` is dropped here: the frame's writers no longer copy it.
+            // The frame's writers no longer copy it; if they made a copy meanwhile, its
+            // cells serve their next copy.
+            frame.recycle(band);
         }
         let crc = w.crc.clone().finalize();
         w.inner.write_all(&crc.to_le_bytes())

@@ -246,7 +246,7 @@ impl ShardedFrame {
         let mut touched: Vec<(usize, &mut FrameState)> = guards
             .iter_mut()
             .enumerate()
-            .filter_map(|(i, g)| g.as_mut().map(|band| (i, Arc::make_mut(band))))
+            .filter_map(|(i, g)| g.as_mut().map(|band| (i, self.own(band))))
             .collect();
         splat_bands(&parts, &mut touched);
         drop(touched);

@@ -175,6 +175,27 @@ impl ShardedFrame {
         Self::new_with(spec, Some(pool.clone()))
     }
 
+    /// The state of `band` to change: copied first if a cut still holds it (copy on write),
+    /// into cells from the frame's pool where it has them, so that a frame written while
+    /// snapshots or renders hold its bands does not fault in fresh memory for every copy.
+    fn own<'a>(&self, band: &'a mut Arc<FrameState>) -> &'a mut FrameState {
+        if Arc::get_mut(band).is_none() {
+            if let Some(pool) = &self.pool {
+                let copy = band.clone_in(pool.take(band.cells().len()));
+                *band = Arc::new(copy);
+            }
+        }
+        Arc::make_mut(band)
+    }
+
+    /// Takes back a band of a cut that is done with it: its cells go to the frame's pool for
+    /// the next copy on write if nothing else holds it (the frame has moved on to a copy).
+    pub fn recycle(&self, band: Arc<FrameState>) {
+        if let (Some(pool), Ok(state)) = (&self.pool, Arc::try_unwrap(band)) {
+            pool.give(state.into_cells());
+        }
+    }
+
     /// Gives the frame's cells to `pool` when it is dropped (a frame restored from disk).
     pub fn give_cells_to(&mut self, pool: &Arc<CellPool>) {
         self.pool = Some(pool.clone());

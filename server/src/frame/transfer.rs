@@ -160,7 +160,7 @@ impl ShardedFrame {
                 })?;
         }
         // Copies of the bands cuts hold, made before anything changes.
-        let mut bands: Vec<&mut FrameState> = bands.iter_mut().map(|b| Arc::make_mut(b)).collect();
+        let mut bands: Vec<&mut FrameState> = bands.iter_mut().map(|b| self.own(b)).collect();
         let added = self.add_checked(state, &mut bands)?;
         if let Some(o) = origin {
             seen.insert_delta(&o.node, o.seq);
