@@ -371,7 +371,8 @@ fn check_worker(blender: Blender) {
     );
 
     // Until converged: the worker stops at the first pass after which the server says the
-    // frame has converged (the demo scene converges within a few passes), below the budget.
+    // frame has converged (the demo scene converges within a few passes), below the budget,
+    // and the frame holds exactly the passes it posted.
     let until = worker_run(
         &[
             "--frame",
@@ -389,6 +390,11 @@ fn check_worker(blender: Blender) {
     assert_eq!(verdict, Some(true), "{until}");
     assert!(
         done.spp_max < 64 && until.contains("has converged"),
+        "{until}"
+    );
+    // The verdict came while the next pass rendered, which was then left out.
+    assert!(
+        until.contains("rendered meanwhile and is not posted"),
         "{until}"
     );
     let posted = until.lines().filter(|l| l.starts_with("pass ")).count() as u64;

@@ -44,9 +44,14 @@ which the server counts once: jobs never overlap, a job run twice adds nothing t
 worker says so when the server answers that a pass was already there), and no way of running
 the worker posts one pass's samples twice under different ids.
 
-``--until-converged`` asks the server before every pass whether the frame has converged (its
-``convergence.converged``, PROTOCOL.md) and stops when it has; ``--passes`` is then the budget.
-Reading a frame needs a token with the ``read`` role as well (roles ``read,write``).
+``--until-converged`` asks the server whether the frame has converged (its
+``convergence.converged``, PROTOCOL.md) before the first pass, and after each pass it posts
+while it renders the next one, and stops when it has; ``--passes`` is then the budget. The
+verdict on a frame other workers keep changing waits for the frame's next render (seconds on
+a busy server), so the worker never waits for it between passes: the pass rendered while the
+server judged is posted only if the frame had not converged, so that the frame ends as it
+was judged (one render of a job's last pass may go unused). Reading a frame needs a token
+with the ``read`` role as well (roles ``read,write``).
 
 ``--aovs albedo,normal,depth`` renders those Cycles passes too (diffuse colour, normal, depth)
 and sends them with every pass: the pass is written as a multilayer EXR and the frame is created
@@ -64,6 +69,7 @@ with another size, a refused pass) is an error with a message and a non-zero exi
 """
 
 import argparse
+import concurrent.futures
 import hashlib
 import math
 import os
@@ -485,11 +491,16 @@ def main(argv):
     keep = os.path.abspath(args.keep_dir) if args.keep_dir else tempfile.mkdtemp(prefix="splatd-blender-")
     os.makedirs(keep, exist_ok=True)
     rendered = duplicates = 0
+    # The verdict on the frame after the latest pass posted, asked for while the next renders
+    # (over a connection of its own).
+    judge = sc.Client(args.url, token=args.token) if args.until_converged else None
+    asking = concurrent.futures.ThreadPoolExecutor(max_workers=1) if judge else None
+    verdict = None
     try:
+        if judge and converged(judge, frame):
+            print(f"frame {frame} has converged", flush=True)
+            passes = range(0)
         for k in passes:
-            if args.until_converged and converged(client, frame):
-                print(f"frame {frame} has converged", flush=True)
-                break
             seed, dx, dy = pass_seeds(worker, k)
             scene.cycles.seed = seed
             camera.data.shift_x = base_x + dx * per_pixel
@@ -499,6 +510,11 @@ def main(argv):
             exr = render(scene, path, view_layer)
             if not args.keep_dir:
                 os.remove(path)
+            if verdict is not None and verdict.result():
+                print(f"frame {frame} has converged (with the passes posted before pass {k}, "
+                      f"which was rendered meanwhile and is not posted)", flush=True)
+                verdict = None
+                break
             if rendered == 0 and aovs:
                 check_layers(exr, beauty, aovs)
             ack = outbox.post_pass(k, exr, layer=beauty)
@@ -506,12 +522,15 @@ def main(argv):
             duplicates += bool(ack["duplicate"])
             print(f"pass {k}: seed {seed}, shift ({dx:+.3f}, {dy:+.3f}) px, {ack['accepted']} "
                   f"samples{' (already there)' if ack['duplicate'] else ''}", flush=True)
-        else:
-            if args.until_converged:
-                print(f"frame {frame}: {count} passes rendered, the budget, and "
-                      f"{'it has converged' if converged(client, frame) else 'it has not converged'}",
-                      flush=True)
+            if asking:
+                verdict = asking.submit(converged, judge, frame)
+        if verdict is not None:
+            print(f"frame {frame}: {count} passes rendered, the budget, and "
+                  f"{'it has converged' if verdict.result() else 'it has not converged'}",
+                  flush=True)
     finally:
+        if asking:
+            asking.shutdown(wait=True, cancel_futures=True)
         camera.data.shift_x, camera.data.shift_y = base_x, base_y
         if not args.keep_dir:
             shutil.rmtree(keep, ignore_errors=True)
