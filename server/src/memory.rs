@@ -122,7 +122,8 @@ fn set_idle_gauge(free: &[(std::time::Instant, Vec<u64>)]) {
     metrics::gauge!(crate::meters::IDLE_CELL_BYTES).set(idle_bytes(free) as f64);
 }
 
-/// The cells of deleted frames, kept for the frames created after them.
+/// The cells of deleted frames (and of band copies no longer needed), kept for the frames
+/// created after them.
 ///
 /// A farm fetches a frame's final, deletes the frame and creates the next one, usually of the
 /// same size. Freed, a frame's hundreds of megabytes go back to the kernel, and the next frame
@@ -132,6 +133,11 @@ fn set_idle_gauge(free: &[(std::time::Instant, Vec<u64>)]) {
 /// when the memory had been free for 8 s, 1.05 s when it came straight from a deleted frame).
 /// Kept here, the next frame's bands take the same memory, zeroed by a `memset` of pages
 /// already mapped.
+///
+/// The same holds for the copies a frame's writers make of bands a snapshot still holds
+/// (copy on write, see `frame`): the snapshot gives each band it is done with back here once
+/// the frame has moved on to a copy, and the next copy fills it, so a frame written through
+/// snapshot after snapshot stops asking the kernel for memory.
 ///
 /// The store keeps what it holds within the cascade budget (`--max-memory-mib`): what the
 /// frames hold plus what is kept here never exceeds it at a create (see `FrameStore`), and
