@@ -101,14 +101,8 @@ impl Drop for ShardedFrame {
     /// Gives the bands' cells to the frame's pool, those no cut still holds (a cut frees its
     /// bands when it ends).
     fn drop(&mut self) {
-        let Some(pool) = self.pool.take() else {
-            return;
-        };
-        for band in self.bands.drain(..) {
-            let band = band.into_inner().unwrap_or_else(|e| e.into_inner());
-            if let Ok(state) = Arc::try_unwrap(band) {
-                pool.give(state.into_cells());
-            }
+        for band in std::mem::take(&mut self.bands) {
+            self.recycle(band.into_inner().unwrap_or_else(|e| e.into_inner()));
         }
     }
 }
