@@ -410,10 +410,10 @@ async fn next_delta(frame: &Arc<ShardedFrame>, track: &mut Track, node: &str) ->
         seq: track.next_seq,
     };
     let computed = tokio::task::spawn_blocking(move || {
-        let cut = frame2.cut();
+        let mut cut = frame2.cut();
         let whole = Baseline {
             state: cut.whole(),
-            seen: cut.seen,
+            seen: std::mem::take(&mut cut.seen),
             // The baseline outlives the cut: it owns a copy (sharing the frame's sums would
             // make every later pass copy them).
             aovs: cut.aovs.as_deref().cloned(),

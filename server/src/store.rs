@@ -338,8 +338,9 @@ mod tests {
     }
 
     /// A writer that changes bands a cut holds copies them into cells the pool has, and the
-    /// bands a snapshot (a cut) is done with go back to the pool once the frame has moved on
-    /// to a copy; the frame holds exactly what it was sent all along.
+    /// bands the last cut holding them (a render's, a snapshot's) is done with go back to the
+    /// pool once the frame has moved on to copies; the frame holds exactly what it was sent
+    /// all along.
     #[test]
     fn copies_on_write_take_the_cells_cuts_gave_back() {
         let store = FrameStore::new(Limits::default());
@@ -363,26 +364,31 @@ mod tests {
         let first = frame.cut();
         send(1); // copies every band: the pool has nothing yet
         assert_eq!(pool.idle_bytes(), 0);
-        for band in first.bands {
-            frame.recycle(band);
-        }
         let bytes = frame.spec().memory_bytes();
-        assert_eq!(pool.idle_bytes(), bytes, "the cut's bands, given back");
+        let snapshot = first.clone();
+        drop(first);
+        assert_eq!(
+            pool.idle_bytes(),
+            0,
+            "another cut still holds the old bands"
+        );
+        for band in snapshot.bands.iter().cloned() {
+            frame.recycle(band); // as a snapshot does with each band it has written
+        }
+        assert_eq!(pool.idle_bytes(), 0, "the cut itself still holds them");
+        drop(snapshot);
+        assert_eq!(pool.idle_bytes(), bytes, "the last cut's bands, given back");
         let second = frame.cut();
         send(2); // copies every band again, into the cells given back
         assert_eq!(pool.idle_bytes(), 0, "the copies took them");
-        for band in second.bands {
-            frame.recycle(band);
-        }
+        drop(second);
+        assert_eq!(pool.idle_bytes(), bytes);
         let held = frame.cut().whole();
         assert!(held == oracle, "the frame holds the three batches");
         assert_eq!(frame.info().samples, 3 * 48);
-        // A band the frame still shares is not given back.
-        let third = frame.cut();
+        // Bands the frame still shares are not given back.
         let before = pool.idle_bytes();
-        for band in third.bands {
-            frame.recycle(band);
-        }
+        drop(frame.cut());
         assert_eq!(pool.idle_bytes(), before);
     }
 

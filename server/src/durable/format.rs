@@ -81,14 +81,12 @@ pub(super) struct Snapshot<'a> {
 impl<'a> Snapshot<'a> {
     /// The snapshot of `cut`, taken of `frame`; the cut's applied set goes back, to be marked
     /// durable once the snapshot is on disk.
-    pub(super) fn new(frame: &'a ShardedFrame, cut: FrameCut) -> (Snapshot<'a>, Seen) {
-        let FrameCut {
-            bands,
-            seen,
-            counters,
-            version,
-            aovs,
-        } = cut;
+    pub(super) fn new(frame: &'a ShardedFrame, mut cut: FrameCut) -> (Snapshot<'a>, Seen) {
+        // The snapshot holds the bands itself, to let each go as soon as it is written.
+        let bands = std::mem::take(&mut cut.bands);
+        let seen = std::mem::take(&mut cut.seen);
+        let aovs = cut.aovs.take();
+        let (counters, version) = (cut.counters, cut.version);
         let meta = SnapshotMeta {
             frame: frame.id().to_owned(),
             version,

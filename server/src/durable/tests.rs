@@ -205,7 +205,10 @@ async fn aov_sums_survive_a_snapshot() {
     }
     durable.snapshot(&f).await.unwrap();
     let back = recover(dir.path()).get("f").unwrap();
-    let (before, after) = (f.cut().aovs.unwrap(), back.cut().aovs.unwrap());
+    let (before, after) = (
+        f.cut().aovs.clone().unwrap(),
+        back.cut().aovs.clone().unwrap(),
+    );
     assert_eq!(after.count(7, 19), 3);
     assert_eq!(before, after);
 }

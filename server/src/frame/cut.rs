@@ -6,6 +6,7 @@ use std::sync::Arc;
 use splatd_estimator::{self as estimator, resolve_bands, AovSums, FrameState, Resolved};
 
 use super::dedup::Seen;
+use crate::memory::CellPool;
 
 /// Running totals of a frame (besides what the cascades themselves hold).
 #[derive(Debug, Default)]
@@ -50,6 +51,25 @@ pub struct FrameCut {
     pub version: u64,
     /// The AOV sums of the whole frame, if it has AOVs.
     pub aovs: Option<Arc<AovSums>>,
+    /// The frame's cell pool, which takes the bands this cut alone still holds when it ends.
+    pub(super) pool: Option<Arc<CellPool>>,
+}
+
+impl Drop for FrameCut {
+    /// Gives the cells of the bands only this cut still holds (the frame has moved on to
+    /// copies of them) to the frame's pool, for its writers' next copies on write: a frame
+    /// rendered while it takes samples then copies bands into memory already mapped instead of
+    /// faulting in fresh pages for every render (see `CellPool`).
+    fn drop(&mut self) {
+        let Some(pool) = self.pool.take() else {
+            return;
+        };
+        for band in self.bands.drain(..) {
+            if let Ok(state) = Arc::try_unwrap(band) {
+                pool.give(state.into_cells());
+            }
+        }
+    }
 }
 
 impl FrameCut {

@@ -426,6 +426,7 @@ impl ShardedFrame {
             counters: self.counter_values(),
             version: self.version(),
             aovs: self.aovs.as_ref().map(|a| lock(a).clone()),
+            pool: self.pool.clone(),
         }
     }
 
