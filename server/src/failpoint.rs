@@ -8,11 +8,14 @@
 //!   would leave it;
 //! * `error`: the operation fails with an injected I/O error, as a failing disk would make it;
 //! * `full`: the operation fails as on a full disk (`StorageFull`, what `ENOSPC` reads as).
+//! * `refuse`: the operation fails with `EINVAL`, as from a file system that does not take the
+//!   request (a direct write, say).
 //!
 //! With `@n` the action happens on the `n`-th hit only (counting from 1), otherwise on every hit.
 //! Points: `snapshot.bin:before_rename` (a snapshot is written to `snapshot.tmp` and synced, not
 //! yet renamed over the previous one), `snapshot.bin:before_write` and the same for
-//! `frame.json`; `batch:before_apply` (a batch or pass is about to be applied; only `abort`
+//! `frame.json`; `direct_write` (a write around the page cache, which falls back to an ordinary
+//! one when refused); `batch:before_apply` (a batch or pass is about to be applied; only `abort`
 //! has an effect there: the server dies between two acknowledgements). Unset (in production), a hit costs one check of an initialized `OnceLock`.
 
 use std::collections::HashMap;
@@ -28,6 +31,7 @@ enum Action {
     Abort,
     Error,
     Full,
+    Refuse,
 }
 
 #[derive(Debug)]
@@ -64,6 +68,7 @@ fn parse(spec: &str) -> Result<HashMap<String, Point>, String> {
             "abort" => Action::Abort,
             "error" => Action::Error,
             "full" => Action::Full,
+            "refuse" => Action::Refuse,
             other => return Err(format!("{entry:?}: unknown action {other:?}")),
         };
         points.insert(
@@ -113,6 +118,7 @@ fn act(name: &str, point: &Point) -> io::Result<()> {
             io::ErrorKind::StorageFull,
             format!("injected full disk at failpoint {name} (hit {n})"),
         )),
+        Action::Refuse => Err(io::Error::from_raw_os_error(libc::EINVAL)),
     }
 }
 

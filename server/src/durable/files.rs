@@ -2,9 +2,10 @@
 //! file-size limit.
 
 use std::fs::{self, File};
-use std::io::{self, BufWriter, Write};
+use std::io;
 use std::path::{Path, PathBuf};
 
+use super::direct::{DirectBuffer, DirectWriter};
 use super::error::{io_err, DurableError};
 
 pub(super) const SNAPSHOT_FILE: &str = "snapshot.bin";
@@ -63,12 +64,14 @@ pub(super) async fn run_blocking(
         })?
 }
 
-/// Writes `dir/tmp`, fsyncs it, renames it to `dir/name` and fsyncs `dir`.
+/// Writes `dir/tmp` through `buffer` (around the page cache where the file system lets it,
+/// see [`super::direct`]), fsyncs it, renames it to `dir/name` and fsyncs `dir`.
 pub(super) fn write_atomically(
     dir: &Path,
     name: &str,
     tmp: &str,
-    write: impl FnOnce(&mut BufWriter<&File>) -> io::Result<()>,
+    buffer: &mut DirectBuffer,
+    write: impl FnOnce(&mut DirectWriter<'_>) -> io::Result<()>,
 ) -> Result<(), DurableError> {
     let tmp_path = dir.join(tmp);
     let final_path = dir.join(name);
@@ -76,10 +79,9 @@ pub(super) fn write_atomically(
         crate::failpoint::hit(&format!("{name}:before_write"))
             .map_err(io_err("writing", &tmp_path))?;
         let file = File::create(&tmp_path).map_err(io_err("creating", &tmp_path))?;
-        let mut w = BufWriter::with_capacity(1 << 20, &file);
+        let mut w = DirectWriter::new(&file, buffer);
         write(&mut w).map_err(io_err("writing", &tmp_path))?;
-        w.flush().map_err(io_err("writing", &tmp_path))?;
-        drop(w);
+        w.finish().map_err(io_err("writing", &tmp_path))?;
         file.sync_all().map_err(io_err("syncing", &tmp_path))?;
         crate::failpoint::hit(&format!("{name}:before_rename"))
             .map_err(io_err("renaming", &tmp_path))?;

@@ -27,10 +27,13 @@
 //! `DIR/frames/<id>/frame.json` is the create request. `DIR/frames/<id>/snapshot.bin` is the
 //! latest snapshot, replaced atomically: it is written to `snapshot.tmp`, fsynced, renamed over
 //! the old one and the directory fsynced, so a crash leaves either the old or the new snapshot,
-//! never a torn one (and a CRC-32 at its end catches anything else). Recovery reads every frame
+//! never a torn one (and a CRC-32 at its end catches anything else). Snapshots are written
+//! around the page cache (`O_DIRECT`) from a buffer the server keeps, where the file system
+//! allows it: see `direct.rs` for why. Recovery reads every frame
 //! directory, so restart costs one read of each frame's state: bounded by the state size, not by
 //! how many samples arrived.
 
+mod direct;
 mod error;
 mod files;
 mod format;
@@ -48,6 +51,7 @@ use std::time::Duration;
 use super::frame::dedup::Seen;
 use super::frame::{FrameCut, ShardedFrame};
 
+use direct::DirectBuffer;
 use error::io_err;
 pub use error::{DurabilityError, DurableError};
 #[cfg(unix)]
@@ -70,6 +74,9 @@ pub struct Durable {
     /// Frames whose last snapshot failed (a full disk, say): their acknowledged batches are
     /// not becoming durable.
     failing: std::sync::Mutex<std::collections::BTreeSet<String>>,
+    /// The buffer snapshots are written from, kept between them so its memory stays warm (a
+    /// second snapshot written at the same time makes one of its own).
+    buffer: std::sync::Mutex<Option<DirectBuffer>>,
 }
 
 /// A frame that could not be recovered, moved out of the way so the others could be.
@@ -95,6 +102,7 @@ impl Durable {
             locks: std::sync::Mutex::new(HashMap::new()),
             quarantined: std::sync::Mutex::new(Vec::new()),
             failing: std::sync::Mutex::new(Default::default()),
+            buffer: std::sync::Mutex::new(None),
         })
     }
 
@@ -160,7 +168,10 @@ impl Durable {
                 }
             }
             let json = serde_json::to_vec_pretty(&frame.spec().request).expect("serialisable");
-            write_atomically(&dir, FRAME_FILE, "frame.json.tmp", |w| w.write_all(&json))
+            let mut buffer = DirectBuffer::new(json.len());
+            write_atomically(&dir, FRAME_FILE, "frame.json.tmp", &mut buffer, |w| {
+                w.write_all(&json)
+            })
         })
         .await
     }
@@ -237,7 +248,13 @@ impl Durable {
     fn write_snapshot(&self, frame: &ShardedFrame, cut: FrameCut) -> Result<Seen, DurableError> {
         let dir = self.frame_dir(frame.id());
         let (snapshot, seen) = format::Snapshot::new(frame, cut);
-        write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, |w| snapshot.write_to(w))?;
+        let kept = self.buffer.lock().unwrap_or_else(|e| e.into_inner()).take();
+        let mut buffer = kept.unwrap_or_else(|| DirectBuffer::new(direct::BUFFER));
+        let written = write_atomically(&dir, SNAPSHOT_FILE, SNAPSHOT_TMP, &mut buffer, |w| {
+            snapshot.write_to(w)
+        });
+        *self.buffer.lock().unwrap_or_else(|e| e.into_inner()) = Some(buffer);
+        written?;
         // From now on a missing snapshot is damage, not a frame that never had one. Marked only
         // after a snapshot exists: a first snapshot that failed (a full disk) leaves the frame
         // as it was, legitimately empty after a restart, not quarantined.

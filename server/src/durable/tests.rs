@@ -327,7 +327,8 @@ async fn a_frame_never_snapshotted_recovers_empty() {
 #[test]
 fn a_failed_write_removes_its_temporary_file() {
     let dir = tempfile::tempdir().unwrap();
-    let err = write_atomically(dir.path(), "out", "out.tmp", |w| {
+    let mut buffer = direct::DirectBuffer::new(direct::BUFFER);
+    let err = write_atomically(dir.path(), "out", "out.tmp", &mut buffer, |w| {
         w.write_all(&[7u8; 4 << 20])?;
         Err(io::Error::new(
             io::ErrorKind::StorageFull,
