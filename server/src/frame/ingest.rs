@@ -3,7 +3,7 @@
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, MutexGuard};
 
-use splatd_proto::{records_digest_of, Batch, Record};
+use splatd_proto::{pass_digest, Batch, Record};
 
 use splatd_estimator::{self as estimator, FrameState, Rect, SampleError, MAX_PIXEL_SAMPLES};
 
@@ -163,7 +163,7 @@ impl ShardedFrame {
                 error,
             });
         }
-        let digest = records_digest_of((0..rgb.len()).map(record));
+        let digest = pass_digest(w, rgb);
         self.apply(worker, seq, digest, Parts::Pass { rgb }, aovs)
     }
 
