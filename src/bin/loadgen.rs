@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! cargo build --release && target/release/loadgen [--batch 65536] [--connections 4] \
-//!     [--width 3840 --height 2160] [--kind records --kind passes]
+//!     [--width 3840 --height 2160] [--kind records --kind passes] [--rounds 2]
 //! # per kind: the in-process rate, then HTTP ingest in memory and with --data-dir (durable)
 //! ```
 //!
@@ -16,8 +16,8 @@
 //! with a heavy-tailed brightness so every cascade is used; passes are the same samples, one
 //! uncompressed RGB float EXR per pass (`POST .../passes`). The in-process reference is what the
 //! server does with the decoded samples: `splat_records` of each batch, `splat_row` of each row
-//! of a pass, on one thread, run before each HTTP run (in-process and HTTP alternate, so that
-//! the machine's load weighs on both; the best of each is compared).
+//! of a pass, on one thread, run before each HTTP run (in-process and HTTP alternate,
+//! `--rounds` times, so that the machine's load weighs on both; the best of each is compared).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -63,6 +63,10 @@ struct Args {
     /// What to post (repeatable): `records` (batches) and/or `passes` (EXR); both by default.
     #[arg(long = "kind", value_parser = ["records", "passes"])]
     kinds: Vec<String>,
+    /// In-process and HTTP runs per configuration, alternating; the best of each is compared
+    /// (more rounds take out more of a shared machine's noise).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
+    rounds: u32,
 }
 
 /// The goal for every HTTP ingest ratio.
@@ -94,7 +98,7 @@ fn main() -> Result<()> {
         for config in &configs {
             // In-process and HTTP runs alternate, so that the machine's load weighs on both.
             let (mut best, mut best_in) = (f64::MAX, f64::MAX);
-            for round in 0..2 {
+            for round in 0..args.rounds as usize {
                 best_in = best_in.min(in_process(&args, &mut splat));
                 let tmp =
                     std::env::temp_dir().join(format!("loadgen-{}-{round}", std::process::id()));
@@ -111,8 +115,9 @@ fn main() -> Result<()> {
             }
             let in_rate = load.samples as f64 / best_in;
             println!(
-                "in-process splat (best of 2, alternating with the HTTP runs): {:.1} M \
+                "in-process splat (best of {}, alternating with the HTTP runs): {:.1} M \
                  samples/s ({best_in:.3} s)",
+                args.rounds,
                 in_rate / 1e6
             );
             let rate = load.samples as f64 / best;
