@@ -8,12 +8,14 @@
 //! * [`state`]: frame states to and from their wire form, for exports, imports, pushes,
 //!   snapshots and the offline merge;
 //! * [`preview`]: the live page's tone-mapped PNG;
-//! * [`names`]: which AOV and channel names an OpenEXR file can hold.
+//! * [`names`]: which AOV and channel names an OpenEXR file can hold;
+//! * [`scratch`]: buffers kept between requests, for decoding passes and encoding images.
 
 pub mod exr;
 pub mod names;
 pub mod passes;
 pub mod preview;
+pub mod scratch;
 pub mod state;
 #[cfg(any(test, feature = "testing"))]
 pub mod testing;

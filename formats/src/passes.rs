@@ -544,48 +544,16 @@ impl Scratch {
 }
 
 /// A few [`Scratch`]es kept between requests, so that passes decode into memory that is
-/// already mapped. At most `keep` are kept; a request takes one (or a new, empty one when
-/// none is free) and gives it back when its pass is applied.
+/// already mapped (see [`crate::scratch`]).
 ///
 /// A scratch in use is covered by its request's working-memory reservation (see the
 /// `passes` route's `decoding_bytes`); the ones kept idle are bounded by `keep` times the
 /// largest pass decoded.
-#[derive(Debug)]
-pub struct ScratchPool {
-    free: std::sync::Mutex<Vec<Scratch>>,
-    keep: usize,
-}
+pub type ScratchPool = crate::scratch::Pool<Scratch>;
 
-impl ScratchPool {
-    /// A pool that keeps at most `keep` idle scratches.
-    pub fn new(keep: usize) -> ScratchPool {
-        ScratchPool {
-            free: std::sync::Mutex::new(Vec::new()),
-            keep,
-        }
-    }
-
-    /// A free scratch, or a new empty one.
-    pub fn take(&self) -> Scratch {
-        self.lock().pop().unwrap_or_default()
-    }
-
-    /// Gives `scratch` back for a later request (dropped if `keep` are already idle).
-    pub fn give(&self, scratch: Scratch) {
-        let mut free = self.lock();
-        if free.len() < self.keep {
-            free.push(scratch);
-        }
-    }
-
-    /// Bytes held by the idle scratches.
-    pub fn idle_bytes(&self) -> usize {
-        self.lock().iter().map(Scratch::bytes).sum()
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Scratch>> {
-        // A scratch holds no invariant a panic could break: a poisoned lock is still usable.
-        self.free.lock().unwrap_or_else(|p| p.into_inner())
+impl crate::scratch::Reusable for Scratch {
+    fn bytes(&self) -> usize {
+        Scratch::bytes(self)
     }
 }
 
