@@ -68,7 +68,9 @@ pub use api::{
     BatchAck, CascadeParams, CreateFrame, Denoise, DenoiseGuides, DenoiseQuality, ErrorBody,
     FrameInfo, FrameList, ImageQuery, ImportAck, PutFrame, ResolveParams, SyncAck, Variant,
 };
-pub use batch::{pass_digest, records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError};
+pub use batch::{
+    pass_digest, records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError,
+};
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};
 #[cfg(feature = "client")]

@@ -117,6 +117,9 @@ pub struct Shared {
     pub connections: Arc<transport::Connections>,
     /// Decode buffers kept between passes (see [`splatd_formats::passes::ScratchPool`]).
     pub pass_scratch: splatd_formats::passes::ScratchPool,
+    /// Encoding buffers kept between images (see [`splatd_formats::exr::ExrScratch`]): one,
+    /// which a dashboard or farm fetching images one after another keeps reusing.
+    pub exr_scratch: splatd_formats::scratch::Pool<splatd_formats::exr::ExrScratch>,
     /// Buffers kept for large request bodies (see [`memory::BodyPool`]).
     pub body_pool: Arc<memory::BodyPool>,
     /// The buffer kept for state bodies (imports and pushed deltas): one, as large as the last
@@ -186,6 +189,7 @@ impl AppState {
             renders: render::Renders::new(RENDERS_KEPT, budget).paced(limits.render_share),
             connections: Arc::new(transport::Connections::new(limits.max_connections)),
             pass_scratch: splatd_formats::passes::ScratchPool::new(resolve_threads),
+            exr_scratch: splatd_formats::scratch::Pool::new(1),
             body_pool: Arc::new(memory::BodyPool::new(resolve_threads)),
             state_pool: Arc::new(memory::BodyPool::new(1)),
             store: FrameStore::new(limits),

@@ -18,7 +18,7 @@ use crate::http::extract::{Frame, Query};
 use crate::render::denoise;
 use crate::work::WorkBudget;
 use crate::AppState;
-use splatd_formats::exr::{cascade_layers, encode_exr_with, ExtraLayer, Provenance};
+use splatd_formats::exr::{cascade_layers, encode_exr_in, ExtraLayer, Provenance};
 
 /// `GET /v1/frames/{id}/image.exr`: resolves the frame as it is now, and denoises it when the
 /// query or the frame asks for it (`denoise=oidn`: the layer `denoised`).
@@ -64,6 +64,7 @@ pub async fn get_image(
     let key = format!("exr {params:?} {query:?}");
     let budget = app.renders.budget().clone();
     let kept = app.renders.kept().clone();
+    let scratches = app.clone();
     let exr = app
         .renders
         .get_or_render(&frame, key, cost, move |frame, wanted| {
@@ -75,7 +76,18 @@ pub async fn get_image(
                           extra: &[ExtraLayer],
                           aovs: &[(String, Vec<f32>)],
                           more_attributes| {
-                encode_exr_with(resolved, extra, aovs, &provenance, more_attributes)
+                // In buffers kept from the last image, given back whatever the outcome.
+                let mut scratch = scratches.exr_scratch.take();
+                let encoded = encode_exr_in(
+                    resolved,
+                    extra,
+                    aovs,
+                    &provenance,
+                    more_attributes,
+                    &mut scratch,
+                );
+                scratches.exr_scratch.give(scratch);
+                encoded
                     .map(Bytes::from)
                     .map_err(|e| ApiError::internal("EXR encoding", e))
             };
