@@ -148,6 +148,27 @@ impl Deref for AppState {
 }
 
 impl AppState {
+    /// Frees pooled memory that nothing took for [`memory::CELL_POOL_IDLE`] (a deleted frame's
+    /// cells, pass and image scratches), looking a few times per period, until `stop` turns
+    /// true (a server's task): a burst of large requests does not leave its memory held.
+    pub async fn release_idle_until(self, mut stop: tokio::sync::watch::Receiver<bool>) {
+        let idle = memory::CELL_POOL_IDLE;
+        loop {
+            tokio::select! {
+                () = tokio::time::sleep(idle / 4) => {}
+                _ = stop.wait_for(|stopped| *stopped) => return,
+            }
+            // The runtime's clock, so that tests can pause it; the pools stamp with std's.
+            let now = tokio::time::Instant::now().into_std();
+            let cells = self.store.cell_pool().release_idle(now, idle);
+            let scratches = self.pass_scratch.release_idle(now, idle)
+                + self.exr_scratch.release_idle(now, idle);
+            if cells > 0 || scratches > 0 {
+                tracing::debug!(cells, scratches, "freed memory no request took");
+            }
+        }
+    }
+
     /// A server state with an empty store.
     pub fn new(
         limits: Limits,

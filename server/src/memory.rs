@@ -147,7 +147,8 @@ pub struct CellPool {
     free: std::sync::Mutex<Vec<(std::time::Instant, Vec<u64>)>>,
 }
 
-/// How long a deleted frame's cells wait for a new frame before they are freed.
+/// How long a deleted frame's cells wait for a new frame before they are freed (and, likewise,
+/// pass and image scratches for their next request: see `AppState::release_idle_until`).
 pub const CELL_POOL_IDLE: std::time::Duration = std::time::Duration::from_secs(30);
 
 impl CellPool {
@@ -187,24 +188,6 @@ impl CellPool {
         });
         set_idle_gauge(&free);
         freed
-    }
-
-    /// Frees cells idle for [`CELL_POOL_IDLE`], looking a few times per period, until `stop`
-    /// turns true (a server's task).
-    pub async fn release_idle_until(
-        self: std::sync::Arc<Self>,
-        mut stop: tokio::sync::watch::Receiver<bool>,
-    ) {
-        loop {
-            tokio::select! {
-                () = tokio::time::sleep(CELL_POOL_IDLE / 4) => {}
-                _ = stop.wait_for(|stopped| *stopped) => return,
-            }
-            let freed = self.release_idle(std::time::Instant::now(), CELL_POOL_IDLE);
-            if freed > 0 {
-                tracing::debug!(bytes = freed, "freed cells no new frame took");
-            }
-        }
     }
 
     /// Bytes held by the idle cells.

@@ -119,12 +119,7 @@ impl Server {
                 stop.clone(),
             ))
         });
-        let sweeper = tokio::spawn(
-            app.store
-                .cell_pool()
-                .clone()
-                .release_idle_until(stop.clone()),
-        );
+        let sweeper = tokio::spawn(app.clone().release_idle_until(stop.clone()));
         let pusher = push.map(|cfg| {
             tracing::info!(upstream = cfg.upstream, node = cfg.node, "push mode");
             let mut stop = stop.clone();

@@ -758,6 +758,50 @@ async fn large_pass_bodies_and_decodes_reuse_kept_buffers() {
     assert_eq!(server.pass_scratch.idle_bytes(), scratch);
 }
 
+/// Images are encoded in a scratch the server keeps; the scratches of passes and images, and
+/// a deleted frame's cells, that no request takes for `CELL_POOL_IDLE` are freed by the
+/// server's sweeper (time paused: nothing waits for real).
+#[tokio::test(start_paused = true)]
+async fn idle_scratches_and_cells_are_freed() {
+    let (w, h) = (64, 48);
+    let server = testing::with_frame(AppState::new(Limits::default(), None, None), "f", w, h);
+    let exr = rgb_exr(w as usize, h as usize);
+    let headers = [(header::CONTENT_TYPE, "image/x-exr")];
+    let path = "/v1/frames/f/passes?worker=7&seq=1";
+    let (status, ..) = exchange(&server, Method::POST, path, &headers, Body::from(exr)).await;
+    assert_eq!(status, StatusCode::OK);
+    let (status, ..) = exchange(
+        &server,
+        Method::GET,
+        "/v1/frames/f/image.exr",
+        &[],
+        Body::empty(),
+    )
+    .await;
+    assert_eq!(status, StatusCode::OK);
+    let pixels = (w * h) as usize;
+    // Ten channels of 4 bytes a pixel, and the uncompressed file at least as large.
+    assert!(server.exr_scratch.idle_bytes() >= 2 * 10 * 4 * pixels);
+    assert!(server.pass_scratch.idle_bytes() > 0);
+    let (status, ..) = exchange(&server, Method::DELETE, "/v1/frames/f", &[], Body::empty()).await;
+    assert_eq!(status, StatusCode::NO_CONTENT);
+    assert!(server.store.cell_pool().idle_bytes() > 0);
+
+    let (stop, stopped) = tokio::sync::watch::channel(false);
+    let sweeper = tokio::spawn(server.clone().release_idle_until(stopped));
+    tokio::time::sleep(crate::memory::CELL_POOL_IDLE / 2).await;
+    assert!(
+        server.exr_scratch.idle_bytes() > 0,
+        "not idle long enough yet"
+    );
+    tokio::time::sleep(crate::memory::CELL_POOL_IDLE).await;
+    assert_eq!(server.exr_scratch.idle_bytes(), 0);
+    assert_eq!(server.pass_scratch.idle_bytes(), 0);
+    assert_eq!(server.store.cell_pool().idle_bytes(), 0);
+    stop.send(true).unwrap();
+    sweeper.await.unwrap();
+}
+
 /// A server without a denoiser refuses every denoise (asked for, or the frame's default) with
 /// 501 `denoiser_unavailable` before reserving or resolving anything, and serves the rest; the
 /// frame lists its guides, chosen by name, and `denoised` is no AOV name.
