@@ -174,6 +174,14 @@ impl CellPool {
         }
     }
 
+    /// Keeps the cells of `band` if nothing else holds it (a frame that has moved on to a copy,
+    /// a cut that ended); a band still shared is left to its other holders.
+    pub fn give_band(&self, band: std::sync::Arc<splatd_estimator::FrameState>) {
+        if let Ok(state) = std::sync::Arc::try_unwrap(band) {
+            self.give(state.into_cells());
+        }
+    }
+
     /// Frees the cells idle for `idle` or longer at `now` (all of them with zero), returning
     /// the bytes freed.
     pub fn release_idle(&self, now: std::time::Instant, idle: std::time::Duration) -> u64 {

@@ -65,9 +65,7 @@ impl Drop for FrameCut {
             return;
         };
         for band in self.bands.drain(..) {
-            if let Ok(state) = Arc::try_unwrap(band) {
-                pool.give(state.into_cells());
-            }
+            pool.give_band(band);
         }
     }
 }

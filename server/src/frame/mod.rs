@@ -185,8 +185,8 @@ impl ShardedFrame {
     /// Takes back a band of a cut that is done with it: its cells go to the frame's pool for
     /// the next copy on write if nothing else holds it (the frame has moved on to a copy).
     pub fn recycle(&self, band: Arc<FrameState>) {
-        if let (Some(pool), Ok(state)) = (&self.pool, Arc::try_unwrap(band)) {
-            pool.give(state.into_cells());
+        if let Some(pool) = &self.pool {
+            pool.give_band(band);
         }
     }
 
