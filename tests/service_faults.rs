@@ -128,12 +128,7 @@ fn every_kind_of_answer(server: &ServerProcess, frame: &str) {
         .unwrap();
     assert_eq!(missing.status(), 404);
     let outside = Batch::new(frame, 9, 0, vec![Record::new(5, 0, [1.0; 3])]).unwrap();
-    let r = http()
-        .post(format!("{}/v1/frames/{frame}/samples", server.url))
-        .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
-        .body(outside.encode())
-        .send()
-        .unwrap();
+    let r = post_batch(server, &outside);
     assert_eq!(r.status(), 422);
     assert_eq!(r.json::<Value>().unwrap()["error"], "pixel_out_of_range");
     let gone = http()
@@ -154,14 +149,19 @@ fn post_seq(server: &ServerProcess, id: &str, w: u32, h: u32, seq: u64) -> Value
         .map(|i| Record::new(i % w, i / w, [1.0, 2.0, 3.0]))
         .collect();
     let batch = Batch::new(id, 1, seq, records).unwrap();
-    let r = http()
-        .post(format!("{}/v1/frames/{id}/samples", server.url))
+    let r = post_batch(server, &batch);
+    assert_eq!(r.status(), 200);
+    r.json().unwrap()
+}
+
+/// `POST .../samples` of `batch` to its frame, without a token.
+fn post_batch(server: &ServerProcess, batch: &Batch) -> reqwest::blocking::Response {
+    http()
+        .post(format!("{}/v1/frames/{}/samples", server.url, batch.frame))
         .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
         .body(batch.encode())
         .send()
-        .unwrap();
-    assert_eq!(r.status(), 200);
-    r.json().unwrap()
+        .unwrap()
 }
 
 /// A server whose stderr is a closed pipe (its log collector died) answers every kind of
@@ -639,13 +639,7 @@ fn snapshots_are_the_same_whether_direct_writes_are_taken_or_refused() {
                     Record::new(i % w, i / w, [v, 1.0 + v * 0.5, 2.0])
                 })
                 .collect();
-            let batch = Batch::new("f", 9, seq, records).unwrap();
-            let r = http()
-                .post(format!("{}/v1/frames/f/samples", server.url))
-                .header("content-type", splatd_proto::BATCH_CONTENT_TYPE)
-                .body(batch.encode())
-                .send()
-                .unwrap();
+            let r = post_batch(&server, &Batch::new("f", 9, seq, records).unwrap());
             assert_eq!(r.status(), 200, "{}", r.text().unwrap());
         }
         let (status, body) = sync(&server, "f");
