@@ -36,6 +36,14 @@ impl<S: Reusable> Pool<S> {
         self.lock().pop().map(|(_, s)| s).unwrap_or_default()
     }
 
+    /// The largest free scratch (by [`Reusable::bytes`]), or a new empty one: for scratches
+    /// of any size, so that a large request finds the one that fits it already.
+    pub fn take_largest(&self) -> S {
+        let mut free = self.lock();
+        let largest = (0..free.len()).max_by_key(|&i| free[i].1.bytes());
+        largest.map(|i| free.swap_remove(i).1).unwrap_or_default()
+    }
+
     /// Gives `scratch` back for a later request (dropped if `keep` are already idle).
     pub fn give(&self, scratch: S) {
         let mut free = self.lock();
@@ -65,6 +73,13 @@ impl<S: Reusable> Pool<S> {
     fn lock(&self) -> std::sync::MutexGuard<'_, Vec<(Instant, S)>> {
         // A scratch holds no invariant a panic could break: a poisoned lock is still usable.
         self.free.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// A plain byte buffer (a request body): its capacity is what it holds.
+impl Reusable for Vec<u8> {
+    fn bytes(&self) -> usize {
+        self.capacity()
     }
 }
 
@@ -99,5 +114,22 @@ mod tests {
         let later = Instant::now() + minute;
         assert_eq!(pool.release_idle(later, minute), 30);
         assert_eq!(pool.idle_bytes(), 0);
+    }
+
+    /// `take_largest` takes the largest idle scratch whatever order they came back in.
+    #[test]
+    fn the_largest_scratch_is_taken_first() {
+        let pool = Pool::<Vec<u8>>::new(3);
+        for n in [20, 50, 10] {
+            pool.give(Vec::with_capacity(n));
+        }
+        assert_eq!(pool.take_largest().capacity(), 50);
+        assert_eq!(pool.take_largest().capacity(), 20);
+        assert_eq!(pool.take_largest().capacity(), 10);
+        assert_eq!(
+            pool.take_largest().capacity(),
+            0,
+            "a new one when none is free"
+        );
     }
 }

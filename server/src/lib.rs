@@ -123,8 +123,8 @@ pub struct Shared {
     /// Buffers kept for large request bodies (see [`memory::BodyPool`]).
     pub body_pool: Arc<memory::BodyPool>,
     /// The buffer kept for state bodies (imports and pushed deltas): one, as large as the last
-    /// state received. A fresh buffer of a 1080p state's 550 MB cost more in page faults than
-    /// receiving it.
+    /// state received, until no state arrives for [`memory::CELL_POOL_IDLE`]. A fresh buffer
+    /// of a 1080p state's 550 MB cost more in page faults than receiving it.
     pub state_pool: Arc<memory::BodyPool>,
     /// Open Image Denoise, or why this server has none.
     pub denoiser: render::denoise::Denoiser,
@@ -149,7 +149,7 @@ impl Deref for AppState {
 
 impl AppState {
     /// Frees pooled memory that nothing took for [`memory::CELL_POOL_IDLE`] (a deleted frame's
-    /// cells, pass and image scratches), looking a few times per period, until `stop` turns
+    /// cells, pass and image scratches, request bodies, the kept state buffer), looking a few times per period, until `stop` turns
     /// true (a server's task): a burst of large requests does not leave its memory held.
     pub async fn release_idle_until(self, mut stop: tokio::sync::watch::Receiver<bool>) {
         let idle = memory::CELL_POOL_IDLE;
@@ -162,7 +162,9 @@ impl AppState {
             let now = tokio::time::Instant::now().into_std();
             let cells = self.store.cell_pool().release_idle(now, idle);
             let scratches = self.pass_scratch.release_idle(now, idle)
-                + self.exr_scratch.release_idle(now, idle);
+                + self.exr_scratch.release_idle(now, idle)
+                + self.body_pool.release_idle(now, idle)
+                + self.state_pool.release_idle(now, idle);
             if cells > 0 || scratches > 0 {
                 tracing::debug!(cells, scratches, "freed memory no request took");
             }

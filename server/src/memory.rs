@@ -60,30 +60,26 @@ pub fn advise_or_log<T>(buf: &[T]) {
 /// as its chunks arrive and unmapped per request, and the page faults of touching it again cost
 /// more than reading it. A body read into a kept buffer of its `Content-Length` lands in memory
 /// that is already mapped, with no copy. A buffer in use holds exactly the length that the
-/// request reserved for its body; at most `keep` idle buffers are kept.
+/// request reserved for its body; at most `keep` idle buffers are kept, and those no request
+/// took for [`CELL_POOL_IDLE`] are freed (`AppState::release_idle_until`), so the half a
+/// gigabyte of one imported 1080p state is not held for the server's life.
 #[derive(Debug)]
 pub struct BodyPool {
-    free: std::sync::Mutex<Vec<Vec<u8>>>,
-    keep: usize,
+    free: splatd_formats::scratch::Pool<Vec<u8>>,
 }
 
 impl BodyPool {
     /// A pool that keeps at most `keep` idle buffers.
     pub fn new(keep: usize) -> BodyPool {
         BodyPool {
-            free: std::sync::Mutex::new(Vec::new()),
-            keep,
+            free: splatd_formats::scratch::Pool::new(keep),
         }
     }
 
     /// An empty buffer with room for exactly `len` bytes: the largest idle one, shrunk or
     /// grown to `len` (both keep its mapped pages), or a new one.
     pub fn take(&self, len: usize) -> Vec<u8> {
-        let mut buffer = {
-            let mut free = self.lock();
-            let largest = (0..free.len()).max_by_key(|&i| free[i].capacity());
-            largest.map(|i| free.swap_remove(i)).unwrap_or_default()
-        };
+        let mut buffer = self.free.take_largest();
         buffer.clear();
         if buffer.capacity() > len {
             buffer.shrink_to(len);
@@ -97,20 +93,17 @@ impl BodyPool {
 
     /// Keeps `buffer` for a later body (dropped if `keep` are already idle).
     pub fn give(&self, buffer: Vec<u8>) {
-        let mut free = self.lock();
-        if free.len() < self.keep {
-            free.push(buffer);
-        }
+        self.free.give(buffer);
     }
 
     /// Bytes held by the idle buffers.
     pub fn idle_bytes(&self) -> usize {
-        self.lock().iter().map(Vec::capacity).sum()
+        self.free.idle_bytes()
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<Vec<u8>>> {
-        // A buffer holds no invariant a panic could break: a poisoned lock is still usable.
-        self.free.lock().unwrap_or_else(|p| p.into_inner())
+    /// Frees the buffers idle for `idle` or longer at `now`, returning the bytes freed.
+    pub fn release_idle(&self, now: std::time::Instant, idle: std::time::Duration) -> usize {
+        self.free.release_idle(now, idle)
     }
 }
 
@@ -148,7 +141,8 @@ pub struct CellPool {
 }
 
 /// How long a deleted frame's cells wait for a new frame before they are freed (and, likewise,
-/// pass and image scratches for their next request: see `AppState::release_idle_until`).
+/// pass and image scratches and body buffers for their next request: see
+/// `AppState::release_idle_until`).
 pub const CELL_POOL_IDLE: std::time::Duration = std::time::Duration::from_secs(30);
 
 impl CellPool {

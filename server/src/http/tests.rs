@@ -758,13 +758,41 @@ async fn large_pass_bodies_and_decodes_reuse_kept_buffers() {
     assert_eq!(server.pass_scratch.idle_bytes(), scratch);
 }
 
-/// Images are encoded in a scratch the server keeps; the scratches of passes and images, and
-/// a deleted frame's cells, that no request takes for `CELL_POOL_IDLE` are freed by the
-/// server's sweeper (time paused: nothing waits for real).
+/// Images are encoded in a scratch the server keeps; the scratches of passes and images, the
+/// buffers of large pass and state bodies, and a deleted frame's cells, that no request takes
+/// for `CELL_POOL_IDLE` are freed by the server's sweeper (time paused: nothing waits for
+/// real).
 #[tokio::test(start_paused = true)]
 async fn idle_scratches_and_cells_are_freed() {
     let (w, h) = (64, 48);
     let server = testing::with_frame(AppState::new(Limits::default(), None, None), "f", w, h);
+    // A frame large enough that its pass and its state are bodies the server keeps buffers for.
+    let server = testing::with_frame(server, "big", 320, 320);
+    let big_pass = rgb_exr(320, 320);
+    let length = big_pass.len().to_string();
+    let headers = [
+        (header::CONTENT_TYPE, "image/x-exr"),
+        (header::CONTENT_LENGTH, length.as_str()),
+    ];
+    let path = "/v1/frames/big/passes?worker=7&seq=1";
+    let (status, ..) = exchange(&server, Method::POST, path, &headers, Body::from(big_pass)).await;
+    assert_eq!(status, StatusCode::OK);
+    let mut state = Vec::new();
+    let cut = server.store.get("big").unwrap().cut();
+    splatd_formats::state::write_bands(&cut.band_refs(), None, "big", None, vec![], &mut state)
+        .unwrap();
+    drop(cut);
+    let length = state.len().to_string();
+    let headers = [
+        (header::CONTENT_TYPE, splatd_proto::STATE_CONTENT_TYPE),
+        (header::CONTENT_LENGTH, length.as_str()),
+    ];
+    let path = "/v1/frames/big/state";
+    let (status, ..) = exchange(&server, Method::POST, path, &headers, Body::from(state)).await;
+    assert_eq!(status, StatusCode::OK);
+    assert!(server.body_pool.idle_bytes() >= super::extract::POOLED_MIN as usize);
+    assert!(server.state_pool.idle_bytes() >= 320 * 320 * 200);
+
     let exr = rgb_exr(w as usize, h as usize);
     let headers = [(header::CONTENT_TYPE, "image/x-exr")];
     let path = "/v1/frames/f/passes?worker=7&seq=1";
@@ -794,9 +822,12 @@ async fn idle_scratches_and_cells_are_freed() {
         server.exr_scratch.idle_bytes() > 0,
         "not idle long enough yet"
     );
+    assert!(server.body_pool.idle_bytes() > 0 && server.state_pool.idle_bytes() > 0);
     tokio::time::sleep(crate::memory::CELL_POOL_IDLE).await;
     assert_eq!(server.exr_scratch.idle_bytes(), 0);
     assert_eq!(server.pass_scratch.idle_bytes(), 0);
+    assert_eq!(server.body_pool.idle_bytes(), 0);
+    assert_eq!(server.state_pool.idle_bytes(), 0);
     assert_eq!(server.store.cell_pool().idle_bytes(), 0);
     stop.send(true).unwrap();
     sweeper.await.unwrap();
