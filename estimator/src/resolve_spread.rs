@@ -633,10 +633,13 @@ fn for_each_merged(parts: &[Vec<&[Source]>], mut f: impl FnMut(&Source)) {
         let mut rest = columns.clone();
         while let Some(y) = rest.iter().filter_map(|l| l.first()).map(|s| s.y).min() {
             for list in &mut rest {
-                let run = list.iter().take_while(|s| s.y == y).count();
-                let (row, tail) = list.split_at(run);
-                row.iter().for_each(&mut f);
-                *list = tail;
+                // The row's run, handed over as it is read (one pass over the sources).
+                let mut run = 0;
+                while let Some(source) = list.get(run).filter(|s| s.y == y) {
+                    f(source);
+                    run += 1;
+                }
+                *list = &list[run..];
             }
         }
     }
