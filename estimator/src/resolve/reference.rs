@@ -289,8 +289,11 @@ fn pixel(
         }
         if let Some((bands, i)) = &mut bands {
             let out = &mut bands[j][*i * BAND_FLOATS..(*i + 1) * BAND_FLOATS];
+            // Scaled by `1 / n` like the pixel's layers below (a multiplication, not a division
+            // per band and channel).
+            let inv = 1.0 / n;
             for c in 0..3 {
-                out[c] = ((1.0 - w) * b[c] / n) as f32;
+                out[c] = ((1.0 - w) * b[c] * inv) as f32;
             }
         }
     }

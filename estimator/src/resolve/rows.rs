@@ -493,6 +493,12 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
             }
         }
         let small = n.iter().all(|&n| n <= SMALL_N);
+        // `1 / N`, which scales every layer and source of the pixel (infinite where `N` is 0,
+        // and then never used).
+        let mut inv_n = [0.0f64; STRIP];
+        for x in 0..STRIP {
+            inv_n[x] = 1.0 / n[x];
+        }
         let mut f = [[0.0f64; STRIP]; 3];
         let mut total = [[0.0f64; STRIP]; 3];
         let mut removed = [[0.0f64; STRIP]; 3];
@@ -589,14 +595,16 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 // Energy is removed only where the weight is below 1 and the band has some.
                 let mut any = false;
                 for x in 0..STRIP {
-                    any |= weight[x] < 1.0 && (b[0][x] != 0.0 || b[1][x] != 0.0 || b[2][x] != 0.0);
+                    // `&` and `|`, not `&&` and `||`: no branch per pixel, so a vector loop.
+                    any |= (weight[x] < 1.0)
+                        & ((b[0][x] != 0.0) | (b[1][x] != 0.0) | (b[2][x] != 0.0));
                 }
                 let mut removed = [[0.0f32; STRIP]; 3];
                 if any {
                     for ch in 0..3 {
                         for x in 0..STRIP {
                             // Not used where `n` is 0.
-                            removed[ch][x] = ((1.0 - weight[x]) * b[ch][x] / n[x]) as f32;
+                            removed[ch][x] = ((1.0 - weight[x]) * b[ch][x] * inv_n[x]) as f32;
                         }
                     }
                 }
@@ -630,7 +638,7 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 part.spp[i + x] = 0;
                 continue;
             }
-            let inv = 1.0 / n[x];
+            let inv = inv_n[x];
             let px = |v: &[[f64; STRIP]; 3]| {
                 [
                     (v[0][x] * inv) as f32,
