@@ -197,10 +197,19 @@ impl Durable {
 
     /// Writes a snapshot of `frame` if it changed since its last one; returns once everything
     /// applied to the frame before the call is on disk.
+    ///
+    /// Calls that wait for the same frame's turn share snapshots: one whose changes a snapshot
+    /// written while it waited already holds returns without writing another, even if the frame
+    /// changed since. So a farm's workers calling `sync` together as they finish, or nodes
+    /// pushing to a head at once, cost one or two snapshots of the frame (hundreds of
+    /// megabytes each), not one per call.
     pub async fn snapshot(self: &Arc<Self>, frame: &Arc<ShardedFrame>) -> Result<(), DurableError> {
+        // Everything applied before this call is in this version (a change is in the bands
+        // before its version is made), so any cut of this version or later holds it.
+        let wanted = frame.version();
         let lock = self.lock_for(frame.id());
         let _turn = lock.lock().await;
-        if frame.is_retired() || frame.durable_version() == frame.version() {
+        if frame.is_retired() || frame.durable_version() >= wanted {
             // A retired frame is deleted, or being deleted: writing it would bring it back.
             return Ok(());
         }

@@ -390,3 +390,47 @@ fn a_snapshot_lets_go_of_each_band_once_written() {
         watch.held
     );
 }
+
+/// A snapshot call that waited for its turn while another snapshot wrote everything it needs
+/// returns without writing again, although the frame changed since: calls waiting together
+/// share a snapshot (a farm's workers syncing as they finish). One whose changes came after
+/// that snapshot's cut still writes its own.
+#[tokio::test]
+async fn waiting_snapshots_share_the_one_written_meanwhile() {
+    let dir = tempfile::tempdir().unwrap();
+    let durable = open(dir.path());
+    let f = frame("f");
+    durable.frame_created(&f).await.unwrap();
+    post(&f, 1, 0);
+    let covered = f.version();
+
+    // A sync of batch 0 waits for its turn while another snapshot, of batch 0, is written.
+    let turn = durable.lock_for("f");
+    let guard = turn.lock().await;
+    let waiting = tokio::spawn({
+        let (durable, f) = (durable.clone(), f.clone());
+        async move { durable.snapshot(&f).await }
+    });
+    // The test's runtime has one thread: the task runs until it waits for the turn.
+    tokio::task::yield_now().await;
+    let cut = f.cut();
+    let version = cut.version;
+    let seen = durable.write_snapshot(&f, cut).unwrap();
+    f.mark_durable(&seen, version);
+    assert_eq!(f.durable_version(), covered);
+    // Batch 1 arrives after that snapshot's cut, before the waiting sync gets its turn.
+    post(&f, 1, 1);
+    drop(guard);
+    waiting.await.unwrap().unwrap();
+    assert_eq!(
+        f.durable_version(),
+        covered,
+        "the waiting sync needed nothing more, so it wrote nothing"
+    );
+    assert_eq!(recover(dir.path()).get("f").unwrap().info().samples, 20);
+
+    // A sync called after batch 1 writes it.
+    durable.snapshot(&f).await.unwrap();
+    assert_eq!(f.durable_version(), f.version());
+    assert_eq!(recover(dir.path()).get("f").unwrap().info().samples, 40);
+}
