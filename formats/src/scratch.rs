@@ -1,4 +1,4 @@
-//! Working buffers kept between requests: decoding a pass, encoding an image.
+//! Working buffers kept between requests: decoding a pass, encoding an image, reading a body.
 //!
 //! A 1080p pass or image goes through a hundred or more megabytes of planes and buffers. Fresh
 //! each time, every 4 KiB of them costs a page fault and a zeroed page (on a virtual machine
