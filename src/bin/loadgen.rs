@@ -43,8 +43,10 @@ struct Args {
     #[arg(long, default_value_t = 65536)]
     batch: usize,
     /// Total records posted per configuration.
-    /// (64 Mi records: about five seconds of ingest, so that durable runs reach the steady
-    /// state of their snapshot schedule instead of measuring only the first snapshot.)
+    /// (64 Mi records: chosen as about five seconds of ingest, now about one on the 2-core
+    /// box, so a durable run sees one snapshot, whose cut makes the writers copy every band
+    /// into fresh memory; later snapshots copy into the bands earlier ones gave back. More
+    /// records measure more of that steady state.)
     #[arg(long, default_value_t = 64 << 20)]
     records: usize,
     /// Concurrent connections (workers).
