@@ -149,8 +149,9 @@ impl Deref for AppState {
 
 impl AppState {
     /// Frees pooled memory that nothing took for [`memory::CELL_POOL_IDLE`] (a deleted frame's
-    /// cells, pass and image scratches, request bodies, the kept state buffer), looking a few times per period, until `stop` turns
-    /// true (a server's task): a burst of large requests does not leave its memory held.
+    /// cells, pass and image scratches, request bodies, the kept state buffer), looking a few
+    /// times per period, until `stop` turns true (a server's task): a burst of large requests
+    /// does not leave its memory held.
     pub async fn release_idle_until(self, mut stop: tokio::sync::watch::Receiver<bool>) {
         let idle = memory::CELL_POOL_IDLE;
         loop {

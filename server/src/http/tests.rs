@@ -766,29 +766,32 @@ async fn large_pass_bodies_and_decodes_reuse_kept_buffers() {
 async fn idle_scratches_and_cells_are_freed() {
     let (w, h) = (64, 48);
     let server = testing::with_frame(AppState::new(Limits::default(), None, None), "f", w, h);
-    // A frame large enough that its pass and its state are bodies the server keeps buffers for.
+    // A frame large enough that its pass and its state are bodies the server keeps buffers for
+    // (sent as they are, with their length).
     let server = testing::with_frame(server, "big", 320, 320);
-    let big_pass = rgb_exr(320, 320);
-    let length = big_pass.len().to_string();
-    let headers = [
-        (header::CONTENT_TYPE, "image/x-exr"),
-        (header::CONTENT_LENGTH, length.as_str()),
-    ];
-    let path = "/v1/frames/big/passes?worker=7&seq=1";
-    let (status, ..) = exchange(&server, Method::POST, path, &headers, Body::from(big_pass)).await;
+    let post_sized = |path: &'static str, content_type: &'static str, body: Vec<u8>| {
+        let server = server.clone();
+        async move {
+            let length = body.len().to_string();
+            let headers = [
+                (header::CONTENT_TYPE, content_type),
+                (header::CONTENT_LENGTH, length.as_str()),
+            ];
+            exchange(&server, Method::POST, path, &headers, Body::from(body))
+                .await
+                .0
+        }
+    };
+    let pass = "/v1/frames/big/passes?worker=7&seq=1";
+    let status = post_sized(pass, "image/x-exr", rgb_exr(320, 320)).await;
     assert_eq!(status, StatusCode::OK);
     let mut state = Vec::new();
     let cut = server.store.get("big").unwrap().cut();
     splatd_formats::state::write_bands(&cut.band_refs(), None, "big", None, vec![], &mut state)
         .unwrap();
     drop(cut);
-    let length = state.len().to_string();
-    let headers = [
-        (header::CONTENT_TYPE, splatd_proto::STATE_CONTENT_TYPE),
-        (header::CONTENT_LENGTH, length.as_str()),
-    ];
-    let path = "/v1/frames/big/state";
-    let (status, ..) = exchange(&server, Method::POST, path, &headers, Body::from(state)).await;
+    let content_type = splatd_proto::STATE_CONTENT_TYPE;
+    let status = post_sized("/v1/frames/big/state", content_type, state).await;
     assert_eq!(status, StatusCode::OK);
     assert!(server.body_pool.idle_bytes() >= super::extract::POOLED_MIN as usize);
     assert!(server.state_pool.idle_bytes() >= 320 * 320 * 200);
