@@ -107,12 +107,9 @@ impl BodyPool {
     }
 }
 
-fn idle_bytes(free: &[(std::time::Instant, Vec<u64>)]) -> u64 {
-    free.iter().map(|(_, c)| c.capacity() as u64 * 8).sum()
-}
-
-fn set_idle_gauge(free: &[(std::time::Instant, Vec<u64>)]) {
-    metrics::gauge!(crate::meters::IDLE_CELL_BYTES).set(idle_bytes(free) as f64);
+/// Sets the gauge of idle cells: [`CellPool`]'s watcher.
+fn set_idle_gauge(bytes: usize) {
+    metrics::gauge!(crate::meters::IDLE_CELL_BYTES).set(bytes as f64);
 }
 
 /// The cells of deleted frames (and of band copies no longer needed), kept for the frames
@@ -135,9 +132,9 @@ fn set_idle_gauge(free: &[(std::time::Instant, Vec<u64>)]) {
 /// The store keeps what it holds within the cascade budget (`--max-memory-mib`): what the
 /// frames hold plus what is kept here never exceeds it at a create (see `FrameStore`), and
 /// buffers idle for [`CELL_POOL_IDLE`] go back to the kernel.
-#[derive(Debug, Default)]
+#[derive(Debug)]
 pub struct CellPool {
-    free: std::sync::Mutex<Vec<(std::time::Instant, Vec<u64>)>>,
+    free: splatd_formats::scratch::Pool<Vec<u64>>,
 }
 
 /// How long a deleted frame's cells wait for a new frame before they are freed (and, likewise,
@@ -145,26 +142,28 @@ pub struct CellPool {
 /// `AppState::release_idle_until`).
 pub const CELL_POOL_IDLE: std::time::Duration = std::time::Duration::from_secs(30);
 
+impl Default for CellPool {
+    /// An empty pool that keeps any number of idle buffers (the store bounds what it holds)
+    /// and keeps the idle-cells gauge.
+    fn default() -> CellPool {
+        CellPool {
+            free: splatd_formats::scratch::Pool::watched(usize::MAX, set_idle_gauge),
+        }
+    }
+}
+
 impl CellPool {
     /// Idle cells with room for `len` words (the smallest that has), or a new buffer that
     /// [`FrameState::band_in`](splatd_estimator::FrameState::band_in) replaces with zeroed
     /// memory. Either way the contents are garbage until the band zeroes them.
     pub fn take(&self, len: usize) -> Vec<u64> {
-        let mut free = self.lock();
-        let fit = (0..free.len())
-            .filter(|&i| free[i].1.capacity() >= len)
-            .min_by_key(|&i| free[i].1.capacity());
-        let cells = fit.map(|i| free.swap_remove(i).1).unwrap_or_default();
-        set_idle_gauge(&free);
-        cells
+        self.free.take_fitting(len * 8)
     }
 
     /// Keeps `cells` for a later frame.
     pub fn give(&self, cells: Vec<u64>) {
         if cells.capacity() > 0 {
-            let mut free = self.lock();
-            free.push((std::time::Instant::now(), cells));
-            set_idle_gauge(&free);
+            self.free.give(cells);
         }
     }
 
@@ -179,27 +178,12 @@ impl CellPool {
     /// Frees the cells idle for `idle` or longer at `now` (all of them with zero), returning
     /// the bytes freed.
     pub fn release_idle(&self, now: std::time::Instant, idle: std::time::Duration) -> u64 {
-        let mut free = self.lock();
-        let mut freed = 0u64;
-        free.retain(|(since, cells)| {
-            let keep = now.saturating_duration_since(*since) < idle;
-            if !keep {
-                freed += cells.capacity() as u64 * 8;
-            }
-            keep
-        });
-        set_idle_gauge(&free);
-        freed
+        self.free.release_idle(now, idle) as u64
     }
 
     /// Bytes held by the idle cells.
     pub fn idle_bytes(&self) -> u64 {
-        idle_bytes(&self.lock())
-    }
-
-    fn lock(&self) -> std::sync::MutexGuard<'_, Vec<(std::time::Instant, Vec<u64>)>> {
-        // Idle cells hold no invariant a panic could break: a poisoned lock is still usable.
-        self.free.lock().unwrap_or_else(|p| p.into_inner())
+        self.free.idle_bytes() as u64
     }
 }
 
