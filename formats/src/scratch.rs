@@ -19,13 +19,14 @@ pub trait Reusable: Default {
 /// At most `keep` idle scratches of type `S`, each with the time it was given back.
 #[derive(Debug)]
 pub struct Pool<S> {
-    free: std::sync::Mutex<Vec<(Instant, S)>>,
+    free: std::sync::Mutex<Free<S>>,
     keep: usize,
     /// Told the idle bytes after every change, under the pool's lock, so that what it sets (a
     /// gauge) is never left behind by a change that raced it.
     watch: Option<fn(usize)>,
 }
 
+/// Idle scratches, each with the time it was given back.
 type Free<S> = Vec<(Instant, S)>;
 
 impl<S: Reusable> Pool<S> {

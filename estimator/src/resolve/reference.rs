@@ -242,6 +242,9 @@ fn pixel(
     if n == 0.0 {
         return Pixel::default();
     }
+    // Every layer and band of the pixel is scaled by `1 / N` (a multiplication, not a division
+    // per band and channel), as the fast resolve scales them.
+    let inv = 1.0 / n;
     // Support relative to this pixel's own sample count (see the module docs).
     let pool_scale = if pooled[k] > 0.0 { n / pooled[k] } else { 0.0 };
     let kappa = params.kappa_at(n);
@@ -289,9 +292,6 @@ fn pixel(
         }
         if let Some((bands, i)) = &mut bands {
             let out = &mut bands[j][*i * BAND_FLOATS..(*i + 1) * BAND_FLOATS];
-            // Scaled by `1 / n` like the pixel's layers below (a multiplication, not a division
-            // per band and channel).
-            let inv = 1.0 / n;
             for c in 0..3 {
                 out[c] = ((1.0 - w) * b[c] * inv) as f32;
             }
@@ -304,7 +304,6 @@ fn pixel(
             bands[j][i * BAND_FLOATS + 3] = own[j] as f32;
         }
     }
-    let inv = 1.0 / n;
     Pixel {
         reweighted: f.map(|v| (v * inv) as f32),
         mean: total.map(|v| (v * inv) as f32),
