@@ -161,19 +161,6 @@ pub(crate) fn support_word(own: f32, solid: bool) -> f32 {
 
 const SIGN: u32 = 1 << 31;
 
-/// Where a band's removed energy at one source is given back, as one row of a 2D difference
-/// array it changes: at the window's top row `+v` at `x0` and `-v` at `x1`, at the row below
-/// its bottom the opposite, with `v = removed / pixels of the window` (rows `>= h` and columns
-/// `>= w` are never read and are not kept).
-#[derive(Debug, Clone, Copy)]
-struct Event {
-    x0: u32,
-    x1: u32,
-    /// The window's pixels, negative at the row below its bottom.
-    area: i32,
-    removed: [f32; 3],
-}
-
 /// Largest window: 33x33 pixels.
 const MAX_AREA: usize = (2 * SPREAD_RADII[SPREAD_RADII.len() - 1] + 1).pow(2);
 
@@ -186,11 +173,12 @@ pub(crate) const GIVE_BACK_TILE: usize = 32;
 ///
 /// The difference array's prefix sums restart at every tile's top-left pixel, each window's
 /// event cut into the tiles it covers, so a pixel's given-back energy, to its last bit, is a
-/// function of the events whose windows meet its tile, added in band and source order: it
-/// does not depend on anything far away in the frame. With prefix sums over the whole frame
-/// (as first written) the rounding of the running sums carried every earlier event's residue
-/// (`(a + v) - v != a`) to the right and down to the frame's far edge, so no part of the frame
-/// could be resolved on its own to the same bits (`resolve_region_into` needs that). The cost:
+/// function of the events whose windows meet its tile, added in source order (row by row, band
+/// by band within a row): it does not depend on anything far away in the frame. With prefix
+/// sums over the whole frame (as first written) the rounding of the running sums carried every
+/// earlier event's residue (`(a + v) - v != a`) to the right and down to the frame's far edge,
+/// so no part of the frame could be resolved on its own to the same bits
+/// (`resolve_region_into` needs that). The cost:
 /// an event is added once more per tile boundary its window crosses (a window is at most 33
 /// pixels wide, so at most two more per row), and the sums restart at a boundary.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -232,12 +220,6 @@ impl Grid {
     }
 }
 
-/// One band's events per row of the difference array (in source order within a row).
-#[derive(Default)]
-struct BandEvents {
-    rows: Vec<Vec<Event>>,
-}
-
 /// Working memory of the resolve's spread stage, kept by a [`Resolved`] for the next resolve
 /// into it (its capacity is reused: a large frame's lists are tens of megabytes, which fresh
 /// memory pays for in page faults every time).
@@ -247,7 +229,6 @@ pub(crate) struct Scratch {
     pub(crate) support: Vec<f32>,
     /// Per part of the paper stage, per column of strips, per band: the sources.
     pub(crate) sources: Vec<Vec<Vec<Vec<Source>>>>,
-    bands: Vec<BandEvents>,
     /// The parameters of the resolve these buffers hold (`None`: unknown, as in a clone), so
     /// that `resolve_region_into` resolves the whole frame rather than patch a resolve made
     /// with other parameters.
@@ -267,22 +248,13 @@ impl Scratch {
             .flatten()
             .map(Vec::capacity)
             .sum();
-        let bands: usize = self
-            .bands
-            .iter()
-            .map(|b| {
-                b.rows.capacity() * size_of::<Vec<Event>>()
-                    + b.rows.iter().map(Vec::capacity).sum::<usize>() * size_of::<Event>()
-            })
-            .sum();
         let crop = self.crop.as_ref().map_or(0, |c| {
             (c.reweighted.capacity() + c.mean.capacity() + c.removed.capacity())
                 * size_of::<[f32; 3]>()
                 + c.spp.capacity() * size_of::<u64>()
                 + c.scratch.bytes() as usize
         });
-        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + bands + crop)
-            as u64
+        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + crop) as u64
     }
 }
 
@@ -306,18 +278,29 @@ impl std::fmt::Debug for Scratch {
     }
 }
 
+/// One band with sources: its plane of support words and, per column of the paper stage's
+/// strips (left to right), that column's lists of sources per part (top to bottom), each in
+/// row-major order.
+struct Band<'s> {
+    plane: &'s [f32],
+    columns: Vec<Vec<&'s [Source]>>,
+}
+
 /// Gives removed energy back. `scratch` holds the paper stage's support words and sources
 /// (lists each in row-major order); `out` holds the paper's images, updated in place;
-/// `threads` share the bands' window searches, then the columns of the give-back; `grid`
-/// places the give-back's tiles (a crop's own, see [`Grid`]).
+/// `threads` share the rows, in runs of whole tile rows; `grid` places the give-back's tiles (a
+/// crop's own, see [`Grid`]).
 ///
 /// The numbers are those of the plain dense computation (one summed-area table of the frame per
-/// band, exact; one 2D difference array of the give-back of every band in band and source
-/// order, each window cut into the tiles it covers, then its prefix sums within each tile;
-/// `resolve/reference_spread.rs` keeps it for the tests), bit for bit: the summed-area table is
-/// kept as a ring of the rows the widest window spans, the difference array as each row's
-/// events, applied to one row at a time in the same order, and the prefix sums run down
-/// columns of whole tiles split between threads.
+/// band, exact; one 2D difference array of the give-back of every band, its cells added to in
+/// source order, row by row and band by band within a row, each window cut into the tiles it
+/// covers; then its prefix sums within each tile; `resolve/reference_spread.rs` keeps it for
+/// the tests), bit for bit. The stage streams: it takes the sources a row at a time, keeps each
+/// band's summed-area table as a ring of the rows the widest window spans and the difference
+/// array as a ring of the rows a window can still reach, and gives back each row as soon as no
+/// later source can reach it. So the working memory is a few rows per band, whatever the frame
+/// holds; a thread's rows are whole tile rows, where the column sums restart, and it reads the
+/// sources within `max_radius + 1` rows of them (the windows that reach its rows).
 pub(crate) fn spread(
     k: usize,
     scratch: &mut Scratch,
@@ -329,116 +312,82 @@ pub(crate) fn spread(
     let (w, h) = (out.width as usize, out.height as usize);
     let pixels = w * h;
     let Scratch {
-        support,
-        sources,
-        bands,
-        ..
+        support, sources, ..
     } = scratch;
     debug_assert!(support.len() == k * pixels);
-    // Per band, its lists of sources: per part (top to bottom), per column (left to right).
-    let lists: Vec<Vec<Vec<&[Source]>>> = (0..k)
-        .map(|j| {
-            sources
-                .iter()
-                .map(|part| part.iter().map(|column| &column[j][..]).collect())
-                .collect()
+    let columns = sources.first().map_or(0, Vec::len);
+    let bands: Vec<Band> = (0..k)
+        .filter_map(|j| {
+            let columns: Vec<Vec<&[Source]>> = (0..columns)
+                .map(|c| sources.iter().map(|part| &part[c][j][..]).collect())
+                .collect();
+            let busy = columns.iter().flatten().any(|list| !list.is_empty());
+            busy.then(|| Band {
+                plane: &support[j * pixels..(j + 1) * pixels],
+                columns,
+            })
         })
         .collect();
-    let busy: Vec<bool> = lists
-        .iter()
-        .map(|l| l.iter().flatten().any(|list| !list.is_empty()))
-        .collect();
-    let busy_count = busy.iter().filter(|&&b| b).count();
-    if busy_count == 0 {
+    if bands.is_empty() {
         return;
     }
-    bands.resize_with(k, BandEvents::default);
-    // 1. Each band's windows, bands shared by the threads (taken in turn).
-    let spp = &out.spp;
-    {
-        let queue = std::sync::Mutex::new(
-            bands
-                .iter_mut()
-                .enumerate()
-                .filter(|(j, _)| busy[*j])
-                .map(|(j, band)| (band, &lists[j], &support[j * pixels..(j + 1) * pixels])),
-        );
-        // Support sums in `u64` where they cannot overflow a box (see `SatRing`).
-        let narrow = spp.iter().all(|&n| n < NARROW_SAT_SPP);
-        let search = || {
-            let max_radius = params.spread().max_radius();
-            let (mut ring64, mut ring128) = if narrow {
-                (Some(SatRing::<u64>::new(w, max_radius)), None)
-            } else {
-                (None, Some(SatRing::<u128>::new(w, max_radius)))
-            };
-            loop {
-                let next = queue.lock().unwrap_or_else(|e| e.into_inner()).next();
-                let Some((band, lists, plane)) = next else {
-                    return;
-                };
-                if let Some(ring) = &mut ring64 {
-                    windows(plane, lists, spp, w, h, params, ring, band, grid);
-                } else if let Some(ring) = &mut ring128 {
-                    windows(plane, lists, spp, w, h, params, ring, band, grid);
-                }
-            }
-        };
-        std::thread::scope(|scope| {
-            for _ in 1..threads.clamp(1, busy_count) {
-                scope.spawn(search);
-            }
-            search();
-        });
-    }
-    let bands: Vec<&BandEvents> = bands
-        .iter()
-        .zip(&busy)
-        .filter_map(|(band, &busy)| busy.then_some(band))
-        .collect();
-    // 2. The prefix sums of the difference array, a range of whole tile columns per thread
-    //    (each thread's sums start at its first column, as at every tile boundary).
+    // Each thread's rows: a run of whole tile rows.
     let mut starts = vec![0];
-    while let Some(&x) = starts.last().filter(|&&x| x < w) {
-        starts.push(grid.next_x(x).min(w));
+    while let Some(&y) = starts.last().filter(|&&y| y < h) {
+        starts.push(grid.next_y(y).min(h));
     }
     let tiles = starts.len() - 1;
     let per = tiles.div_ceil(threads.clamp(1, tiles));
-    let cuts: Vec<usize> = starts.iter().copied().step_by(per).chain([w]).collect();
-    let bands = &bands;
+    let cuts: Vec<usize> = starts.iter().copied().step_by(per).chain([h]).collect();
+    // Support sums in `u64` where they cannot overflow a box (see `SatRing`).
+    let narrow = out.spp.iter().all(|&n| n < NARROW_SAT_SPP);
+    let Resolved {
+        reweighted,
+        removed,
+        spp,
+        ..
+    } = out;
+    let (bands, spp) = (&bands, &spp[..]);
+    let frame = Frame { w, h, grid, spp };
     std::thread::scope(|scope| {
-        let mut f = out.reweighted.as_mut_slice();
-        let mut r = out.removed.as_mut_slice();
-        // Each thread's columns of every row.
-        let ranges: Vec<(usize, usize)> = cuts
-            .windows(2)
-            .map(|c| (c[0], c[1]))
-            .filter(|(a, b)| a < b)
-            .collect();
-        let mut parts: Vec<Vec<RowSlices>> = ranges.iter().map(|_| Vec::with_capacity(h)).collect();
-        for _ in 0..h {
-            let (mut frow, rest) = f.split_at_mut(w);
-            let (mut rrow, rrest) = r.split_at_mut(w);
-            (f, r) = (rest, rrest);
-            for (part, (a, b)) in parts.iter_mut().zip(&ranges) {
-                let (fa, fb) = frow.split_at_mut(b - a);
-                let (ra, rb) = rrow.split_at_mut(b - a);
-                (frow, rrow) = (fb, rb);
-                part.push((fa, ra));
+        let (mut f, mut r) = (&mut reweighted[..], &mut removed[..]);
+        let mut strips = Vec::new();
+        for c in cuts.windows(2).filter(|c| c[0] < c[1]) {
+            let (fa, fb) = std::mem::take(&mut f).split_at_mut((c[1] - c[0]) * w);
+            let (ra, rb) = std::mem::take(&mut r).split_at_mut((c[1] - c[0]) * w);
+            (f, r) = (fb, rb);
+            strips.push((c[0]..c[1], fa, ra));
+        }
+        let run = move |(rows, f, r): (std::ops::Range<usize>, _, _)| {
+            if narrow {
+                stream::<u64>(bands, &frame, params, rows, f, r);
+            } else {
+                stream::<u128>(bands, &frame, params, rows, f, r);
             }
+        };
+        let mut strips = strips.into_iter();
+        let first = strips.next().expect("one row at least");
+        for strip in strips {
+            scope.spawn(move || run(strip));
         }
-        let mut parts = parts.into_iter().zip(ranges);
-        let (first, _) = parts.next().expect("one column range at least");
-        for (rows, (xa, _)) in parts {
-            scope.spawn(move || give_back(bands, grid, xa, rows));
-        }
-        give_back(bands, grid, 0, first);
+        run(first);
     });
 }
 
+/// What every thread of the stage reads: the frame's size, its tiles and its sample counts.
+#[derive(Clone, Copy)]
+struct Frame<'s> {
+    w: usize,
+    h: usize,
+    grid: Grid,
+    spp: &'s [u64],
+}
+
 /// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
-/// the widest window around the current source row spans: row `i` (the sums over rows `0..i`)
-/// in slot `i & mask` (the ring's length a power of two), column 0 always zero.
+/// the widest window around the current source row spans: row `i` (the sums over rows
+/// `start..i`, for the first row `start` any window reads) in slot `i & mask` (the ring's length
+/// a power of two), column 0 always zero. A box's sums are differences of the table's, so they
+/// do not depend on `start`.
 ///
 /// The support is summed in integers, in units of `2^-FRAC_BITS` samples ([`support_units`]),
 /// so that a box sum is exact whatever lies above and left of the box: an `f64` table (as
@@ -452,10 +401,11 @@ pub(crate) fn spread(
 struct SatRing<T> {
     mask: usize,
     stride: usize,
-    /// Table rows computed so far (`0 ..= built`).
+    /// Table rows computed so far (`start ..= built`).
     built: usize,
     n: Vec<T>,
-    solid: Vec<u64>,
+    /// Solid pixels, wrapping: a box holds at most `MAX_AREA` pixels, so its count is exact.
+    solid: Vec<u32>,
 }
 
 /// Pixels with fewer samples than this (each) let [`SatRing`] sum in `u64`.
@@ -555,21 +505,16 @@ pub(crate) fn units_to_samples(units: u128) -> f64 {
 }
 
 impl<T: Units> SatRing<T> {
-    fn new(w: usize, max_radius: usize) -> Self {
+    /// A table whose first row is `start`.
+    fn new(w: usize, max_radius: usize, start: usize) -> Self {
         let rows = (2 * max_radius + 2).next_power_of_two();
         Self {
             mask: rows - 1,
             stride: w + 1,
-            built: 0,
+            built: start,
             n: vec![T::default(); rows * (w + 1)],
             solid: vec![0; rows * (w + 1)],
         }
-    }
-
-    fn reset(&mut self) {
-        self.n.fill(T::default());
-        self.solid.fill(0);
-        self.built = 0;
     }
 
     /// Computes table rows up to `to` from the band's support plane.
@@ -581,12 +526,12 @@ impl<T: Units> SatRing<T> {
             let (n_above, n_here) = two_rows(&mut self.n, above, here, self.stride);
             let (s_above, s_here) = two_rows(&mut self.solid, above, here, self.stride);
             let mut row = T::default();
-            let mut solid = 0u64;
+            let mut solid = 0u32;
             for (x, &word) in cells.iter().enumerate() {
                 row = row.add(T::of(word));
-                solid += (word.to_bits() >> 31) as u64;
+                solid = solid.wrapping_add(word.to_bits() >> 31);
                 n_here[x + 1] = n_above[x + 1].add(row);
-                s_here[x + 1] = s_above[x + 1] + solid;
+                s_here[x + 1] = s_above[x + 1].wrapping_add(solid);
             }
             self.built += 1;
         }
@@ -595,7 +540,7 @@ impl<T: Units> SatRing<T> {
     /// The box sums over columns `x0..x1` and rows `y0..y1` (table rows in the ring): support
     /// in units, solid pixels.
     #[inline(always)]
-    fn boxed(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> (T, u64) {
+    fn boxed(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> (T, u32) {
         let (r0, r1) = (
             (y0 & self.mask) * self.stride,
             (y1 & self.mask) * self.stride,
@@ -623,171 +568,169 @@ fn two_rows<T>(table: &mut [T], a: usize, b: usize, stride: usize) -> (&[T], &mu
     }
 }
 
-/// A band's sources in row-major order, from the paper stage's lists: per part (rows, top to
-/// bottom), per column (pixels, left to right), each in row-major order. Within a part, each
-/// row is the run of that row at the head of each column's list in turn (a step per source,
-/// not a search of every list's head), given to `f` in plain loops.
+/// A column's sources from a row on: its lists per part (top to bottom), each what is left of
+/// it, taken a row at a time.
+struct Column<'s> {
+    lists: Vec<&'s [Source]>,
+    at: usize,
+}
+
+impl<'s> Column<'s> {
+    /// The column's sources in rows `y ..`.
+    fn from_row(lists: &[&'s [Source]], y: usize) -> Self {
+        let lists = lists
+            .iter()
+            .map(|list| &list[list.partition_point(|s| (s.y as usize) < y)..])
+            .collect();
+        Self { lists, at: 0 }
+    }
+
+    /// The sources in row `y`, left to right: every row before it must have been taken.
+    #[inline(always)]
+    fn row(&mut self, y: usize) -> &'s [Source] {
+        while let Some(list) = self.lists.get_mut(self.at) {
+            let Some(first) = list.first() else {
+                self.at += 1;
+                continue;
+            };
+            debug_assert!(first.y as usize >= y, "rows are taken in order");
+            let list: &'s [Source] = list;
+            let run = list.iter().take_while(|s| s.y as usize == y).count();
+            let (row, rest) = list.split_at(run);
+            self.lists[self.at] = rest;
+            return row;
+        }
+        &[]
+    }
+}
+
+/// The smallest supported window around the source at `(x, y)` of a band (see the module
+/// docs), or `None` where its energy stays removed: columns `x0..x1` and rows `y0..y1`.
+#[allow(clippy::too_many_arguments)]
 #[inline(always)]
-fn for_each_merged(parts: &[Vec<&[Source]>], mut f: impl FnMut(&Source)) {
-    for columns in parts {
-        let mut rest = columns.clone();
-        while let Some(y) = rest.iter().filter_map(|l| l.first()).map(|s| s.y).min() {
-            for list in &mut rest {
-                // The row's run, handed over as it is read (one pass over the sources).
-                let mut run = 0;
-                while let Some(source) = list.get(run).filter(|s| s.y == y) {
-                    f(source);
-                    run += 1;
-                }
-                *list = &list[run..];
+fn window<T: Units>(
+    sat: &SatRing<T>,
+    plane: &[f32],
+    frame: &Frame,
+    radii: impl Iterator<Item = usize>,
+    least: Option<T>,
+    edge_share: Option<f64>,
+    x: usize,
+    y: usize,
+) -> Option<(usize, usize, usize, usize)> {
+    let (w, h) = (frame.w, frame.h);
+    for (i, r) in radii.enumerate() {
+        let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+        let (n, solid) = sat.boxed(x0, x1, y0, y1);
+        if solid > 0 {
+            // The band is solid in a pixel of the window: energy cut at the edge of a light
+            // (module docs), given back in place right next to it if the band holds
+            // `edge_share` of the pixel's samples, else left removed.
+            let own = f32::from_bits(plane[y * w + x].to_bits() & !SIGN) as f64;
+            let spp = frame.spp[y * w + x] as f64;
+            if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
+                return Some((x, x + 1, y, y + 1));
             }
+            return None;
+        }
+        if least.is_some_and(|least| n >= least) {
+            return Some((x0, x1, y0, y1));
+        }
+    }
+    None
+}
+
+/// Adds `v` over columns `x0..x1` to a row of the difference array: at `x0` and again at every
+/// tile boundary inside, taken off after `x1 - 1` unless a tile boundary restarts the sums
+/// there ([`Grid`]).
+#[inline(always)]
+fn add_row(diff: &mut [[f64; 3]], grid: Grid, x0: usize, x1: usize, v: [f64; 3]) {
+    let mut at = x0;
+    while at < x1 {
+        for c in 0..3 {
+            diff[at][c] += v[c];
+        }
+        at = grid.next_x(at);
+    }
+    if x1 < diff.len() && !grid.column_starts_tile(x1) {
+        for c in 0..3 {
+            diff[x1][c] -= v[c];
         }
     }
 }
 
-/// One band's windows (the smallest supported one around each source, see the module docs) as
-/// events of a difference array, bucketed by row.
-#[allow(clippy::too_many_arguments)]
-fn windows<T: Units>(
-    plane: &[f32],
-    sources: &[Vec<&[Source]>],
-    spp: &[u64],
-    w: usize,
-    h: usize,
+/// The spread stage for the rows `rows` of the frame (whole tile rows), whose reweighted and
+/// removed pixels `f` and `r` hold: every source whose window can reach them, taken row by row
+/// and band by band within a row, its window added to a ring of difference-array rows, and each
+/// row given back (the ring's prefix sums, along the row, then down each column, both
+/// restarted at every tile boundary) once the sources below can no longer reach it.
+fn stream<T: Units>(
+    bands: &[Band],
+    frame: &Frame,
     params: &ResolveParams,
-    sat: &mut SatRing<T>,
-    band: &mut BandEvents,
-    grid: Grid,
+    rows: std::ops::Range<usize>,
+    f: &mut [[f32; 3]],
+    r: &mut [[f32; 3]],
 ) {
+    let Frame { w, h, grid, .. } = *frame;
     let SpreadParams {
         support,
-        max_radius,
+        max_radius: m,
         edge_share,
         ..
     } = params.spread();
-    let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= max_radius);
+    let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= m);
     // `n >= support` for a box of `n` units is `n >= least` (`None`: never).
     let least = least_units(support).and_then(T::fit);
-    sat.reset();
-    band.rows.resize_with(h, Vec::new);
-    band.rows.iter_mut().for_each(Vec::clear);
-    for_each_merged(sources, |source| {
-        let (x, y) = (source.x as usize, source.y as usize);
-        sat.build(plane, w, (y + max_radius + 1).min(h));
-        let mut window = None;
-        for (i, r) in radii.clone().enumerate() {
-            let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-            let (n, solid) = sat.boxed(x0, x1, y0, y1);
-            if solid > 0 {
-                // The band is solid in a pixel of the window: energy cut at the edge of a light
-                // (module docs), given back in place right next to it if the band holds
-                // `edge_share` of the pixel's samples, else left removed.
-                let own = f32::from_bits(plane[y * w + x].to_bits() & !SIGN) as f64;
-                let spp = spp[y * w + x] as f64;
-                if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
-                    window = Some((x, x + 1, y, y + 1));
-                }
-                break;
-            }
-            if least.is_some_and(|least| n >= least) {
-                window = Some((x0, x1, y0, y1));
-                break;
-            }
-        }
-        let Some((x0, x1, y0, y1)) = window else {
-            return;
-        };
-        // Every pixel of the window (clamped to the frame) gets an equal share.
-        let area = ((x1 - x0) * (y1 - y0)) as i32;
-        let event = Event {
-            x0: x0 as u32,
-            x1: x1 as u32,
-            area,
-            removed: source.removed,
-        };
-        // Added at its top row and again at every tile row boundary it crosses, taken off
-        // below its bottom row unless a tile boundary restarts the sums there ([`Grid`]).
-        band.rows[y0].push(event);
-        let mut restart = grid.next_y(y0);
-        while restart < y1 {
-            band.rows[restart].push(event);
-            restart = grid.next_y(restart);
-        }
-        if y1 < h && !grid.row_starts_tile(y1) {
-            band.rows[y1].push(Event {
-                area: -area,
-                ..event
-            });
-        }
-    });
-}
-
-/// A row's reweighted and removed pixels in some columns.
-type RowSlices<'o> = (&'o mut [[f32; 3]], &'o mut [[f32; 3]]);
-
-/// Adds the given-back energy to the columns `xa ..` of every row (`rows[y]`, the row's
-/// reweighted and removed pixels in those columns; `xa` is 0 or a tile boundary): the
-/// difference array's prefix sums, along each row, then down each column, both restarted at
-/// every tile boundary ([`Grid`]).
-fn give_back(bands: &[&BandEvents], grid: Grid, xa: usize, rows: Vec<RowSlices>) {
-    let xb = xa + rows.first().map_or(0, |r| r.0.len());
-    let mut diff = vec![[0.0f64; 3]; xb - xa];
-    let mut col = vec![[0.0f64; 3]; xb - xa];
+    let (ya, yb) = (rows.start, rows.end);
+    // A window reaches at most `m` rows up and `m + 1` down (its difference array's row below
+    // it): the sources of rows `s0..s1` are those that reach `ya..yb`. Their windows read table
+    // rows from `s0 - m` on.
+    let (s0, s1) = (ya.saturating_sub(m + 1), (yb + m).min(h));
+    let mut sats: Vec<SatRing<T>> = bands
+        .iter()
+        .map(|_| SatRing::new(w, m, s0.saturating_sub(m)))
+        .collect();
+    let mut columns: Vec<Vec<Column>> = bands
+        .iter()
+        .map(|band| {
+            band.columns
+                .iter()
+                .map(|lists| Column::from_row(lists, s0))
+                .collect()
+        })
+        .collect();
+    // Rows of the difference array a source of row `ys` adds to: `ys - m ..= ys + m + 1`.
+    let slots = 2 * m + 2;
+    let mut diff = vec![[0.0f64; 3]; slots * w];
+    let mut touched = vec![false; slots];
+    let mut col = vec![[0.0f64; 3]; w];
     let mut col_zero = true;
     // `1 / area`, as the plain computation divides.
     let shares: Vec<f64> = (0..=MAX_AREA).map(|a| 1.0 / a as f64).collect();
-    // The tiles' columns within `xa..xb`.
+    // The tiles' columns.
     let mut segments = Vec::new();
-    let mut s = xa;
-    while s < xb {
-        let e = grid.next_x(s).min(xb);
-        segments.push((s - xa, e - xa));
+    let mut s = 0;
+    while s < w {
+        let e = grid.next_x(s).min(w);
+        segments.push((s, e));
         s = e;
     }
-    for (y, (f, r)) in rows.into_iter().enumerate() {
+    // Gives back row `y`: the difference array's prefix sums, along the row and down each
+    // column, both restarted at every tile boundary (adding an exact 0 changes nothing, so a
+    // row that got nothing, below a tile boundary or below rows that got nothing, is skipped).
+    let mut give_back = |y: usize, diff: &mut [[f64; 3]], touched: &mut bool| {
         if grid.row_starts_tile(y) && !col_zero {
             // A new row of tiles: its sums start from nothing.
             col.fill([0.0; 3]);
             col_zero = true;
         }
-        // This row of the difference array: every band's events in band and source order
-        // (each cell's additions in the order of the dense computation), each cut into the
-        // tiles it covers: added at its first column and again at every tile boundary inside
-        // it, taken off after its last column unless a tile boundary restarts the sum there.
-        let mut touched = false;
-        for band in bands {
-            for e in &band.rows[y] {
-                let (x0, x1) = ((e.x0 as usize).max(xa), (e.x1 as usize).min(xb));
-                if x0 >= x1 {
-                    continue;
-                }
-                touched = true;
-                let share = shares[e.area.unsigned_abs() as usize];
-                let sign = e.area.signum() as f64;
-                let sv = [
-                    sign * (e.removed[0] as f64 * share),
-                    sign * (e.removed[1] as f64 * share),
-                    sign * (e.removed[2] as f64 * share),
-                ];
-                let mut at = x0;
-                while at < x1 {
-                    for c in 0..3 {
-                        diff[at - xa][c] += sv[c];
-                    }
-                    at = grid.next_x(at);
-                }
-                if x1 < xb && !grid.column_starts_tile(x1) {
-                    for c in 0..3 {
-                        diff[x1 - xa][c] -= sv[c];
-                    }
-                }
-            }
-        }
-        if !touched && col_zero {
-            continue;
+        if !*touched && col_zero {
+            return;
         }
         col_zero = false;
+        let (f, r) = (&mut f[(y - ya) * w..][..w], &mut r[(y - ya) * w..][..w]);
         for &(s, e) in &segments {
             let mut run = [0.0f64; 3];
             let cells = f[s..e].iter_mut().zip(&mut r[s..e]);
@@ -808,9 +751,67 @@ fn give_back(bands: &[&BandEvents], grid: Grid, xa: usize, rows: Vec<RowSlices>)
                 }
             }
         }
-        if touched {
+        if *touched {
             diff.fill([0.0; 3]);
+            *touched = false;
         }
+    };
+    let mut next = ya;
+    for ys in s0..s1 {
+        for ((band, sat), columns) in bands.iter().zip(&mut sats).zip(&mut columns) {
+            sat.build(band.plane, w, (ys + m + 1).min(h));
+            for column in columns.iter_mut() {
+                for source in column.row(ys) {
+                    let (x, y) = (source.x as usize, source.y as usize);
+                    let found = window(
+                        sat,
+                        band.plane,
+                        frame,
+                        radii.clone(),
+                        least,
+                        edge_share,
+                        x,
+                        y,
+                    );
+                    let Some((x0, x1, y0, y1)) = found else {
+                        continue;
+                    };
+                    // Every pixel of the window (clamped to the frame) gets an equal share.
+                    let share = shares[(x1 - x0) * (y1 - y0)];
+                    let v = source.removed.map(|c| c as f64 * share);
+                    // Added at its top row and again at every tile row boundary it crosses,
+                    // taken off below its bottom row unless a tile boundary restarts the sums
+                    // there ([`Grid`]); only this thread's rows.
+                    let mut add = |y: usize, v: [f64; 3]| {
+                        if (ya..yb).contains(&y) {
+                            let slot = y % slots;
+                            add_row(&mut diff[slot * w..][..w], grid, x0, x1, v);
+                            touched[slot] = true;
+                        }
+                    };
+                    add(y0, v);
+                    let mut restart = grid.next_y(y0);
+                    while restart < y1 {
+                        add(restart, v);
+                        restart = grid.next_y(restart);
+                    }
+                    if y1 < h && !grid.row_starts_tile(y1) {
+                        add(y1, v.map(|c| -c));
+                    }
+                }
+            }
+        }
+        // No source below `ys` reaches row `ys - m`.
+        while next < yb && next + m <= ys {
+            let slot = next % slots;
+            give_back(next, &mut diff[slot * w..][..w], &mut touched[slot]);
+            next += 1;
+        }
+    }
+    while next < yb {
+        let slot = next % slots;
+        give_back(next, &mut diff[slot * w..][..w], &mut touched[slot]);
+        next += 1;
     }
 }
 

@@ -3,10 +3,13 @@
 //! reference the sparse, threaded stage (`resolve_spread::spread`) must match bit for bit.
 //! Test-only; the reference resolve (`reference.rs`) runs it after its paper stage.
 //!
-//! Changed twice since, with the stage, so that a part of the frame resolves on its own to the
-//! same bits (`resolve_region_into`): the summed-area table sums supports in integers (exact
-//! box sums), and the difference array's prefix sums restart at every tile of
-//! `GIVE_BACK_TILE` pixels (each window cut into the tiles it covers).
+//! Changed three times since, with the stage. So that a part of the frame resolves on its own
+//! to the same bits (`resolve_region_into`): the summed-area table sums supports in integers
+//! (exact box sums), and the difference array's prefix sums restart at every tile of
+//! `GIVE_BACK_TILE` pixels (each window cut into the tiles it covers). So that the stage can
+//! give back a row as soon as the sources that reach it are known, without keeping every
+//! band's windows of the whole frame: sources are taken row by row, and band by band within a
+//! row (first band by band, each over the whole frame).
 
 use crate::layout::CascadeLayout;
 use crate::resolve::{ResolveParams, Resolved};
@@ -52,95 +55,109 @@ pub(super) fn spread(
             }
         })
         .collect();
-    // Summed-area table of one band's `[support, solid pixels]`, and one 2D difference array of
-    // the give-back of every band (box sums are linear, so one set of prefix sums at the end
+    // Summed-area tables of each band's `[support, solid pixels]`, and one 2D difference array
+    // of the give-back of every band (box sums are linear, so one set of prefix sums at the end
     // serves all bands).
-    let mut sat = vec![[0u128; 2]; stride * (h + 1)];
+    let busy: Vec<&Vec<f32>> = bands
+        .iter()
+        .filter(|plane| !plane.chunks_exact(BAND_FLOATS).all(|b| b[..3] == [0.0; 3]))
+        .collect();
+    let sats: Vec<Vec<[u128; 2]>> = busy
+        .iter()
+        .map(|plane| {
+            let mut sat = vec![[0u128; 2]; stride * (h + 1)];
+            for y in 0..h {
+                let mut row = [0u128, 0];
+                let (above, here) = sat[y * stride..(y + 2) * stride].split_at_mut(stride);
+                let cells = &plane[y * w * BAND_FLOATS..(y + 1) * w * BAND_FLOATS];
+                let solid = &solid_from[y * w..(y + 1) * w];
+                for x in 0..w {
+                    let n = cells[x * BAND_FLOATS + 3];
+                    row[0] += support_units(n);
+                    row[1] += (n >= solid[x]) as u128;
+                    here[x + 1] = [above[x + 1][0] + row[0], above[x + 1][1] + row[1]];
+                }
+            }
+            sat
+        })
+        .collect();
     let mut diff = vec![[0.0f64; 3]; stride * (h + 1)];
-    for plane in bands {
-        if plane.chunks_exact(BAND_FLOATS).all(|b| b[..3] == [0.0; 3]) {
-            continue;
-        }
-        for y in 0..h {
-            let mut row = [0u128, 0];
-            let (above, here) = sat[y * stride..(y + 2) * stride].split_at_mut(stride);
-            let cells = &plane[y * w * BAND_FLOATS..(y + 1) * w * BAND_FLOATS];
-            let solid = &solid_from[y * w..(y + 1) * w];
+    // Sources in row-major order and, within a row, band by band: each cell of the difference
+    // array gets its additions in this order.
+    for y in 0..h {
+        for (plane, sat) in busy.iter().zip(&sats) {
+            let boxed = |x0: usize, x1: usize, y0: usize, y1: usize| {
+                let [a, b, c, d] = [
+                    sat[y1 * stride + x1],
+                    sat[y0 * stride + x1],
+                    sat[y1 * stride + x0],
+                    sat[y0 * stride + x0],
+                ];
+                // (In this order an intermediate may be negative: wrapping, exact at the end.)
+                let exact = |i: usize| {
+                    a[i].wrapping_sub(b[i])
+                        .wrapping_sub(c[i])
+                        .wrapping_add(d[i])
+                };
+                [units_to_samples(exact(0)), exact(1) as f64]
+            };
             for x in 0..w {
-                let n = cells[x * BAND_FLOATS + 3];
-                row[0] += support_units(n);
-                row[1] += (n >= solid[x]) as u128;
-                here[x + 1] = [above[x + 1][0] + row[0], above[x + 1][1] + row[1]];
-            }
-        }
-        let boxed = |x0: usize, x1: usize, y0: usize, y1: usize| {
-            let [a, b, c, d] = [
-                sat[y1 * stride + x1],
-                sat[y0 * stride + x1],
-                sat[y1 * stride + x0],
-                sat[y0 * stride + x0],
-            ];
-            // (In this order an intermediate may be negative: wrapping, exact at the end.)
-            let exact = |i: usize| {
-                a[i].wrapping_sub(b[i])
-                    .wrapping_sub(c[i])
-                    .wrapping_add(d[i])
-            };
-            [units_to_samples(exact(0)), exact(1) as f64]
-        };
-        for (p, band) in plane.chunks_exact(BAND_FLOATS).enumerate() {
-            if band[..3] == [0.0; 3] {
-                continue;
-            }
-            let (x, y) = (p % w, p / w);
-            let mut window = None;
-            for (i, r) in radii.clone().enumerate() {
-                let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-                let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-                let [n, solid] = boxed(x0, x1, y0, y1);
-                if solid > 0.5 {
-                    // The band is solid (fully trusted on its own, and a large share of the
-                    // samples) in a pixel of the window: this energy was cut at the edge of a
-                    // light or highlight, and blurring it would smear that edge. Right next to
-                    // the solid pixel it is the pixel's partial cover of the light: given back
-                    // in place (if the band holds `edge_share` of the pixel's samples); farther
-                    // away it stays removed.
-                    let own = band[3] as f64;
-                    let spp = out.spp[p] as f64;
-                    if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
-                        window = Some((x, x + 1, y, y + 1));
+                let p = y * w + x;
+                let band = &plane[p * BAND_FLOATS..(p + 1) * BAND_FLOATS];
+                if band[..3] == [0.0; 3] {
+                    continue;
+                }
+                let mut window = None;
+                for (i, r) in radii.clone().enumerate() {
+                    let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
+                    let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
+                    let [n, solid] = boxed(x0, x1, y0, y1);
+                    if solid > 0.5 {
+                        // The band is solid (fully trusted on its own, and a large share of the
+                        // samples) in a pixel of the window: this energy was cut at the edge of
+                        // a light or highlight, and blurring it would smear that edge. Right
+                        // next to the solid pixel it is the pixel's partial cover of the light:
+                        // given back in place (if the band holds `edge_share` of the pixel's
+                        // samples); farther away it stays removed.
+                        let own = band[3] as f64;
+                        let spp = out.spp[p] as f64;
+                        if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
+                            window = Some((x, x + 1, y, y + 1));
+                        }
+                        break;
                     }
-                    break;
+                    if n >= support {
+                        window = Some((x0, x1, y0, y1));
+                        break;
+                    }
                 }
-                if n >= support {
-                    window = Some((x0, x1, y0, y1));
-                    break;
-                }
-            }
-            let Some((x0, x1, y0, y1)) = window else {
-                continue;
-            };
-            // Every pixel of the window (clamped to the frame) gets an equal share.
-            let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
-            // Its part in each tile it covers, as corners of a box of that tile's own
-            // difference array (corners past the tile's right or bottom edge are not needed).
-            let t = GIVE_BACK_TILE;
-            for ty in y0 / t..=(y1 - 1) / t {
-                for tx in x0 / t..=(x1 - 1) / t {
-                    let (a0, a1) = (x0.max(tx * t), x1.min(tx * t + t));
-                    let (b0, b1) = (y0.max(ty * t), y1.min(ty * t + t));
-                    let (inner_x, inner_y) = (a1 < (tx * t + t).min(w), b1 < (ty * t + t).min(h));
-                    for c in 0..3 {
-                        let v = band[c] as f64 * share;
-                        diff[b0 * stride + a0][c] += v;
-                        if inner_x {
-                            diff[b0 * stride + a1][c] -= v;
-                        }
-                        if inner_y {
-                            diff[b1 * stride + a0][c] -= v;
-                        }
-                        if inner_x && inner_y {
-                            diff[b1 * stride + a1][c] += v;
+                let Some((x0, x1, y0, y1)) = window else {
+                    continue;
+                };
+                // Every pixel of the window (clamped to the frame) gets an equal share.
+                let share = 1.0 / ((x1 - x0) * (y1 - y0)) as f64;
+                // Its part in each tile it covers, as corners of a box of that tile's own
+                // difference array (corners past the tile's right or bottom edge are not
+                // needed).
+                let t = GIVE_BACK_TILE;
+                for ty in y0 / t..=(y1 - 1) / t {
+                    for tx in x0 / t..=(x1 - 1) / t {
+                        let (a0, a1) = (x0.max(tx * t), x1.min(tx * t + t));
+                        let (b0, b1) = (y0.max(ty * t), y1.min(ty * t + t));
+                        let (inner_x, inner_y) =
+                            (a1 < (tx * t + t).min(w), b1 < (ty * t + t).min(h));
+                        for c in 0..3 {
+                            let v = band[c] as f64 * share;
+                            diff[b0 * stride + a0][c] += v;
+                            if inner_x {
+                                diff[b0 * stride + a1][c] -= v;
+                            }
+                            if inner_y {
+                                diff[b1 * stride + a0][c] -= v;
+                            }
+                            if inner_x && inner_y {
+                                diff[b1 * stride + a1][c] += v;
+                            }
                         }
                     }
                 }

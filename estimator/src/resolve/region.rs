@@ -25,15 +25,16 @@
 //!   4. the given-back energy of a pixel `p` is the tile-local prefix sum (`resolve_spread`'s
 //!      `Grid`: tiles of [`GIVE_BACK_TILE`] pixels fixed to the frame, sums restarted at each
 //!      tile, box sums of the supports exact) of the events whose windows meet `p`'s tile `t`,
-//!      in band and source order: those of the sources within `m` of `t`.
+//!      in source order (row by row, band by band within a row): those of the sources within
+//!      `m` of `t`.
 //!
 //!   So the outputs of a tile `t` depend exactly on the cells within `2m` of `t` (a change at
 //!   distance `2m` can decide a window of radius `m` that reaches `t`: the test
 //!   `a_change_at_distance_two_max_radius_reaches_a_window` builds one), and a pixel's on the
 //!   cells within `H = 2m + GIVE_BACK_TILE - 1` of it (its tile's far corner); without the
 //!   tiles' rounding (in exact arithmetic) it would be `2m`. The order of a cell's additions
-//!   is row-major source order, which a crop keeps (any two pixels of a crop are in the same
-//!   row-major order as in the frame); nothing in the stage is frame-wide any more (box sums
+//!   is by the source's row, band and column, which a crop keeps (any two pixels of a crop are
+//!   in the same row-major order as in the frame); nothing in the stage is frame-wide any more (box sums
 //!   were `f64` sums from the frame's corner, and the give-back's prefix sums ran over the
 //!   whole frame, both rounding by what lay far away: `resolve_spread`).
 //!
