@@ -385,9 +385,9 @@ struct Frame<'s> {
 
 /// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
 /// the widest window around the current source row spans: row `i` (the sums over rows
-/// `start..i`, for the first row `start` any window reads) in slot `i & mask` (the ring's length
-/// a power of two), column 0 always zero. A box's sums are differences of the table's, so they
-/// do not depend on `start`.
+/// `start..i`, plus whatever row `start`'s slot held: a box's sums are differences of the
+/// table's and take it off) in slot `i & mask` (the ring's length a power of two), column 0
+/// always zero. So the table may start again at any row, with the same box sums.
 ///
 /// The support is summed in integers, in units of `2^-FRAC_BITS` samples ([`support_units`]),
 /// so that a box sum is exact whatever lies above and left of the box: an `f64` table (as
@@ -505,20 +505,26 @@ pub(crate) fn units_to_samples(units: u128) -> f64 {
 }
 
 impl<T: Units> SatRing<T> {
-    /// A table whose first row is `start`.
-    fn new(w: usize, max_radius: usize, start: usize) -> Self {
+    /// A table of no rows yet.
+    fn new(w: usize, max_radius: usize) -> Self {
         let rows = (2 * max_radius + 2).next_power_of_two();
         Self {
             mask: rows - 1,
             stride: w + 1,
-            built: start,
+            built: 0,
             n: vec![T::default(); rows * (w + 1)],
             solid: vec![0; rows * (w + 1)],
         }
     }
 
-    /// Computes table rows up to `to` from the band's support plane.
-    fn build(&mut self, plane: &[f32], w: usize, to: usize) {
+    /// Makes the table hold rows `from ..= to` (`from` never decreasing from one call to the
+    /// next, nor `to`): it goes on from the rows it holds, or starts again at `from` where that
+    /// computes fewer rows (a band whose sources are far apart is summed only around them).
+    fn reach(&mut self, plane: &[f32], w: usize, from: usize, to: usize) {
+        if self.built < from {
+            // Whatever slot `from` holds is the new start's row: a box's sums take it off.
+            self.built = from;
+        }
         while self.built < to {
             let y = self.built;
             let (above, here) = (y & self.mask, (y + 1) & self.mask);
@@ -685,13 +691,9 @@ fn stream<T: Units>(
     let least = least_units(support).and_then(T::fit);
     let (ya, yb) = (rows.start, rows.end);
     // A window reaches at most `m` rows up and `m + 1` down (its difference array's row below
-    // it): the sources of rows `s0..s1` are those that reach `ya..yb`. Their windows read table
-    // rows from `s0 - m` on.
+    // it): the sources of rows `s0..s1` are those that reach `ya..yb`.
     let (s0, s1) = (ya.saturating_sub(m + 1), (yb + m).min(h));
-    let mut sats: Vec<SatRing<T>> = bands
-        .iter()
-        .map(|_| SatRing::new(w, m, s0.saturating_sub(m)))
-        .collect();
+    let mut sats: Vec<SatRing<T>> = bands.iter().map(|_| SatRing::new(w, m)).collect();
     let mut columns: Vec<Vec<Column>> = bands
         .iter()
         .map(|band| {
@@ -759,9 +761,15 @@ fn stream<T: Units>(
     let mut next = ya;
     for ys in s0..s1 {
         for ((band, sat), columns) in bands.iter().zip(&mut sats).zip(&mut columns) {
-            sat.build(band.plane, w, (ys + m + 1).min(h));
+            let mut summed = false;
             for column in columns.iter_mut() {
-                for source in column.row(ys) {
+                let row = column.row(ys);
+                if !row.is_empty() && !summed {
+                    // The table rows this row's windows read.
+                    sat.reach(band.plane, w, ys.saturating_sub(m), (ys + m + 1).min(h));
+                    summed = true;
+                }
+                for source in row {
                     let (x, y) = (source.x as usize, source.y as usize);
                     let found = window(
                         sat,
