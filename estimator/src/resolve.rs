@@ -18,7 +18,7 @@
 //!   trusted (consistency: `(p N - kappa_min) / (kappa N^e) -> inf`).
 
 use super::layout::ParamError;
-use super::resolve_spread::{spread, Grid, Scratch, SpreadParams};
+use super::resolve_spread::{resolve_spread, Grid, Scratch, SpreadParams};
 use super::state::{FrameState, Kernel};
 
 #[cfg(test)]
@@ -28,7 +28,7 @@ mod reference;
 #[cfg(test)]
 mod reference_spread;
 mod region;
-mod rows;
+pub(crate) mod rows;
 
 pub use region::{dependency_radius, resolve_region_into, resolve_region_with, Rect};
 use rows::{Consts, Part, Rows};
@@ -248,10 +248,9 @@ pub fn resolve_bands(
 /// [`resolve_bands`] into the buffers of an earlier result of the same frame size, which are
 /// overwritten (other sizes get new buffers). Resolving a large frame again and again into the
 /// same buffers saves allocating and faulting in fresh memory every time, which costs more than
-/// the resolve's own reading of the state (`bench speed` measures both). With
-/// [`Variant::Spread`], `out` also keeps the second stage's working memory for the next resolve
-/// (a support plane of 4 bytes per pixel and band, and lists of the pixels where energy was
-/// removed: [`Resolved::working_bytes`]). On error `out` is left as it was.
+/// the resolve's own reading of the state (`bench speed` measures both). The resolve keeps
+/// nothing else of the frame's size (its stages stream down the frame); `out` keeps the crops
+/// of [`resolve_region_into`] ([`Resolved::working_bytes`]). On error `out` is left as it was.
 pub fn resolve_bands_into(
     bands: &[&FrameState],
     params: &ResolveParams,
@@ -356,60 +355,55 @@ fn resolve_rows(
     if pixels == 0 {
         return;
     }
-    let k = layout.cascades();
-    let spreading = params.variant == Variant::Spread;
-    let mut scratch = std::mem::take(&mut out.scratch);
-    // For the spread stage: one plane of support words per band (band-major, so that the
-    // spread stage reads each band's plane contiguously; every word is written by the row
-    // pass), and each part's lists of sources.
-    scratch
-        .support
-        .resize(if spreading { k * pixels } else { 0 }, 0.0);
+    let consts = &Consts::new(layout, params);
+    if params.variant == Variant::Spread {
+        let grid = Grid::at(origin);
+        resolve_spread(
+            kernel,
+            consts,
+            layout.cascades(),
+            rows,
+            params,
+            threads,
+            grid,
+            out,
+        );
+        return;
+    }
     let threads = threads.clamp(1, h);
     let chunk = h.div_ceil(threads) * w;
-    let parts = pixels.div_ceil(chunk);
-    scratch.sources.resize_with(parts, Vec::new);
-    let consts = &Consts::new(layout, params);
     std::thread::scope(|scope| {
-        let mut planes: Vec<_> = scratch
-            .support
-            .chunks_mut(pixels)
-            .map(|b| b.chunks_mut(chunk))
-            .collect();
         let outputs = out
             .reweighted
             .chunks_mut(chunk)
             .zip(out.mean.chunks_mut(chunk))
             .zip(out.removed.chunks_mut(chunk))
             .zip(out.spp.chunks_mut(chunk))
-            .zip(scratch.sources.iter_mut())
             .enumerate();
-        for (i, ((((reweighted, mean), removed), spp), sources)) in outputs {
-            let part = Part {
-                y0: i * chunk / w,
+        let parts = pixels.div_ceil(chunk);
+        for (i, (((reweighted, mean), removed), spp)) in outputs {
+            let y0 = i * chunk / w;
+            let ys = y0..y0 + spp.len() / w;
+            let mut part = Part {
+                y0,
                 reweighted,
                 mean,
                 removed,
                 spp,
-                support: planes
-                    .iter_mut()
-                    .map(|b| b.next().expect("one chunk per part"))
-                    .collect(),
-                sources: std::mem::take(sources),
+                support: Vec::new(),
+                support_rows: 0,
+                sources: Vec::new(),
                 column: 0,
             };
+            let run = move || Rows::new(kernel, consts, w).run(rows, &mut part, ys);
             if i + 1 == parts {
                 // The last part runs on this thread.
-                *sources = Rows::new(kernel, consts, w).run(rows, part);
+                run();
             } else {
-                scope.spawn(move || *sources = Rows::new(kernel, consts, w).run(rows, part));
+                scope.spawn(run);
             }
         }
     });
-    if spreading {
-        spread(k, &mut scratch, params, out, threads, Grid::at(origin));
-    }
-    out.scratch = scratch;
 }
 
 #[cfg(test)]

@@ -33,7 +33,9 @@
 //!   again on its own (`resolve_region_into`; the derivation is in `resolve/region.rs`).
 
 use super::layout::{ParamError, COUNT_ONE};
+use super::resolve::rows::{Consts, Part, Rows};
 use super::resolve::{ResolveParams, Resolved};
+use super::state::Kernel;
 
 /// Window radii tried, smallest first: 3x3 up to 33x33 (those up to
 /// [`SpreadParams::max_radius`]).
@@ -150,6 +152,9 @@ pub(crate) struct Source {
     pub(crate) x: u32,
     pub(crate) y: u32,
     pub(crate) removed: [f32; 3],
+    /// Whether the band holds `edge_share` of the pixel's samples (the edge rule's test, see
+    /// the module docs).
+    pub(crate) edge: bool,
 }
 
 /// A band's support at a pixel as the paper stage stores it for the spread stage: the support
@@ -220,15 +225,9 @@ impl Grid {
     }
 }
 
-/// Working memory of the resolve's spread stage, kept by a [`Resolved`] for the next resolve
-/// into it (its capacity is reused: a large frame's lists are tens of megabytes, which fresh
-/// memory pays for in page faults every time).
+/// What a [`Resolved`] keeps for the next resolve into it, besides its layers.
 #[derive(Default)]
 pub(crate) struct Scratch {
-    /// One plane of support words per band ([`support_word`]).
-    pub(crate) support: Vec<f32>,
-    /// Per part of the paper stage, per column of strips, per band: the sources.
-    pub(crate) sources: Vec<Vec<Vec<Vec<Source>>>>,
     /// The parameters of the resolve these buffers hold (`None`: unknown, as in a clone), so
     /// that `resolve_region_into` resolves the whole frame rather than patch a resolve made
     /// with other parameters.
@@ -241,20 +240,12 @@ impl Scratch {
     /// Bytes held (capacity, not length).
     pub(crate) fn bytes(&self) -> u64 {
         use std::mem::size_of;
-        let lists: usize = self
-            .sources
-            .iter()
-            .flatten()
-            .flatten()
-            .map(Vec::capacity)
-            .sum();
-        let crop = self.crop.as_ref().map_or(0, |c| {
-            (c.reweighted.capacity() + c.mean.capacity() + c.removed.capacity())
+        self.crop.as_ref().map_or(0, |c| {
+            ((c.reweighted.capacity() + c.mean.capacity() + c.removed.capacity())
                 * size_of::<[f32; 3]>()
-                + c.spp.capacity() * size_of::<u64>()
-                + c.scratch.bytes() as usize
-        });
-        (self.support.capacity() * size_of::<f32>() + lists * size_of::<Source>() + crop) as u64
+                + c.spp.capacity() * size_of::<u64>()) as u64
+                + c.scratch.bytes()
+        })
     }
 }
 
@@ -278,59 +269,42 @@ impl std::fmt::Debug for Scratch {
     }
 }
 
-/// One band with sources: its plane of support words and, per column of the paper stage's
-/// strips (left to right), that column's lists of sources per part (top to bottom), each in
-/// row-major order.
-struct Band<'s> {
-    plane: &'s [f32],
-    columns: Vec<Vec<&'s [Source]>>,
-}
+/// Rows the paper stage resolves at a time, before the spread stage takes the sources whose
+/// windows' support those rows complete.
+const BLOCK_ROWS: usize = 16;
 
-/// Gives removed energy back. `scratch` holds the paper stage's support words and sources
-/// (lists each in row-major order); `out` holds the paper's images, updated in place;
-/// `threads` share the rows, in runs of whole tile rows; `grid` places the give-back's tiles (a
-/// crop's own, see [`Grid`]).
+/// Resolves the pixels whose cells `rows` holds (a frame, or a crop of one whose give-back
+/// tiles `grid` places; `out`'s buffers that many pixels) with [`Variant::Spread`]: the paper's
+/// weights, then the removed energy given back. `threads` share the rows, in runs of whole tile
+/// rows.
 ///
-/// The numbers are those of the plain dense computation (one summed-area table of the frame per
-/// band, exact; one 2D difference array of the give-back of every band, its cells added to in
-/// source order, row by row and band by band within a row, each window cut into the tiles it
-/// covers; then its prefix sums within each tile; `resolve/reference_spread.rs` keeps it for
-/// the tests), bit for bit. The stage streams: it takes the sources a row at a time, keeps each
-/// band's summed-area table as a ring of the rows the widest window spans and the difference
-/// array as a ring of the rows a window can still reach, and gives back each row as soon as no
-/// later source can reach it. So the working memory is a few rows per band, whatever the frame
-/// holds; a thread's rows are whole tile rows, where the column sums restart, and it reads the
-/// sources within `max_radius + 1` rows of them (the windows that reach its rows).
-pub(crate) fn spread(
+/// The numbers are those of the plain dense computation (the paper's resolve of every pixel;
+/// per band a summed-area table of the frame's support, exact; one 2D difference array of the
+/// give-back of every band, its cells added to in source order, row by row and band by band
+/// within a row, each window cut into the tiles it covers; then its prefix sums within each
+/// tile; `resolve/reference.rs` and `resolve/reference_spread.rs` keep it for the tests), bit
+/// for bit. The two stages stream down the frame together, so that nothing of the frame's size
+/// is kept between them: the paper stage resolves [`BLOCK_ROWS`] rows at a time, leaving its
+/// support words in a ring of rows and the pixels where it removed energy (the sources) in
+/// lists; the spread stage then takes the sources whose windows' support is complete, a row
+/// at a time, finds each one's window in its band's summed-area table (a ring of the rows the
+/// widest window spans, summed only around sources), adds the window to a ring of rows of the
+/// difference array, and gives back each row as soon as no later source can reach it. A
+/// thread's rows are whole tile rows, where the column sums restart; it resolves the paper's
+/// weights up to `2 max_radius + 1` rows beyond them too (not kept), for the sources whose
+/// windows reach its rows and their support.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn resolve_spread(
+    kernel: Kernel,
+    consts: &Consts,
     k: usize,
-    scratch: &mut Scratch,
+    rows: &[&[u64]],
     params: &ResolveParams,
-    out: &mut Resolved,
     threads: usize,
     grid: Grid,
+    out: &mut Resolved,
 ) {
     let (w, h) = (out.width as usize, out.height as usize);
-    let pixels = w * h;
-    let Scratch {
-        support, sources, ..
-    } = scratch;
-    debug_assert!(support.len() == k * pixels);
-    let columns = sources.first().map_or(0, Vec::len);
-    let bands: Vec<Band> = (0..k)
-        .filter_map(|j| {
-            let columns: Vec<Vec<&[Source]>> = (0..columns)
-                .map(|c| sources.iter().map(|part| &part[c][j][..]).collect())
-                .collect();
-            let busy = columns.iter().flatten().any(|list| !list.is_empty());
-            busy.then(|| Band {
-                plane: &support[j * pixels..(j + 1) * pixels],
-                columns,
-            })
-        })
-        .collect();
-    if bands.is_empty() {
-        return;
-    }
     // Each thread's rows: a run of whole tile rows.
     let mut starts = vec![0];
     while let Some(&y) = starts.last().filter(|&&y| y < h) {
@@ -339,30 +313,43 @@ pub(crate) fn spread(
     let tiles = starts.len() - 1;
     let per = tiles.div_ceil(threads.clamp(1, tiles));
     let cuts: Vec<usize> = starts.iter().copied().step_by(per).chain([h]).collect();
-    // Support sums in `u64` where they cannot overflow a box (see `SatRing`).
-    let narrow = out.spp.iter().all(|&n| n < NARROW_SAT_SPP);
+    let frame = Frame {
+        kernel,
+        consts,
+        k,
+        rows,
+        w,
+        h,
+        grid,
+        params,
+    };
     let Resolved {
         reweighted,
+        mean,
         removed,
         spp,
         ..
     } = out;
-    let (bands, spp) = (&bands, &spp[..]);
-    let frame = Frame { w, h, grid, spp };
     std::thread::scope(|scope| {
-        let (mut f, mut r) = (&mut reweighted[..], &mut removed[..]);
+        let mut rest = Outputs {
+            reweighted,
+            mean,
+            removed,
+            spp,
+        };
         let mut strips = Vec::new();
         for c in cuts.windows(2).filter(|c| c[0] < c[1]) {
-            let (fa, fb) = std::mem::take(&mut f).split_at_mut((c[1] - c[0]) * w);
-            let (ra, rb) = std::mem::take(&mut r).split_at_mut((c[1] - c[0]) * w);
-            (f, r) = (fb, rb);
-            strips.push((c[0]..c[1], fa, ra));
+            let (strip, after) = rest.split_at((c[1] - c[0]) * w);
+            rest = after;
+            strips.push((c[0]..c[1], strip));
         }
-        let run = move |(rows, f, r): (std::ops::Range<usize>, _, _)| {
-            if narrow {
-                stream::<u64>(bands, &frame, params, rows, f, r);
-            } else {
-                stream::<u128>(bands, &frame, params, rows, f, r);
+        let frame = &frame;
+        let run = move |(rows, mut out): (std::ops::Range<usize>, Outputs<'_>)| {
+            // Support sums in `u64` unless a pixel's support could overflow a box of them (see
+            // `SatRing`); then the strip is resolved again, summing in `u128`.
+            if !stream::<u64>(frame, rows.clone(), &mut out) {
+                let exact = stream::<u128>(frame, rows, &mut out);
+                debug_assert!(exact, "u128 holds any box");
             }
         };
         let mut strips = strips.into_iter();
@@ -374,13 +361,57 @@ pub(crate) fn spread(
     });
 }
 
-/// What every thread of the stage reads: the frame's size, its tiles and its sample counts.
-#[derive(Clone, Copy)]
+/// What every thread of a resolve reads.
 struct Frame<'s> {
+    kernel: Kernel,
+    consts: &'s Consts,
+    k: usize,
+    rows: &'s [&'s [u64]],
     w: usize,
     h: usize,
     grid: Grid,
-    spp: &'s [u64],
+    params: &'s ResolveParams,
+}
+
+/// Some rows of a resolve's layers.
+struct Outputs<'o> {
+    reweighted: &'o mut [[f32; 3]],
+    mean: &'o mut [[f32; 3]],
+    removed: &'o mut [[f32; 3]],
+    spp: &'o mut [u64],
+}
+
+impl<'o> Outputs<'o> {
+    /// The first `at` pixels and the rest.
+    fn split_at(self, at: usize) -> (Self, Self) {
+        let (reweighted, r) = self.reweighted.split_at_mut(at);
+        let (mean, m) = self.mean.split_at_mut(at);
+        let (removed, d) = self.removed.split_at_mut(at);
+        let (spp, s) = self.spp.split_at_mut(at);
+        let first = Outputs {
+            reweighted,
+            mean,
+            removed,
+            spp,
+        };
+        let rest = Outputs {
+            reweighted: r,
+            mean: m,
+            removed: d,
+            spp: s,
+        };
+        (first, rest)
+    }
+
+    /// The same rows, borrowed.
+    fn reborrow(&mut self) -> Outputs<'_> {
+        Outputs {
+            reweighted: self.reweighted,
+            mean: self.mean,
+            removed: self.removed,
+            spp: self.spp,
+        }
+    }
 }
 
 /// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
@@ -408,8 +439,9 @@ struct SatRing<T> {
     solid: Vec<u32>,
 }
 
-/// Pixels with fewer samples than this (each) let [`SatRing`] sum in `u64`.
-const NARROW_SAT_SPP: u64 = 1 << 27;
+/// Supports below this (samples, in each pixel) let [`SatRing`] sum in `u64`: `2^53` units,
+/// and a box holds fewer than `2^11` pixels.
+const NARROW_SUPPORT: f32 = (1u64 << 27) as f32;
 
 /// The integers [`SatRing`] sums support in (wrapping).
 trait Units: Copy + Default + Ord {
@@ -418,6 +450,8 @@ trait Units: Copy + Default + Ord {
     fn sub(self, other: Self) -> Self;
     /// `units` in this type, if it fits.
     fn fit(units: u128) -> Option<Self>;
+    /// Whether every box of pixels whose support is at most `support` sums exactly.
+    fn holds(support: f32) -> bool;
 }
 
 impl Units for u64 {
@@ -436,6 +470,10 @@ impl Units for u64 {
     fn fit(units: u128) -> Option<Self> {
         units.try_into().ok()
     }
+    #[inline(always)]
+    fn holds(support: f32) -> bool {
+        support < NARROW_SUPPORT
+    }
 }
 
 impl Units for u128 {
@@ -453,6 +491,10 @@ impl Units for u128 {
     }
     fn fit(units: u128) -> Option<Self> {
         Some(units)
+    }
+    #[inline(always)]
+    fn holds(_: f32) -> bool {
+        true
     }
 }
 
@@ -518,9 +560,11 @@ impl<T: Units> SatRing<T> {
     }
 
     /// Makes the table hold rows `from ..= to` (`from` never decreasing from one call to the
-    /// next, nor `to`): it goes on from the rows it holds, or starts again at `from` where that
+    /// next, nor `to`) from a ring of `ring_rows` rows of the band's support words (row `y` at
+    /// `y % ring_rows`): it goes on from the rows it holds, or starts again at `from` where that
     /// computes fewer rows (a band whose sources are far apart is summed only around them).
-    fn reach(&mut self, plane: &[f32], w: usize, from: usize, to: usize) {
+    /// Returns `false` if a pixel's support is too large for box sums in `T`.
+    fn reach(&mut self, plane: &[f32], ring_rows: usize, w: usize, from: usize, to: usize) -> bool {
         if self.built < from {
             // Whatever slot `from` holds is the new start's row: a box's sums take it off.
             self.built = from;
@@ -528,19 +572,25 @@ impl<T: Units> SatRing<T> {
         while self.built < to {
             let y = self.built;
             let (above, here) = (y & self.mask, (y + 1) & self.mask);
-            let cells = &plane[y * w..(y + 1) * w];
+            let cells = &plane[(y % ring_rows) * w..][..w];
             let (n_above, n_here) = two_rows(&mut self.n, above, here, self.stride);
             let (s_above, s_here) = two_rows(&mut self.solid, above, here, self.stride);
             let mut row = T::default();
             let mut solid = 0u32;
+            let mut peak = 0u32;
             for (x, &word) in cells.iter().enumerate() {
+                peak = peak.max(word.to_bits() & !SIGN);
                 row = row.add(T::of(word));
                 solid = solid.wrapping_add(word.to_bits() >> 31);
                 n_here[x + 1] = n_above[x + 1].add(row);
                 s_here[x + 1] = s_above[x + 1].wrapping_add(solid);
             }
+            if !T::holds(f32::from_bits(peak)) {
+                return false;
+            }
             self.built += 1;
         }
+        true
     }
 
     /// The box sums over columns `x0..x1` and rows `y0..y1` (table rows in the ring): support
@@ -574,57 +624,53 @@ fn two_rows<T>(table: &mut [T], a: usize, b: usize, stride: usize) -> (&[T], &mu
     }
 }
 
-/// A column's sources from a row on: its lists per part (top to bottom), each what is left of
-/// it, taken a row at a time.
-struct Column<'s> {
-    lists: Vec<&'s [Source]>,
-    at: usize,
+/// The paper stage's sources not yet taken: per column of its strips and band, a list in
+/// row-major order (rows added a block at a time) and how many of its first ones were taken.
+#[derive(Default)]
+struct Sources {
+    lists: Vec<Vec<Vec<Source>>>,
+    taken: Vec<Vec<usize>>,
 }
 
-impl<'s> Column<'s> {
-    /// The column's sources in rows `y ..`.
-    fn from_row(lists: &[&'s [Source]], y: usize) -> Self {
-        let lists = lists
-            .iter()
-            .map(|list| &list[list.partition_point(|s| (s.y as usize) < y)..])
-            .collect();
-        Self { lists, at: 0 }
-    }
-
-    /// The sources in row `y`, left to right: every row before it must have been taken.
+impl Sources {
+    /// The sources of band `j` in row `y` of column `c`, left to right: every row before it must
+    /// have been taken.
     #[inline(always)]
-    fn row(&mut self, y: usize) -> &'s [Source] {
-        while let Some(list) = self.lists.get_mut(self.at) {
-            let Some(first) = list.first() else {
-                self.at += 1;
-                continue;
-            };
-            debug_assert!(first.y as usize >= y, "rows are taken in order");
-            let list: &'s [Source] = list;
-            let run = list.iter().take_while(|s| s.y as usize == y).count();
-            let (row, rest) = list.split_at(run);
-            self.lists[self.at] = rest;
-            return row;
+    fn take_row(&mut self, c: usize, j: usize, y: usize) -> &[Source] {
+        let taken = &mut self.taken[c][j];
+        let rest = &self.lists[c][j][*taken..];
+        debug_assert!(
+            rest.first().is_none_or(|s| s.y as usize >= y),
+            "rows in order"
+        );
+        let run = rest.iter().take_while(|s| s.y as usize == y).count();
+        *taken += run;
+        &rest[..run]
+    }
+
+    /// Forgets the sources taken.
+    fn drop_taken(&mut self) {
+        for (lists, taken) in self.lists.iter_mut().zip(&mut self.taken) {
+            for (list, taken) in lists.iter_mut().zip(taken) {
+                list.drain(..*taken);
+                *taken = 0;
+            }
         }
-        &[]
     }
 }
 
-/// The smallest supported window around the source at `(x, y)` of a band (see the module
-/// docs), or `None` where its energy stays removed: columns `x0..x1` and rows `y0..y1`.
-#[allow(clippy::too_many_arguments)]
+/// The smallest supported window around `source` in a band (see the module docs), or `None`
+/// where its energy stays removed: columns `x0..x1` and rows `y0..y1`.
 #[inline(always)]
 fn window<T: Units>(
     sat: &SatRing<T>,
-    plane: &[f32],
-    frame: &Frame,
+    w: usize,
+    h: usize,
     radii: impl Iterator<Item = usize>,
     least: Option<T>,
-    edge_share: Option<f64>,
-    x: usize,
-    y: usize,
+    source: &Source,
 ) -> Option<(usize, usize, usize, usize)> {
-    let (w, h) = (frame.w, frame.h);
+    let (x, y) = (source.x as usize, source.y as usize);
     for (i, r) in radii.enumerate() {
         let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
         let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
@@ -632,10 +678,8 @@ fn window<T: Units>(
         if solid > 0 {
             // The band is solid in a pixel of the window: energy cut at the edge of a light
             // (module docs), given back in place right next to it if the band holds
-            // `edge_share` of the pixel's samples, else left removed.
-            let own = f32::from_bits(plane[y * w + x].to_bits() & !SIGN) as f64;
-            let spp = frame.spp[y * w + x] as f64;
-            if i == 0 && edge_share.is_some_and(|share| own >= share * spp) {
+            // `edge_share` of the pixel's samples (`Source::edge`), else left removed.
+            if i == 0 && source.edge {
                 return Some((x, x + 1, y, y + 1));
             }
             return None;
@@ -647,96 +691,117 @@ fn window<T: Units>(
     None
 }
 
-/// Adds `v` over columns `x0..x1` to a row of the difference array: at `x0` and again at every
-/// tile boundary inside, taken off after `x1 - 1` unless a tile boundary restarts the sums
-/// there ([`Grid`]).
-#[inline(always)]
-fn add_row(diff: &mut [[f64; 3]], grid: Grid, x0: usize, x1: usize, v: [f64; 3]) {
-    let mut at = x0;
-    while at < x1 {
-        for c in 0..3 {
-            diff[at][c] += v[c];
-        }
-        at = grid.next_x(at);
-    }
-    if x1 < diff.len() && !grid.column_starts_tile(x1) {
-        for c in 0..3 {
-            diff[x1][c] -= v[c];
-        }
-    }
+/// The give-back of some rows of a frame (whole tile rows): its 2D difference array, kept as a
+/// ring of the rows that the sources of one row add to, and the running column sums of the
+/// rows given back.
+struct GiveBack {
+    w: usize,
+    h: usize,
+    grid: Grid,
+    rows: std::ops::Range<usize>,
+    /// Rows of the difference array a source of row `y` adds to: `y - m ..= y + m + 1`.
+    slots: usize,
+    diff: Vec<[f64; 3]>,
+    touched: Vec<bool>,
+    col: Vec<[f64; 3]>,
+    col_zero: bool,
+    /// The tiles' columns.
+    segments: Vec<(usize, usize)>,
+    /// `1 / area`, as the plain computation divides.
+    shares: Vec<f64>,
 }
 
-/// The spread stage for the rows `rows` of the frame (whole tile rows), whose reweighted and
-/// removed pixels `f` and `r` hold: every source whose window can reach them, taken row by row
-/// and band by band within a row, its window added to a ring of difference-array rows, and each
-/// row given back (the ring's prefix sums, along the row, then down each column, both
-/// restarted at every tile boundary) once the sources below can no longer reach it.
-fn stream<T: Units>(
-    bands: &[Band],
-    frame: &Frame,
-    params: &ResolveParams,
-    rows: std::ops::Range<usize>,
-    f: &mut [[f32; 3]],
-    r: &mut [[f32; 3]],
-) {
-    let Frame { w, h, grid, .. } = *frame;
-    let SpreadParams {
-        support,
-        max_radius: m,
-        edge_share,
-        ..
-    } = params.spread();
-    let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= m);
-    // `n >= support` for a box of `n` units is `n >= least` (`None`: never).
-    let least = least_units(support).and_then(T::fit);
-    let (ya, yb) = (rows.start, rows.end);
-    // A window reaches at most `m` rows up and `m + 1` down (its difference array's row below
-    // it): the sources of rows `s0..s1` are those that reach `ya..yb`.
-    let (s0, s1) = (ya.saturating_sub(m + 1), (yb + m).min(h));
-    let mut sats: Vec<SatRing<T>> = bands.iter().map(|_| SatRing::new(w, m)).collect();
-    let mut columns: Vec<Vec<Column>> = bands
-        .iter()
-        .map(|band| {
-            band.columns
-                .iter()
-                .map(|lists| Column::from_row(lists, s0))
-                .collect()
-        })
-        .collect();
-    // Rows of the difference array a source of row `ys` adds to: `ys - m ..= ys + m + 1`.
-    let slots = 2 * m + 2;
-    let mut diff = vec![[0.0f64; 3]; slots * w];
-    let mut touched = vec![false; slots];
-    let mut col = vec![[0.0f64; 3]; w];
-    let mut col_zero = true;
-    // `1 / area`, as the plain computation divides.
-    let shares: Vec<f64> = (0..=MAX_AREA).map(|a| 1.0 / a as f64).collect();
-    // The tiles' columns.
-    let mut segments = Vec::new();
-    let mut s = 0;
-    while s < w {
-        let e = grid.next_x(s).min(w);
-        segments.push((s, e));
-        s = e;
-    }
-    // Gives back row `y`: the difference array's prefix sums, along the row and down each
-    // column, both restarted at every tile boundary (adding an exact 0 changes nothing, so a
-    // row that got nothing, below a tile boundary or below rows that got nothing, is skipped).
-    let mut give_back = |y: usize, diff: &mut [[f64; 3]], touched: &mut bool| {
-        if grid.row_starts_tile(y) && !col_zero {
-            // A new row of tiles: its sums start from nothing.
-            col.fill([0.0; 3]);
-            col_zero = true;
+impl GiveBack {
+    fn new(w: usize, h: usize, grid: Grid, rows: std::ops::Range<usize>, m: usize) -> Self {
+        let slots = 2 * m + 2;
+        let mut segments = Vec::new();
+        let mut s = 0;
+        while s < w {
+            let e = grid.next_x(s).min(w);
+            segments.push((s, e));
+            s = e;
         }
-        if !*touched && col_zero {
+        Self {
+            w,
+            h,
+            grid,
+            rows,
+            slots,
+            diff: vec![[0.0; 3]; slots * w],
+            touched: vec![false; slots],
+            col: vec![[0.0; 3]; w],
+            col_zero: true,
+            segments,
+            shares: (0..=MAX_AREA).map(|a| 1.0 / a as f64).collect(),
+        }
+    }
+
+    /// Gives `removed` back uniformly over the window `x0..x1`, `y0..y1` (clamped to the frame):
+    /// added at its top row and again at every tile row boundary it crosses, taken off below
+    /// its bottom row unless a tile boundary restarts the sums there ([`Grid`]); in these rows
+    /// only.
+    #[inline(always)]
+    fn add(&mut self, (x0, x1, y0, y1): (usize, usize, usize, usize), removed: [f32; 3]) {
+        let share = self.shares[(x1 - x0) * (y1 - y0)];
+        let v = removed.map(|c| c as f64 * share);
+        self.add_row(y0, x0, x1, v);
+        let mut restart = self.grid.next_y(y0);
+        while restart < y1 {
+            self.add_row(restart, x0, x1, v);
+            restart = self.grid.next_y(restart);
+        }
+        if y1 < self.h && !self.grid.row_starts_tile(y1) {
+            self.add_row(y1, x0, x1, v.map(|c| -c));
+        }
+    }
+
+    /// Adds `v` over columns `x0..x1` to row `y` of the difference array: at `x0` and again at
+    /// every tile boundary inside, taken off after `x1 - 1` unless a tile boundary restarts the
+    /// sums there.
+    #[inline(always)]
+    fn add_row(&mut self, y: usize, x0: usize, x1: usize, v: [f64; 3]) {
+        if !self.rows.contains(&y) {
             return;
         }
-        col_zero = false;
-        let (f, r) = (&mut f[(y - ya) * w..][..w], &mut r[(y - ya) * w..][..w]);
-        for &(s, e) in &segments {
+        let (w, grid) = (self.w, self.grid);
+        let slot = y % self.slots;
+        self.touched[slot] = true;
+        let diff = &mut self.diff[slot * w..][..w];
+        let mut at = x0;
+        while at < x1 {
+            for c in 0..3 {
+                diff[at][c] += v[c];
+            }
+            at = grid.next_x(at);
+        }
+        if x1 < w && !grid.column_starts_tile(x1) {
+            for c in 0..3 {
+                diff[x1][c] -= v[c];
+            }
+        }
+    }
+
+    /// Gives back row `y` (the one after the row given back before, and no source still to
+    /// come adds to it) into its reweighted and removed pixels `f`, `r`: the difference array's
+    /// prefix sums, along the row and down each column, both restarted at every tile boundary.
+    /// Adding an exact 0 changes nothing, so a row that got nothing, below a tile boundary or
+    /// below rows that got nothing, is skipped.
+    fn give(&mut self, y: usize, f: &mut [[f32; 3]], r: &mut [[f32; 3]]) {
+        let slot = y % self.slots;
+        if self.grid.row_starts_tile(y) && !self.col_zero {
+            // A new row of tiles: its sums start from nothing.
+            self.col.fill([0.0; 3]);
+            self.col_zero = true;
+        }
+        if !self.touched[slot] && self.col_zero {
+            return;
+        }
+        self.col_zero = false;
+        let d = &mut self.diff[slot * self.w..][..self.w];
+        for &(s, e) in &self.segments {
             let mut run = [0.0f64; 3];
             let cells = f[s..e].iter_mut().zip(&mut r[s..e]);
-            for (((f, r), col), d) in cells.zip(&mut col[s..e]).zip(&diff[s..e]) {
+            for (((f, r), col), d) in cells.zip(&mut self.col[s..e]).zip(&d[s..e]) {
                 let mut given = [0.0f64; 3];
                 for c in 0..3 {
                     run[c] += d[c];
@@ -753,74 +818,137 @@ fn stream<T: Units>(
                 }
             }
         }
-        if *touched {
-            diff.fill([0.0; 3]);
-            *touched = false;
+        if self.touched[slot] {
+            d.fill([0.0; 3]);
+            self.touched[slot] = false;
         }
-    };
-    let mut next = ya;
-    for ys in s0..s1 {
-        for ((band, sat), columns) in bands.iter().zip(&mut sats).zip(&mut columns) {
-            let mut summed = false;
-            for column in columns.iter_mut() {
-                let row = column.row(ys);
-                if !row.is_empty() && !summed {
-                    // The table rows this row's windows read.
-                    sat.reach(band.plane, w, ys.saturating_sub(m), (ys + m + 1).min(h));
-                    summed = true;
-                }
-                for source in row {
-                    let (x, y) = (source.x as usize, source.y as usize);
-                    let found = window(
-                        sat,
-                        band.plane,
-                        frame,
-                        radii.clone(),
-                        least,
-                        edge_share,
-                        x,
-                        y,
-                    );
-                    let Some((x0, x1, y0, y1)) = found else {
+    }
+}
+
+/// Both stages for the rows `ys` of the frame (whole tile rows), whose layers `out` holds (see
+/// [`resolve_spread`]). Returns `false`, with `out` half done, if a pixel's support is too
+/// large for box sums in `T`.
+fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Outputs) -> bool {
+    let Frame {
+        kernel,
+        consts,
+        k,
+        rows,
+        w,
+        h,
+        grid,
+        params,
+    } = *frame;
+    let SpreadParams {
+        support,
+        max_radius: m,
+        ..
+    } = params.spread();
+    let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= m);
+    // `n >= support` for a box of `n` units is `n >= least` (`None`: never).
+    let least = least_units(support).and_then(T::fit);
+    let (ya, yb) = (ys.start, ys.end);
+    // A window reaches at most `m` rows up and `m + 1` down (its difference array's row below
+    // it): the sources of rows `s0..s1` are those that reach `ya..yb`, and their windows read
+    // the support of rows `q0..q1`, which the paper stage resolves.
+    let (s0, s1) = (ya.saturating_sub(m + 1), (yb + m).min(h));
+    let (q0, q1) = (s0.saturating_sub(m), (s1 + m).min(h));
+    // Support rows kept: those of a block and the `2 m` before it, which the sources not yet
+    // taken may still read.
+    let ring_rows = BLOCK_ROWS + 2 * m;
+    let mut support = vec![0.0f32; k * ring_rows * w];
+    let mut sources = Sources::default();
+    // Paper rows beyond `ya..yb` go to these, and are not kept.
+    let spare = BLOCK_ROWS.min(q1 - q0) * w;
+    let mut spare_layers = [(); 3].map(|_| vec![[0.0f32; 3]; spare]);
+    let mut spare_spp = vec![0u64; spare];
+    let mut paper = Rows::new(kernel, consts, w);
+    let mut sats: Vec<SatRing<T>> = (0..k).map(|_| SatRing::new(w, m)).collect();
+    let mut give_back = GiveBack::new(w, h, grid, ys, m);
+    let (mut next_source, mut next_give) = (q0, ya);
+    let mut y = q0;
+    while y < q1 {
+        // 1. The paper stage over a block of rows, all of `ya..yb` or none.
+        let mut end = (y + BLOCK_ROWS).min(q1);
+        if y < ya {
+            end = end.min(ya);
+        } else if y < yb {
+            end = end.min(yb);
+        }
+        {
+            let (outputs, y0) = if (ya..yb).contains(&y) {
+                (out.reborrow(), ya)
+            } else {
+                let n = (end - y) * w;
+                let [sf, sm, sr] = &mut spare_layers;
+                let spare = Outputs {
+                    reweighted: &mut sf[..n],
+                    mean: &mut sm[..n],
+                    removed: &mut sr[..n],
+                    spp: &mut spare_spp[..n],
+                };
+                (spare, y)
+            };
+            let mut part = Part {
+                y0,
+                reweighted: outputs.reweighted,
+                mean: outputs.mean,
+                removed: outputs.removed,
+                spp: outputs.spp,
+                support: support.chunks_mut(ring_rows * w).collect(),
+                support_rows: ring_rows,
+                sources: std::mem::take(&mut sources.lists),
+                column: 0,
+            };
+            paper.run(rows, &mut part, y..end);
+            sources.lists = part.sources;
+        }
+        sources
+            .taken
+            .resize_with(sources.lists.len(), || vec![0; k]);
+        y = end;
+        // 2. In turn, as each becomes possible: the rows no source still to come can reach
+        // are given back, then the next row of sources whose windows' support is complete is
+        // taken, band by band (giving back first keeps the difference array's ring to the rows
+        // one row of sources adds to).
+        loop {
+            while next_give < yb && (next_give + m < next_source || next_source >= s1) {
+                let at = (next_give - ya) * w;
+                let (f, r) = (&mut out.reweighted[at..][..w], &mut out.removed[at..][..w]);
+                give_back.give(next_give, f, r);
+                next_give += 1;
+            }
+            if next_source >= s1 || (next_source + m + 1).min(h) > end {
+                break;
+            }
+            let ys = next_source;
+            next_source += 1;
+            for (j, sat) in sats.iter_mut().enumerate() {
+                let plane = &support[j * ring_rows * w..][..ring_rows * w];
+                let mut summed = false;
+                for c in 0..sources.lists.len() {
+                    let row = sources.take_row(c, j, ys);
+                    if row.is_empty() || ys < s0 {
                         continue;
-                    };
-                    // Every pixel of the window (clamped to the frame) gets an equal share.
-                    let share = shares[(x1 - x0) * (y1 - y0)];
-                    let v = source.removed.map(|c| c as f64 * share);
-                    // Added at its top row and again at every tile row boundary it crosses,
-                    // taken off below its bottom row unless a tile boundary restarts the sums
-                    // there ([`Grid`]); only this thread's rows.
-                    let mut add = |y: usize, v: [f64; 3]| {
-                        if (ya..yb).contains(&y) {
-                            let slot = y % slots;
-                            add_row(&mut diff[slot * w..][..w], grid, x0, x1, v);
-                            touched[slot] = true;
-                        }
-                    };
-                    add(y0, v);
-                    let mut restart = grid.next_y(y0);
-                    while restart < y1 {
-                        add(restart, v);
-                        restart = grid.next_y(restart);
                     }
-                    if y1 < h && !grid.row_starts_tile(y1) {
-                        add(y1, v.map(|c| -c));
+                    // The table rows this row's windows read.
+                    let (from, to) = (ys.saturating_sub(m), (ys + m + 1).min(h));
+                    if !summed && !sat.reach(plane, ring_rows, w, from, to) {
+                        return false;
+                    }
+                    summed = true;
+                    for source in row {
+                        if let Some(window) = window(sat, w, h, radii.clone(), least, source) {
+                            give_back.add(window, source.removed);
+                        }
                     }
                 }
             }
         }
-        // No source below `ys` reaches row `ys - m`.
-        while next < yb && next + m <= ys {
-            let slot = next % slots;
-            give_back(next, &mut diff[slot * w..][..w], &mut touched[slot]);
-            next += 1;
-        }
+        sources.drop_taken();
     }
-    while next < yb {
-        let slot = next % slots;
-        give_back(next, &mut diff[slot * w..][..w], &mut touched[slot]);
-        next += 1;
-    }
+    debug_assert!(next_give == yb, "every row given back");
+    true
 }
 
 #[cfg(test)]

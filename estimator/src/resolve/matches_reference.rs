@@ -337,8 +337,7 @@ proptest! {
         } else {
             splatted_state(seed, width, height, layout)
         };
-        // Also into one buffer reused by every resolve (its working memory holds the last
-        // one's lists).
+        // Also into one buffer reused by every resolve (holding the last one's layers).
         let mut reused = Resolved::default();
         for p in spread_params() {
             let expected = bits(&reference::resolve_bands(&[&state], &p, 1).expect("frame"));
@@ -352,5 +351,50 @@ proptest! {
                 prop_assert!(bits(&reused) == expected, "reused, {p:?}");
             }
         }
+    }
+}
+
+/// Support sums past `u64`: a source at the centre of a 17x17 frame whose support reaches
+/// `support` only in the widest window, which holds a ring of 64 pixels of `2^32` samples each
+/// (`2^64` units of support; not solid with this `kappa`). Summed in `u64` the window's support
+/// wraps below `support` and the energy would stay removed; the stage sums such a frame in
+/// `u128`, as the reference always does.
+#[test]
+fn support_sums_past_u64_give_back_the_reference_bits() {
+    let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
+    let (w, h, centre) = (17u32, 17u32, 8u32);
+    let mut state = FrameState::new(w, h, layout.clone());
+    for y in 0..h {
+        for x in 0..w {
+            if x.abs_diff(centre).max(y.abs_diff(centre)) < 8 {
+                state.splat(x, y, [0.01; 3]).unwrap();
+            }
+        }
+    }
+    let len = cell_len(layout.cascades());
+    let mut cells = state.cells().to_vec();
+    for (i, cell) in cells.chunks_exact_mut(len).enumerate() {
+        let (x, y) = (i as u32 % w, i as u32 / w);
+        if x.abs_diff(centre).max(y.abs_diff(centre)) == 8 {
+            // Samples of value 0 in cascade 0: support, no energy.
+            cell[3] = MAX_PIXEL_SAMPLES * COUNT_ONE;
+        }
+    }
+    let state = FrameState::from_cells(w, h, 0..h, layout, cells).expect("valid cells");
+    let spread = crate::SpreadParams::new(1e6, 0.0, 8).expect("valid");
+    let p = ResolveParams::new(Variant::Spread, 1e6, 1.0, 0.9)
+        .expect("valid")
+        .with_spread(spread);
+    let expected = reference::resolve_bands(&[&state], &p, 1).expect("frame");
+    let paper = reference::resolve_bands(&[&state], &p.with_variant(Variant::Paper), 1).unwrap();
+    let at = (centre * w + centre) as usize;
+    assert!(
+        expected.reweighted[at][0] > paper.reweighted[at][0],
+        "the widest window gives the centre's energy back"
+    );
+    for threads in [1, 2] {
+        let mut out = Resolved::default();
+        resolve_bands_with(Kernel::detect(), &[&state], &p, threads, &mut out).expect("frame");
+        assert!(bits(&out) == bits(&expected), "{threads} threads");
     }
 }

@@ -82,7 +82,7 @@ const SHADER: u8 = 1;
 const OFF: u8 = 2;
 
 /// What the row loop needs of the layout and the parameters, padded to [`MAX_CASCADES`].
-pub(super) struct Consts {
+pub(crate) struct Consts {
     k: usize,
     luminance: [f64; 3],
     unit_value: [f64; K_MAX],
@@ -93,6 +93,7 @@ pub(super) struct Consts {
     kappa_exponent: f64,
     base: f64,
     solid_share: f64,
+    edge_share: Option<f64>,
     /// `kappa * N^kappa_exponent` for `N < KAP_TABLE` (`N.powf` is most of a row's arithmetic
     /// otherwise; the table holds the same bits).
     kap_table: Vec<f64>,
@@ -102,7 +103,7 @@ pub(super) struct Consts {
 const KAP_TABLE: usize = 1024;
 
 impl Consts {
-    pub(super) fn new(layout: &CascadeLayout, params: &ResolveParams) -> Self {
+    pub(crate) fn new(layout: &CascadeLayout, params: &ResolveParams) -> Self {
         let k = layout.cascades();
         let mut c = Consts {
             k,
@@ -115,6 +116,7 @@ impl Consts {
             kappa_exponent: params.kappa_exponent,
             base: layout.base(),
             solid_share: params.spread().solid_share(),
+            edge_share: params.spread().edge_share(),
             kap_table: Vec::new(),
         };
         if c.kappa_exponent != 0.0 {
@@ -131,19 +133,21 @@ impl Consts {
 }
 
 /// The rows `y0..` of the output that one [`Rows`] fills.
-pub(super) struct Part<'o> {
-    pub(super) y0: usize,
-    pub(super) reweighted: &'o mut [[f32; 3]],
-    pub(super) mean: &'o mut [[f32; 3]],
-    pub(super) removed: &'o mut [[f32; 3]],
-    pub(super) spp: &'o mut [u64],
-    /// For the spread stage, per band: each pixel's support word, or empty.
-    pub(super) support: Vec<&'o mut [f32]>,
+pub(crate) struct Part<'o> {
+    pub(crate) y0: usize,
+    pub(crate) reweighted: &'o mut [[f32; 3]],
+    pub(crate) mean: &'o mut [[f32; 3]],
+    pub(crate) removed: &'o mut [[f32; 3]],
+    pub(crate) spp: &'o mut [u64],
+    /// For the spread stage, per band: a ring of `support_rows` rows of support words (row `y`
+    /// at `y % support_rows`), or empty.
+    pub(crate) support: Vec<&'o mut [f32]>,
+    pub(crate) support_rows: usize,
     /// For the spread stage, per column of strips and band: the pixels where energy was
-    /// removed (row-major within the column; lists emptied and filled by [`Rows::run`]).
-    pub(super) sources: Vec<Vec<Vec<Source>>>,
+    /// removed (row-major within the column; [`Rows::run`] adds each row's).
+    pub(crate) sources: Vec<Vec<Vec<Source>>>,
     /// The column being resolved.
-    pub(super) column: usize,
+    pub(crate) column: usize,
 }
 
 /// One row's support, strip by strip ([`STRIP`] pixels; the last one padded): for each strip,
@@ -158,17 +162,18 @@ struct Support {
 }
 
 /// Working memory of one thread of a resolve: a ring of three rows' support, indexed by row,
-/// and room for the cells of a strip at the frame's right edge.
-pub(super) struct Rows<'a> {
+/// of the column it holds, and room for the cells of a strip at the frame's right edge.
+pub(crate) struct Rows<'a> {
     kernel: Kernel,
     c: &'a Consts,
     width: usize,
     ring: [Support; 3],
+    column: usize,
     tail: Vec<u64>,
 }
 
 impl<'a> Rows<'a> {
-    pub(super) fn new(kernel: Kernel, c: &'a Consts, width: usize) -> Self {
+    pub(crate) fn new(kernel: Kernel, c: &'a Consts, width: usize) -> Self {
         let strips = width.div_ceil(STRIP);
         let row = || Support {
             y: usize::MAX,
@@ -180,6 +185,7 @@ impl<'a> Rows<'a> {
             c,
             width,
             ring: [row(), row(), row()],
+            column: usize::MAX,
             tail: vec![0; STRIP * cell_len(c.k)],
         }
     }
@@ -213,28 +219,30 @@ impl<'a> Rows<'a> {
         }
     }
 
-    /// Resolves the part's rows of the frame `rows` (every row of the frame, top to bottom), a
-    /// column of [`COLUMN_STRIPS`] strips at a time.
-    /// Returns the part's lists of sources (see [`Part::sources`]).
-    pub(super) fn run(mut self, rows: &[&[u64]], mut part: Part<'_>) -> Vec<Vec<Vec<Source>>> {
+    /// Resolves the rows `ys` of the frame `rows` (every row of the frame, top to bottom) into
+    /// `part` (which holds them), a column of [`COLUMN_STRIPS`] strips at a time; with the spread
+    /// stage's support rows it also adds the rows' sources to `part`'s lists.
+    pub(crate) fn run(&mut self, rows: &[&[u64]], part: &mut Part<'_>, ys: std::ops::Range<usize>) {
         let (k, w, h) = (self.c.k, self.width, rows.len());
         let len = cell_len(k);
-        let part_rows = part.spp.len() / w;
         let strips = w.div_ceil(STRIP);
         let bands = part.support.len();
         part.sources
             .resize_with(strips.div_ceil(COLUMN_STRIPS), Vec::new);
         for column in &mut part.sources {
             column.resize_with(bands, Vec::new);
-            column.iter_mut().for_each(Vec::clear);
         }
         for c0 in (0..strips).step_by(COLUMN_STRIPS) {
             part.column = c0 / COLUMN_STRIPS;
             let column = c0..(c0 + COLUMN_STRIPS).min(strips);
-            for slot in &mut self.ring {
-                slot.y = usize::MAX;
+            if self.column != part.column {
+                // The ring holds another column's rows.
+                for slot in &mut self.ring {
+                    slot.y = usize::MAX;
+                }
+                self.column = part.column;
             }
-            for y in part.y0..part.y0 + part_rows {
+            for y in ys.clone() {
                 let (up, down) = (y.saturating_sub(1), (y + 1).min(h - 1));
                 self.load(up, column.clone(), rows);
                 self.load(y, column.clone(), rows);
@@ -250,6 +258,11 @@ impl<'a> Rows<'a> {
                         pooled: [pooled(up), pooled(y), pooled(down)],
                         count: STRIP.min(w - x0),
                         first: (y - part.y0) * w + x0,
+                        support: if bands > 0 {
+                            (y % part.support_rows) * w + x0
+                        } else {
+                            0
+                        },
                         x0,
                         y,
                     };
@@ -258,14 +271,13 @@ impl<'a> Rows<'a> {
                         Kernel::Avx2 => {
                             assert!(self.kernel.available(), "AVX2 kernel on a CPU without AVX2");
                             // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
-                            unsafe { row_avx2(self.c, &row_at, &mut part) }
+                            unsafe { row_avx2(self.c, &row_at, part) }
                         }
-                        _ => row_any::<false>(self.c, &row_at, &mut part),
+                        _ => row_any::<false>(self.c, &row_at, part),
                     }
                 }
             }
         }
-        part.sources
     }
 }
 
@@ -414,6 +426,8 @@ struct RowAt<'r> {
     pooled: [&'r [f64]; 3],
     count: usize,
     first: usize,
+    /// Where its first pixel's support word goes in a band's ring of support rows.
+    support: usize,
     /// The frame's column of the first pixel, and its row.
     x0: usize,
     y: usize,
@@ -614,15 +628,21 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                     let word = support_word(own, own >= solid_from[x]);
                     words[x] = if n[x] != 0.0 { word } else { 0.0 };
                 }
-                part.support[j][at.first..at.first + at.count].copy_from_slice(&words[..at.count]);
+                part.support[j][at.support..at.support + at.count]
+                    .copy_from_slice(&words[..at.count]);
                 let sources = &mut part.sources[part.column][j];
                 for x in (0..at.count).filter(|_| any) {
                     let rgb = [removed[0][x], removed[1][x], removed[2][x]];
                     if n[x] != 0.0 && (rgb[0] != 0.0 || rgb[1] != 0.0 || rgb[2] != 0.0) {
+                        // The edge rule's test, on the support as its word holds it.
+                        let edge = c
+                            .edge_share
+                            .is_some_and(|share| (own[x] as f32) as f64 >= share * n[x]);
                         sources.push(Source {
                             x: (at.x0 + x) as u32,
                             y: at.y as u32,
                             removed: rgb,
+                            edge,
                         });
                     }
                 }

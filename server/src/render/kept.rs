@@ -17,9 +17,10 @@
 //! The buffers of a resolve no longer kept (its frame deleted, or pushed out by a fifth) are
 //! held as one *spare*, which the next frame resolved whole for the first time resolves into.
 //! A farm fetches each frame's final, deletes the frame and starts the next one of the same
-//! size: a first resolve into fresh buffers faults in some 500 MB of new pages at 1080p (the
-//! layers, the spread stage's support planes and lists), about a third of an `image.exr`'s
-//! time on a virtual machine whose host hands out freed memory lazily (`passbench`). So at
+//! size: a first resolve into fresh buffers faults in its layers' new pages (91 MB at 1080p;
+//! some 500 MB when the spread stage also kept its support planes and lists), about a third of
+//! an `image.exr`'s time on a virtual machine whose host hands out freed memory lazily
+//! (`passbench`, measured with the planes and lists). So at
 //! most `MAX_KEPT + 1` resolves are held, and the spare goes as soon as a frame takes it.
 //!
 //! With a kept resolve can go the frame's need map at the default tile size, made from the same
