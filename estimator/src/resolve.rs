@@ -31,7 +31,7 @@ mod region;
 pub(crate) mod rows;
 
 pub use region::{dependency_radius, resolve_region_into, resolve_region_with, Rect};
-use rows::{Consts, Part, Rows};
+use rows::{Consts, Layers, Part, Rows};
 
 /// Which weight formula to use.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -358,45 +358,26 @@ fn resolve_rows(
     let consts = &Consts::new(layout, params);
     if params.variant == Variant::Spread {
         let grid = Grid::at(origin);
-        resolve_spread(
-            kernel,
-            consts,
-            layout.cascades(),
-            rows,
-            params,
-            threads,
-            grid,
-            out,
-        );
+        resolve_spread(kernel, consts, rows, params, threads, grid, out);
         return;
     }
-    let threads = threads.clamp(1, h);
-    let chunk = h.div_ceil(threads) * w;
+    let part_rows = h.div_ceil(threads.clamp(1, h));
     std::thread::scope(|scope| {
-        let outputs = out
-            .reweighted
-            .chunks_mut(chunk)
-            .zip(out.mean.chunks_mut(chunk))
-            .zip(out.removed.chunks_mut(chunk))
-            .zip(out.spp.chunks_mut(chunk))
-            .enumerate();
-        let parts = pixels.div_ceil(chunk);
-        for (i, (((reweighted, mean), removed), spp)) in outputs {
-            let y0 = i * chunk / w;
-            let ys = y0..y0 + spp.len() / w;
+        let mut rest = Layers::of(out);
+        for y0 in (0..h).step_by(part_rows) {
+            let ys = y0..(y0 + part_rows).min(h);
+            let (layers, after) = rest.split_at(ys.len() * w);
+            rest = after;
             let mut part = Part {
                 y0,
-                reweighted,
-                mean,
-                removed,
-                spp,
+                out: layers,
                 support: Vec::new(),
                 support_rows: 0,
                 sources: Vec::new(),
                 column: 0,
             };
             let run = move || Rows::new(kernel, consts, w).run(rows, &mut part, ys);
-            if i + 1 == parts {
+            if y0 + part_rows >= h {
                 // The last part runs on this thread.
                 run();
             } else {

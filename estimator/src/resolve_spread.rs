@@ -33,7 +33,7 @@
 //!   again on its own (`resolve_region_into`; the derivation is in `resolve/region.rs`).
 
 use super::layout::{ParamError, COUNT_ONE};
-use super::resolve::rows::{Consts, Part, Rows};
+use super::resolve::rows::{Consts, Layers, Part, Rows};
 use super::resolve::{ResolveParams, Resolved};
 use super::state::Kernel;
 
@@ -297,7 +297,6 @@ const BLOCK_ROWS: usize = 16;
 pub(crate) fn resolve_spread(
     kernel: Kernel,
     consts: &Consts,
-    k: usize,
     rows: &[&[u64]],
     params: &ResolveParams,
     threads: usize,
@@ -316,27 +315,14 @@ pub(crate) fn resolve_spread(
     let frame = Frame {
         kernel,
         consts,
-        k,
         rows,
         w,
         h,
         grid,
         params,
     };
-    let Resolved {
-        reweighted,
-        mean,
-        removed,
-        spp,
-        ..
-    } = out;
     std::thread::scope(|scope| {
-        let mut rest = Outputs {
-            reweighted,
-            mean,
-            removed,
-            spp,
-        };
+        let mut rest = Layers::of(out);
         let mut strips = Vec::new();
         for c in cuts.windows(2).filter(|c| c[0] < c[1]) {
             let (strip, after) = rest.split_at((c[1] - c[0]) * w);
@@ -344,7 +330,7 @@ pub(crate) fn resolve_spread(
             strips.push((c[0]..c[1], strip));
         }
         let frame = &frame;
-        let run = move |(rows, mut out): (std::ops::Range<usize>, Outputs<'_>)| {
+        let run = move |(rows, mut out): (std::ops::Range<usize>, Layers<'_>)| {
             // Support sums in `u64` unless a pixel's support could overflow a box of them (see
             // `SatRing`); then the strip is resolved again, summing in `u128`.
             if !stream::<u64>(frame, rows.clone(), &mut out) {
@@ -365,53 +351,11 @@ pub(crate) fn resolve_spread(
 struct Frame<'s> {
     kernel: Kernel,
     consts: &'s Consts,
-    k: usize,
     rows: &'s [&'s [u64]],
     w: usize,
     h: usize,
     grid: Grid,
     params: &'s ResolveParams,
-}
-
-/// Some rows of a resolve's layers.
-struct Outputs<'o> {
-    reweighted: &'o mut [[f32; 3]],
-    mean: &'o mut [[f32; 3]],
-    removed: &'o mut [[f32; 3]],
-    spp: &'o mut [u64],
-}
-
-impl<'o> Outputs<'o> {
-    /// The first `at` pixels and the rest.
-    fn split_at(self, at: usize) -> (Self, Self) {
-        let (reweighted, r) = self.reweighted.split_at_mut(at);
-        let (mean, m) = self.mean.split_at_mut(at);
-        let (removed, d) = self.removed.split_at_mut(at);
-        let (spp, s) = self.spp.split_at_mut(at);
-        let first = Outputs {
-            reweighted,
-            mean,
-            removed,
-            spp,
-        };
-        let rest = Outputs {
-            reweighted: r,
-            mean: m,
-            removed: d,
-            spp: s,
-        };
-        (first, rest)
-    }
-
-    /// The same rows, borrowed.
-    fn reborrow(&mut self) -> Outputs<'_> {
-        Outputs {
-            reweighted: self.reweighted,
-            mean: self.mean,
-            removed: self.removed,
-            spp: self.spp,
-        }
-    }
 }
 
 /// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
@@ -828,11 +772,10 @@ impl GiveBack {
 /// Both stages for the rows `ys` of the frame (whole tile rows), whose layers `out` holds (see
 /// [`resolve_spread`]). Returns `false`, with `out` half done, if a pixel's support is too
 /// large for box sums in `T`.
-fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Outputs) -> bool {
+fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers) -> bool {
     let Frame {
         kernel,
         consts,
-        k,
         rows,
         w,
         h,
@@ -847,6 +790,7 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Outputs
     let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= m);
     // `n >= support` for a box of `n` units is `n >= least` (`None`: never).
     let least = least_units(support).and_then(T::fit);
+    let k = consts.cascades();
     let (ya, yb) = (ys.start, ys.end);
     // A window reaches at most `m` rows up and `m + 1` down (its difference array's row below
     // it): the sources of rows `s0..s1` are those that reach `ya..yb`, and their windows read
@@ -876,12 +820,12 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Outputs
             end = end.min(yb);
         }
         {
-            let (outputs, y0) = if (ya..yb).contains(&y) {
+            let (layers, y0) = if (ya..yb).contains(&y) {
                 (out.reborrow(), ya)
             } else {
                 let n = (end - y) * w;
                 let [sf, sm, sr] = &mut spare_layers;
-                let spare = Outputs {
+                let spare = Layers {
                     reweighted: &mut sf[..n],
                     mean: &mut sm[..n],
                     removed: &mut sr[..n],
@@ -891,10 +835,7 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Outputs
             };
             let mut part = Part {
                 y0,
-                reweighted: outputs.reweighted,
-                mean: outputs.mean,
-                removed: outputs.removed,
-                spp: outputs.spp,
+                out: layers,
                 support: support.chunks_mut(ring_rows * w).collect(),
                 support_rows: ring_rows,
                 sources: std::mem::take(&mut sources.lists),

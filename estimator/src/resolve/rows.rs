@@ -103,6 +103,11 @@ pub(crate) struct Consts {
 const KAP_TABLE: usize = 1024;
 
 impl Consts {
+    /// The layout's cascades.
+    pub(crate) fn cascades(&self) -> usize {
+        self.k
+    }
+
     pub(crate) fn new(layout: &CascadeLayout, params: &ResolveParams) -> Self {
         let k = layout.cascades();
         let mut c = Consts {
@@ -132,13 +137,61 @@ impl Consts {
     }
 }
 
-/// The rows `y0..` of the output that one [`Rows`] fills.
-pub(crate) struct Part<'o> {
-    pub(crate) y0: usize,
+/// Some rows of a resolve's layers.
+pub(crate) struct Layers<'o> {
     pub(crate) reweighted: &'o mut [[f32; 3]],
     pub(crate) mean: &'o mut [[f32; 3]],
     pub(crate) removed: &'o mut [[f32; 3]],
     pub(crate) spp: &'o mut [u64],
+}
+
+impl<'o> Layers<'o> {
+    /// A resolve's layers.
+    pub(crate) fn of(out: &'o mut super::Resolved) -> Self {
+        Layers {
+            reweighted: &mut out.reweighted,
+            mean: &mut out.mean,
+            removed: &mut out.removed,
+            spp: &mut out.spp,
+        }
+    }
+
+    /// The first `at` pixels and the rest.
+    pub(crate) fn split_at(self, at: usize) -> (Self, Self) {
+        let (reweighted, r) = self.reweighted.split_at_mut(at);
+        let (mean, m) = self.mean.split_at_mut(at);
+        let (removed, d) = self.removed.split_at_mut(at);
+        let (spp, s) = self.spp.split_at_mut(at);
+        let first = Layers {
+            reweighted,
+            mean,
+            removed,
+            spp,
+        };
+        let rest = Layers {
+            reweighted: r,
+            mean: m,
+            removed: d,
+            spp: s,
+        };
+        (first, rest)
+    }
+
+    /// The same rows, borrowed.
+    pub(crate) fn reborrow(&mut self) -> Layers<'_> {
+        Layers {
+            reweighted: self.reweighted,
+            mean: self.mean,
+            removed: self.removed,
+            spp: self.spp,
+        }
+    }
+}
+
+/// The rows `y0..` of the output that one [`Rows`] fills.
+pub(crate) struct Part<'o> {
+    pub(crate) y0: usize,
+    pub(crate) out: Layers<'o>,
     /// For the spread stage, per band: a ring of `support_rows` rows of support words (row `y`
     /// at `y % support_rows`), or empty.
     pub(crate) support: Vec<&'o mut [f32]>,
@@ -652,10 +705,10 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
         for x in 0..at.count {
             if n[x] == 0.0 {
                 // No samples: nothing to show (the outputs may hold an earlier resolve).
-                part.reweighted[i + x] = [0.0; 3];
-                part.mean[i + x] = [0.0; 3];
-                part.removed[i + x] = [0.0; 3];
-                part.spp[i + x] = 0;
+                part.out.reweighted[i + x] = [0.0; 3];
+                part.out.mean[i + x] = [0.0; 3];
+                part.out.removed[i + x] = [0.0; 3];
+                part.out.spp[i + x] = 0;
                 continue;
             }
             let inv = inv_n[x];
@@ -666,10 +719,10 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                     (v[2][x] * inv) as f32,
                 ]
             };
-            part.reweighted[i + x] = px(&f);
-            part.mean[i + x] = px(&total);
-            part.removed[i + x] = px(&removed);
-            part.spp[i + x] = n[x] as u64;
+            part.out.reweighted[i + x] = px(&f);
+            part.out.mean[i + x] = px(&total);
+            part.out.removed[i + x] = px(&removed);
+            part.out.spp[i + x] = n[x] as u64;
         }
     }
 }
