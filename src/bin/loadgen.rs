@@ -17,8 +17,8 @@
 //! uncompressed RGB float EXR per pass (`POST .../passes`). The in-process reference is what the
 //! server does with the decoded samples: `splat_records` of each batch, `splat_row` of each row
 //! of a pass, on one thread, into a fresh state on huge pages like a new frame's, run before
-//! each HTTP run (in-process and HTTP alternate,
-//! `--rounds` times, so that the machine's load weighs on both; the best of each is compared).
+//! each HTTP run (in-process and HTTP alternate, `--rounds` times, so that the machine's load
+//! weighs on both; the best of each is compared).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;

@@ -175,15 +175,8 @@ impl ShardedFrame {
     fn own<'a>(&self, band: &'a mut Arc<FrameState>) -> &'a mut FrameState {
         if Arc::get_mut(band).is_none() {
             if let Some(pool) = &self.pool {
-                let len = band.cells().len();
-                let mut cells = pool.take(len);
-                if cells.capacity() < len {
-                    // None idle: fresh memory, on huge pages before the copy first touches it
-                    // (on 4 KiB pages the copy of a 1080p frame takes 100 000 page faults).
-                    cells = Vec::with_capacity(len);
-                    crate::memory::advise_or_log(cells.spare_capacity_mut());
-                }
-                *band = Arc::new(band.clone_in(cells));
+                let copy = band.clone_in(pool.take_for_copy(band.cells().len()));
+                *band = Arc::new(copy);
             }
         }
         Arc::make_mut(band)
