@@ -79,6 +79,30 @@ impl<T> HeadGate<T> {
 }
 
 impl<T: AsyncRead + Unpin> HeadGate<T> {
+    /// Reads at most `limit` bytes of the socket straight into `out`, returning how many (0 at
+    /// end of stream, or if `out` is full).
+    fn read_into(
+        &mut self,
+        cx: &mut Context<'_>,
+        out: &mut ReadBuf<'_>,
+        limit: usize,
+    ) -> Poll<io::Result<usize>> {
+        let mut part = out.take(limit);
+        let start = part.filled().as_ptr();
+        ready!(Pin::new(&mut self.io).poll_read(cx, &mut part))?;
+        assert_eq!(
+            part.filled().as_ptr(),
+            start,
+            "the reader kept to its buffer"
+        );
+        let n = part.filled().len();
+        // SAFETY: `part` is `out`'s unfilled memory, and the reader filled its first `n`
+        // bytes (a `ReadBuf`'s filled bytes are initialized).
+        unsafe { out.assume_init(n) };
+        out.advance(n);
+        Poll::Ready(Ok(n))
+    }
+
     /// Reads more of the socket into the buffer: `Ok(false)` at end of stream.
     fn fill(&mut self, cx: &mut Context<'_>) -> Poll<io::Result<bool>> {
         let mut chunk = [0u8; 16 * 1024];
@@ -130,10 +154,18 @@ impl<T: AsyncRead + Unpin> AsyncRead for HeadGate<T> {
                     return Poll::Ready(Ok(()));
                 }
                 Mode::Body { left } => {
-                    if this.buf.is_empty() && !ready!(this.fill(cx))? {
-                        return Poll::Ready(Ok(()));
-                    }
-                    let n = this.hand_over(out, left.min(usize::MAX as u64) as usize) as u64;
+                    let limit = left.min(usize::MAX as u64) as usize;
+                    let n = if this.buf.is_empty() {
+                        // Straight from the socket into hyper's buffer, never past this body:
+                        // a large body (a state, a pass) is not copied here on its way.
+                        let n = ready!(this.read_into(cx, out, limit))?;
+                        if n == 0 {
+                            return Poll::Ready(Ok(()));
+                        }
+                        n as u64
+                    } else {
+                        this.hand_over(out, limit) as u64
+                    };
                     this.mode = if n == left {
                         this.arm(this.deadlines.idle);
                         Mode::Head { started: false }
@@ -232,5 +264,92 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for HeadGate<T> {
 
     fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         Pin::new(&mut self.get_mut().io).poll_shutdown(cx)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::transport::Connections;
+
+    /// A socket that hands out `bytes` in pieces of varying size, as a network does.
+    struct Trickle {
+        bytes: Vec<u8>,
+        at: usize,
+        piece: usize,
+    }
+
+    impl AsyncRead for Trickle {
+        fn poll_read(
+            self: Pin<&mut Self>,
+            _: &mut Context<'_>,
+            out: &mut ReadBuf<'_>,
+        ) -> Poll<io::Result<()>> {
+            let this = self.get_mut();
+            this.piece = this.piece * 7 % 9973 + 1;
+            let n = this
+                .piece
+                .min(out.remaining())
+                .min(this.bytes.len() - this.at);
+            out.put_slice(&this.bytes[this.at..this.at + n]);
+            this.at += n;
+            Poll::Ready(Ok(()))
+        }
+    }
+
+    /// What hyper is handed through the gate, read into buffers of `room` bytes, until the gate
+    /// holds (a refused head) or the stream ends.
+    fn through_gate(bytes: Vec<u8>, room: usize) -> Vec<u8> {
+        let connections = Arc::new(Connections::new(4));
+        let registered = connections.admit().expect("room for one");
+        let long = Duration::from_secs(3600);
+        let deadlines = Deadlines {
+            head: long,
+            idle: long,
+            response: long,
+        };
+        let socket = Trickle {
+            bytes,
+            at: 0,
+            piece: 1,
+        };
+        let mut gate = HeadGate::new(socket, registered.conn().clone(), deadlines);
+        let mut cx = Context::from_waker(std::task::Waker::noop());
+        let mut seen = Vec::new();
+        let mut buf = vec![0u8; room];
+        loop {
+            let mut out = ReadBuf::new(&mut buf);
+            match Pin::new(&mut gate).poll_read(&mut cx, &mut out) {
+                Poll::Ready(Ok(())) if out.filled().is_empty() => return seen,
+                Poll::Ready(Ok(())) => seen.extend_from_slice(out.filled()),
+                Poll::Ready(Err(e)) => panic!("{e}"),
+                Poll::Pending => return seen,
+            }
+        }
+    }
+
+    /// A body is handed over byte for byte (straight from the socket where nothing of it was
+    /// buffered with its head), and never a byte past it: the next head is checked, so one
+    /// that breaks the rules is answered by the stand-in, whatever the pieces and the room.
+    #[tokio::test]
+    async fn a_body_passes_whole_and_the_head_after_it_is_still_checked() {
+        let body: Vec<u8> = (0..300_000u32).map(|i| (i * 31 % 251) as u8).collect();
+        let first = format!(
+            "POST /v1/frames/f/state HTTP/1.1\r\nhost: x\r\ncontent-length: {}\r\n\r\n",
+            body.len()
+        );
+        let second = b"GET /v1/frames HTTP/1.1\r\nhost: x\r\n\r\n";
+        let third = b"GET / HTTP/1.1\r\nbad header\r\n\r\n";
+        let mut sent = first.clone().into_bytes();
+        sent.extend_from_slice(&body);
+        sent.extend_from_slice(second);
+        let mut expected = sent.clone();
+        sent.extend_from_slice(third);
+        sent.extend_from_slice(b"GET /smuggled HTTP/1.1\r\n\r\n");
+        expected.extend_from_slice(STAND_IN);
+        for room in [1, 7, 4096, 65_536, 1 << 20] {
+            let seen = through_gate(sent.clone(), room);
+            assert!(seen == expected, "room {room}: {} bytes", seen.len());
+        }
     }
 }
