@@ -340,7 +340,7 @@ mod tests {
         );
         let second = b"GET /v1/frames HTTP/1.1\r\nhost: x\r\n\r\n";
         let third = b"GET / HTTP/1.1\r\nbad header\r\n\r\n";
-        let mut sent = first.clone().into_bytes();
+        let mut sent = first.into_bytes();
         sent.extend_from_slice(&body);
         sent.extend_from_slice(second);
         let mut expected = sent.clone();
