@@ -358,7 +358,7 @@ struct Frame<'s> {
     params: &'s ResolveParams,
 }
 
-/// A summed-area table of one band's `[support, solid pixels]`, kept as a ring of the rows that
+/// A summed-area table of one band's support and solid pixels, kept as a ring of the rows that
 /// the widest window around the current source row spans: row `i` (the sums over rows
 /// `start..i`, plus whatever row `start`'s slot held: a box's sums are differences of the
 /// table's and take it off) in slot `i & mask` (the ring's length a power of two), column 0
@@ -369,39 +369,47 @@ struct Frame<'s> {
 /// first written) rounds once its sums pass `2^(53 - FRAC_BITS) = 2^27` samples (a 1080p frame
 /// at 64 spp), and a box's sum then depended on the rest of the frame (a window of exactly 64
 /// samples could fail a support of 64). The exact box sum rounded once to `f64` is what the
-/// `f64` table gave wherever that was exact. The sums wrap (`T`, [`Units`]): a box's sum is
-/// exact if it fits in `T`, so `u64` serves frames whose pixels hold fewer than `2^27` samples
-/// each (a 33x33 box of them is below `2^64` units), `u128` any frame; either gives the same
-/// box sums, so the choice (per resolve) changes no bit.
+/// `f64` table gave wherever that was exact.
+///
+/// Each entry packs both sums into one integer ([`Packed`]), `units << SOLID_BITS | solid`, and
+/// the sums wrap: packing is linear, so a box's packed sum is the packing of its two sums
+/// whenever they fit their fields (a box holds at most `MAX_AREA < 2^SOLID_BITS` pixels, so
+/// its solid count always does), and one load per corner reads both (two arrays, as first
+/// written, took two loads and often two cache lines per corner, and 12 bytes per entry).
+/// `u64` entries serve frames whose pixels hold up to about 120 000 samples each
+/// ([`Packed::holds`]), `u128` any frame; either gives the same box sums, so the choice (per
+/// resolve) changes no bit.
 struct SatRing<T> {
     mask: usize,
     stride: usize,
     /// Table rows computed so far (`start ..= built`).
     built: usize,
-    n: Vec<T>,
-    /// Solid pixels, wrapping: a box holds at most `MAX_AREA` pixels, so its count is exact.
-    solid: Vec<u32>,
+    cells: Vec<T>,
 }
 
-/// Supports below this (samples, in each pixel) let [`SatRing`] sum in `u64`: `2^53` units,
-/// and a box holds fewer than `2^11` pixels.
-const NARROW_SUPPORT: f32 = (1u64 << 27) as f32;
+/// Low bits of a [`SatRing`] entry that count solid pixels: a box holds at most `MAX_AREA`.
+const SOLID_BITS: u32 = 11;
+const _: () = assert!(MAX_AREA < 1 << SOLID_BITS);
 
-/// The integers [`SatRing`] sums support in (wrapping).
-trait Units: Copy + Default + Ord {
+/// The integers [`SatRing`] packs a band's support and solid pixels in (wrapping).
+trait Packed: Copy + Default + Ord {
+    /// A support word's entry: its support in units, and 1 if the band is solid there.
     fn of(word: f32) -> Self;
     fn add(self, other: Self) -> Self;
     fn sub(self, other: Self) -> Self;
-    /// `units` in this type, if it fits.
+    /// The solid pixels of a box's entry.
+    fn solid(self) -> u32;
+    /// The entry of `units` of support and no solid pixel, if the units fit: a box's entry
+    /// reaches it exactly where its support does (the solid count is below `2^SOLID_BITS`).
     fn fit(units: u128) -> Option<Self>;
-    /// Whether every box of pixels whose support is at most `support` sums exactly.
-    fn holds(support: f32) -> bool;
+    /// Whether every box of pixels whose support is at most `peak`'s sums exactly.
+    fn holds(peak: f32) -> bool;
 }
 
-impl Units for u64 {
+impl Packed for u64 {
     #[inline(always)]
     fn of(word: f32) -> Self {
-        support_units(word) as u64
+        (support_units(word) as u64) << SOLID_BITS | (word.to_bits() >> 31) as u64
     }
     #[inline(always)]
     fn add(self, other: Self) -> Self {
@@ -411,19 +419,22 @@ impl Units for u64 {
     fn sub(self, other: Self) -> Self {
         self.wrapping_sub(other)
     }
-    fn fit(units: u128) -> Option<Self> {
-        units.try_into().ok()
-    }
     #[inline(always)]
-    fn holds(support: f32) -> bool {
-        support < NARROW_SUPPORT
+    fn solid(self) -> u32 {
+        (self & ((1 << SOLID_BITS) - 1)) as u32
+    }
+    fn fit(units: u128) -> Option<Self> {
+        (units < 1 << (64 - SOLID_BITS)).then_some((units as u64) << SOLID_BITS)
+    }
+    fn holds(peak: f32) -> bool {
+        support_units(peak) * (MAX_AREA as u128) < 1 << (64 - SOLID_BITS)
     }
 }
 
-impl Units for u128 {
+impl Packed for u128 {
     #[inline(always)]
     fn of(word: f32) -> Self {
-        support_units(word)
+        support_units(word) << SOLID_BITS | (word.to_bits() >> 31) as u128
     }
     #[inline(always)]
     fn add(self, other: Self) -> Self {
@@ -433,12 +444,16 @@ impl Units for u128 {
     fn sub(self, other: Self) -> Self {
         self.wrapping_sub(other)
     }
-    fn fit(units: u128) -> Option<Self> {
-        Some(units)
-    }
     #[inline(always)]
-    fn holds(_: f32) -> bool {
-        true
+    fn solid(self) -> u32 {
+        (self & ((1 << SOLID_BITS) - 1)) as u32
+    }
+    fn fit(units: u128) -> Option<Self> {
+        (units < 1 << (128 - SOLID_BITS)).then_some(units << SOLID_BITS)
+    }
+    fn holds(peak: f32) -> bool {
+        // At most 2^58 units a pixel and 2^11 pixels a box: far below 2^117.
+        support_units(peak) * (MAX_AREA as u128) < 1 << (128 - SOLID_BITS)
     }
 }
 
@@ -490,16 +505,15 @@ pub(crate) fn units_to_samples(units: u128) -> f64 {
     n * (1.0 / COUNT_ONE as f64)
 }
 
-impl<T: Units> SatRing<T> {
+impl<T: Packed> SatRing<T> {
     /// A table of no rows yet.
     fn new(w: usize, max_radius: usize) -> Self {
-        let rows = (2 * max_radius + 2).next_power_of_two();
+        let (mask, stride) = ring_shape(w, max_radius);
         Self {
-            mask: rows - 1,
-            stride: w + 1,
+            mask,
+            stride,
             built: 0,
-            n: vec![T::default(); rows * (w + 1)],
-            solid: vec![0; rows * (w + 1)],
+            cells: vec![T::default(); (mask + 1) * stride],
         }
     }
 
@@ -517,17 +531,13 @@ impl<T: Units> SatRing<T> {
             let y = self.built;
             let (above, here) = (y & self.mask, (y + 1) & self.mask);
             let cells = &plane[(y % ring_rows) * w..][..w];
-            let (n_above, n_here) = two_rows(&mut self.n, above, here, self.stride);
-            let (s_above, s_here) = two_rows(&mut self.solid, above, here, self.stride);
+            let (above, here) = two_rows(&mut self.cells, above, here, self.stride);
             let mut row = T::default();
-            let mut solid = 0u32;
             let mut peak = 0u32;
-            for (x, &word) in cells.iter().enumerate() {
+            for ((&word, above), here) in cells.iter().zip(&above[1..]).zip(&mut here[1..]) {
                 peak = peak.max(word.to_bits() & !SIGN);
                 row = row.add(T::of(word));
-                solid = solid.wrapping_add(word.to_bits() >> 31);
-                n_here[x + 1] = n_above[x + 1].add(row);
-                s_here[x + 1] = s_above[x + 1].wrapping_add(solid);
+                *here = above.add(row);
             }
             if !T::holds(f32::from_bits(peak)) {
                 return false;
@@ -537,24 +547,22 @@ impl<T: Units> SatRing<T> {
         true
     }
 
-    /// The box sums over columns `x0..x1` and rows `y0..y1` (table rows in the ring): support
-    /// in units, solid pixels.
+    /// The entry of the box over columns `x0..x1` between the table rows in ring slots
+    /// `r0 = (y0 & mask) * stride` and `r1` (see [`Rows::of`]).
     #[inline(always)]
-    fn boxed(&self, x0: usize, x1: usize, y0: usize, y1: usize) -> (T, u32) {
-        let (r0, r1) = (
-            (y0 & self.mask) * self.stride,
-            (y1 & self.mask) * self.stride,
-        );
-        let n = self.n[r1 + x1]
-            .sub(self.n[r0 + x1])
-            .sub(self.n[r1 + x0])
-            .add(self.n[r0 + x0]);
-        let solid = self.solid[r1 + x1]
-            .wrapping_sub(self.solid[r0 + x1])
-            .wrapping_sub(self.solid[r1 + x0])
-            .wrapping_add(self.solid[r0 + x0]);
-        (n, solid)
+    fn boxed(&self, x0: usize, x1: usize, r0: usize, r1: usize) -> T {
+        self.cells[r1 + x1]
+            .sub(self.cells[r0 + x1])
+            .sub(self.cells[r1 + x0])
+            .add(self.cells[r0 + x0])
     }
+}
+
+/// The shape of a [`SatRing`] of a frame `w` pixels wide for windows up to `max_radius`: the
+/// mask of its ring of rows (the `2 max_radius + 2` rows a row of sources reads, rounded up to a
+/// power of two) and its row length.
+fn ring_shape(w: usize, max_radius: usize) -> (usize, usize) {
+    ((2 * max_radius + 2).next_power_of_two() - 1, w + 1)
 }
 
 /// Rows `a` and `b` (different) of a table of rows `stride` long, the first shared.
@@ -603,37 +611,100 @@ impl Sources {
     }
 }
 
-/// The smallest supported window around `source` in a band (see the module docs), or `None`
-/// where its energy stays removed: columns `x0..x1` and rows `y0..y1`.
-#[inline(always)]
-fn window<T: Units>(
-    sat: &SatRing<T>,
-    w: usize,
+/// The windows tried around the sources of one row, as every band's [`SatRing`] reads them:
+/// per radius (smallest first), its rows clamped to the frame and where its first and last
+/// table rows sit in a ring. The same for every source of the row and every band, so they are
+/// worked out once a row.
+struct RowWindows {
+    radii: Vec<usize>,
+    /// Per radius: rows `y0..y1`.
+    rows: Vec<(usize, usize)>,
+    /// Per radius: ring offsets of table rows `y0` and `y1`.
+    offsets: Vec<(usize, usize)>,
     h: usize,
-    radii: impl Iterator<Item = usize>,
+    mask: usize,
+    stride: usize,
+}
+
+impl RowWindows {
+    /// The windows of a frame of `w` x `h` pixels, radii up to `max_radius`.
+    fn new(w: usize, h: usize, max_radius: usize) -> Self {
+        let (mask, stride) = ring_shape(w, max_radius);
+        let radii: Vec<usize> = SPREAD_RADII
+            .iter()
+            .copied()
+            .filter(|&r| r <= max_radius)
+            .collect();
+        Self {
+            rows: vec![(0, 0); radii.len()],
+            offsets: vec![(0, 0); radii.len()],
+            radii,
+            h,
+            mask,
+            stride,
+        }
+    }
+
+    /// Makes these the windows of row `y`'s sources.
+    fn at(&mut self, y: usize) {
+        for ((&r, rows), offsets) in self.radii.iter().zip(&mut self.rows).zip(&mut self.offsets) {
+            let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(self.h));
+            *rows = (y0, y1);
+            *offsets = (
+                (y0 & self.mask) * self.stride,
+                (y1 & self.mask) * self.stride,
+            );
+        }
+    }
+}
+
+/// The smallest supported window around `source` in a band (see the module docs), or `None`
+/// where its energy stays removed: columns `x0..x1` and rows `y0..y1`. `windows` are those of
+/// the source's row, `least` the entry a box's support must reach (`None`: never).
+#[inline(always)]
+fn window<T: Packed>(
+    sat: &SatRing<T>,
+    windows: &RowWindows,
+    w: usize,
     least: Option<T>,
     source: &Source,
 ) -> Option<(usize, usize, usize, usize)> {
-    let (x, y) = (source.x as usize, source.y as usize);
-    for (i, r) in radii.enumerate() {
+    let x = source.x as usize;
+    let tried = windows
+        .radii
+        .iter()
+        .zip(&windows.rows)
+        .zip(&windows.offsets);
+    for (i, ((&r, &(y0, y1)), &(r0, r1))) in tried.enumerate() {
         let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-        let (y0, y1) = (y.saturating_sub(r), (y + r + 1).min(h));
-        let (n, solid) = sat.boxed(x0, x1, y0, y1);
-        if solid > 0 {
+        let boxed = sat.boxed(x0, x1, r0, r1);
+        if boxed.solid() > 0 {
             // The band is solid in a pixel of the window: energy cut at the edge of a light
             // (module docs), given back in place right next to it if the band holds
             // `edge_share` of the pixel's samples (`Source::edge`), else left removed.
             if i == 0 && source.edge {
+                let y = source.y as usize;
                 return Some((x, x + 1, y, y + 1));
             }
             return None;
         }
-        if least.is_some_and(|least| n >= least) {
+        if least.is_some_and(|least| boxed >= least) {
             return Some((x0, x1, y0, y1));
         }
     }
     None
 }
+
+/// The columns of the difference array a window adds to, in each of its rows (see
+/// [`GiveBack::add`]).
+struct Columns {
+    first: usize,
+    inside: Option<usize>,
+    after: Option<usize>,
+}
+
+// A window crosses at most one tile boundary each way.
+const _: () = assert!(2 * SPREAD_RADII[SPREAD_RADII.len() - 1] < GIVE_BACK_TILE + 1);
 
 /// The give-back of some rows of a frame (whole tile rows): its 2D difference array, kept as a
 /// ring of the rows that the sources of one row add to, and the running column sums of the
@@ -643,8 +714,9 @@ struct GiveBack {
     h: usize,
     grid: Grid,
     rows: std::ops::Range<usize>,
-    /// Rows of the difference array a source of row `y` adds to: `y - m ..= y + m + 1`.
-    slots: usize,
+    /// Rows of the difference array kept, at least the `2 m + 2` a source of row `y` adds to
+    /// (`y - m ..= y + m + 1`), a power of two so that row `y`'s slot is `y & mask`.
+    mask: usize,
     diff: Vec<[f64; 3]>,
     touched: Vec<bool>,
     col: Vec<[f64; 3]>,
@@ -657,7 +729,7 @@ struct GiveBack {
 
 impl GiveBack {
     fn new(w: usize, h: usize, grid: Grid, rows: std::ops::Range<usize>, m: usize) -> Self {
-        let slots = 2 * m + 2;
+        let slots = (2 * m + 2).next_power_of_two();
         let mut segments = Vec::new();
         let mut s = 0;
         while s < w {
@@ -670,7 +742,7 @@ impl GiveBack {
             h,
             grid,
             rows,
-            slots,
+            mask: slots - 1,
             diff: vec![[0.0; 3]; slots * w],
             touched: vec![false; slots],
             col: vec![[0.0; 3]; w],
@@ -681,46 +753,55 @@ impl GiveBack {
     }
 
     /// Gives `removed` back uniformly over the window `x0..x1`, `y0..y1` (clamped to the frame):
-    /// added at its top row and again at every tile row boundary it crosses, taken off below
+    /// added at its top row and again at the tile row boundary it may cross, taken off below
     /// its bottom row unless a tile boundary restarts the sums there ([`Grid`]); in these rows
-    /// only.
+    /// only. (A window is at most [`GIVE_BACK_TILE`]` + 1` pixels wide and high, so it crosses
+    /// at most one boundary each way.)
     #[inline(always)]
     fn add(&mut self, (x0, x1, y0, y1): (usize, usize, usize, usize), removed: [f32; 3]) {
         let share = self.shares[(x1 - x0) * (y1 - y0)];
         let v = removed.map(|c| c as f64 * share);
-        self.add_row(y0, x0, x1, v);
-        let mut restart = self.grid.next_y(y0);
-        while restart < y1 {
-            self.add_row(restart, x0, x1, v);
-            restart = self.grid.next_y(restart);
+        let grid = self.grid;
+        // The same columns in every row: the window's first and the tile boundary inside it
+        // (added to), the one after its last (taken off from) unless a boundary restarts there.
+        let inside = grid.next_x(x0);
+        let columns = Columns {
+            first: x0,
+            inside: (inside < x1).then_some(inside),
+            after: (x1 < self.w && !grid.column_starts_tile(x1)).then_some(x1),
+        };
+        self.add_row(y0, &columns, v);
+        let restart = grid.next_y(y0);
+        if restart < y1 {
+            self.add_row(restart, &columns, v);
         }
-        if y1 < self.h && !self.grid.row_starts_tile(y1) {
-            self.add_row(y1, x0, x1, v.map(|c| -c));
+        if y1 < self.h && !grid.row_starts_tile(y1) {
+            self.add_row(y1, &columns, v.map(|c| -c));
         }
     }
 
-    /// Adds `v` over columns `x0..x1` to row `y` of the difference array: at `x0` and again at
-    /// every tile boundary inside, taken off after `x1 - 1` unless a tile boundary restarts the
-    /// sums there.
+    /// Adds `v` at `columns` of row `y` of the difference array (taken off at the column after
+    /// the window).
     #[inline(always)]
-    fn add_row(&mut self, y: usize, x0: usize, x1: usize, v: [f64; 3]) {
+    fn add_row(&mut self, y: usize, columns: &Columns, v: [f64; 3]) {
         if !self.rows.contains(&y) {
             return;
         }
-        let (w, grid) = (self.w, self.grid);
-        let slot = y % self.slots;
+        let slot = y & self.mask;
         self.touched[slot] = true;
-        let diff = &mut self.diff[slot * w..][..w];
-        let mut at = x0;
-        while at < x1 {
+        let diff = &mut self.diff[slot * self.w..][..self.w];
+        let add = |cell: &mut [f64; 3]| {
             for c in 0..3 {
-                diff[at][c] += v[c];
+                cell[c] += v[c];
             }
-            at = grid.next_x(at);
+        };
+        add(&mut diff[columns.first]);
+        if let Some(x) = columns.inside {
+            add(&mut diff[x]);
         }
-        if x1 < w && !grid.column_starts_tile(x1) {
+        if let Some(x) = columns.after {
             for c in 0..3 {
-                diff[x1][c] -= v[c];
+                diff[x][c] -= v[c];
             }
         }
     }
@@ -731,7 +812,7 @@ impl GiveBack {
     /// Adding an exact 0 changes nothing, so a row that got nothing, below a tile boundary or
     /// below rows that got nothing, is skipped.
     fn give(&mut self, y: usize, f: &mut [[f32; 3]], r: &mut [[f32; 3]]) {
-        let slot = y % self.slots;
+        let slot = y & self.mask;
         if self.grid.row_starts_tile(y) && !self.col_zero {
             // A new row of tiles: its sums start from nothing.
             self.col.fill([0.0; 3]);
@@ -772,7 +853,7 @@ impl GiveBack {
 /// Both stages for the rows `ys` of the frame (whole tile rows), whose layers `out` holds (see
 /// [`resolve_spread`]). Returns `false`, with `out` half done, if a pixel's support is too
 /// large for box sums in `T`.
-fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers) -> bool {
+fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers) -> bool {
     let Frame {
         kernel,
         consts,
@@ -787,8 +868,7 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers)
         max_radius: m,
         ..
     } = params.spread();
-    let radii = SPREAD_RADII.iter().copied().filter(|&r| r <= m);
-    // `n >= support` for a box of `n` units is `n >= least` (`None`: never).
+    // `n >= support` for a box of `n` units is `entry >= least` (`None`: never).
     let least = least_units(support).and_then(T::fit);
     let k = consts.cascades();
     let (ya, yb) = (ys.start, ys.end);
@@ -808,6 +888,7 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers)
     let mut spare_spp = vec![0u64; spare];
     let mut paper = Rows::new(kernel, consts, w);
     let mut sats: Vec<SatRing<T>> = (0..k).map(|_| SatRing::new(w, m)).collect();
+    let mut windows = RowWindows::new(w, h, m);
     let mut give_back = GiveBack::new(w, h, grid, ys, m);
     let (mut next_source, mut next_give) = (q0, ya);
     let mut y = q0;
@@ -864,6 +945,7 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers)
             }
             let ys = next_source;
             next_source += 1;
+            windows.at(ys);
             for (j, sat) in sats.iter_mut().enumerate() {
                 let plane = &support[j * ring_rows * w..][..ring_rows * w];
                 let mut summed = false;
@@ -879,7 +961,7 @@ fn stream<T: Units>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers)
                     }
                     summed = true;
                     for source in row {
-                        if let Some(window) = window(sat, w, h, radii.clone(), least, source) {
+                        if let Some(window) = window(sat, &windows, w, least, source) {
                             give_back.add(window, source.removed);
                         }
                     }

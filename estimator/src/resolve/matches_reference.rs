@@ -398,3 +398,53 @@ fn support_sums_past_u64_give_back_the_reference_bits() {
         assert!(bits(&out) == bits(&expected), "{threads} threads");
     }
 }
+
+/// Support sums near the top of what the spread stage's `u64` table entries hold (53 bits of
+/// support units beside 11 of solid pixels): 33x33 frames whose pixels hold 120 000 samples
+/// of a band with no energy (a full 33x33 box of them is `2^52.7` units), all of them or a ring
+/// at the widest window's edge, and past it (`2^17` samples: summed in `u128`), around a
+/// firefly at the centre that no `kappa` trusts. The same bits as the reference, which sums
+/// in `u128` always.
+#[test]
+fn support_sums_near_the_top_of_u64_entries_give_back_the_reference_bits() {
+    let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
+    let (w, h, centre) = (33u32, 33u32, 16u32);
+    let len = cell_len(layout.cascades());
+    let spread = crate::SpreadParams::new(1e6, 0.0, 16).expect("valid");
+    let p = ResolveParams::new(Variant::Spread, 1e6, 1.0, 0.9)
+        .expect("valid")
+        .with_spread(spread);
+    let ring = |x: u32, y: u32| x.abs_diff(centre).max(y.abs_diff(centre)) == 16;
+    // Per frame: its name, then the samples of a pixel on the ring and off it.
+    let frames = [
+        ("every pixel 120 000", 120_000, 120_000),
+        ("a ring of 120 000", 120_000, 1),
+        ("every pixel 2^17", 1 << 17, 1 << 17),
+    ];
+    for (name, on_ring, off_ring) in frames {
+        // The firefly: one sample of cascade 2 at the centre; every pixel's samples of value 0
+        // in cascade 3 (band 2's neighbour: its support).
+        let mut state = FrameState::new(w, h, layout.clone());
+        state.splat(centre, centre, [20.0; 3]).unwrap();
+        let mut cells = state.cells().to_vec();
+        for (i, cell) in cells.chunks_exact_mut(len).enumerate() {
+            let (x, y) = (i as u32 % w, i as u32 / w);
+            let samples: u64 = if ring(x, y) { on_ring } else { off_ring };
+            cell[4 * 3 + 3] += samples * COUNT_ONE;
+        }
+        let state = FrameState::from_cells(w, h, 0..h, layout.clone(), cells).expect("valid");
+        let expected = reference::resolve_bands(&[&state], &p, 1).expect("frame");
+        let paper =
+            reference::resolve_bands(&[&state], &p.with_variant(Variant::Paper), 1).expect("frame");
+        let at = (centre * w + centre) as usize;
+        assert!(
+            expected.reweighted[at][0] > paper.reweighted[at][0],
+            "{name}: a window gives the firefly's energy back"
+        );
+        for threads in [1, 2] {
+            let mut out = Resolved::default();
+            resolve_bands_with(Kernel::detect(), &[&state], &p, threads, &mut out).expect("frame");
+            assert!(bits(&out) == bits(&expected), "{name}, {threads} threads");
+        }
+    }
+}
