@@ -385,6 +385,9 @@ struct SatRing<T> {
     /// Table rows computed so far (`start ..= built`).
     built: usize,
     cells: Vec<T>,
+    /// Per support row summed (in slot `y & mask`), its largest support in units: a bound on
+    /// the support of any box over it, so the window search skips radii that cannot reach.
+    peaks: Vec<u64>,
 }
 
 /// Low bits of a [`SatRing`] entry that count solid pixels: a box holds at most `MAX_AREA`.
@@ -514,6 +517,7 @@ impl<T: Packed> SatRing<T> {
             stride,
             built: 0,
             cells: vec![T::default(); (mask + 1) * stride],
+            peaks: vec![0; mask + 1],
         }
     }
 
@@ -542,13 +546,15 @@ impl<T: Packed> SatRing<T> {
             if !T::holds(f32::from_bits(peak)) {
                 return false;
             }
+            // At most 2^58 units (a pixel's samples), so a `u64`.
+            self.peaks[y & self.mask] = support_units(f32::from_bits(peak)) as u64;
             self.built += 1;
         }
         true
     }
 
     /// The entry of the box over columns `x0..x1` between the table rows in ring slots
-    /// `r0 = (y0 & mask) * stride` and `r1` (see [`Rows::of`]).
+    /// `r0 = (y0 & mask) * stride` and `r1` (see [`RowWindows`]).
     #[inline(always)]
     fn boxed(&self, x0: usize, x1: usize, r0: usize, r1: usize) -> T {
         self.cells[r1 + x1]
@@ -563,6 +569,26 @@ impl<T: Packed> SatRing<T> {
 /// power of two) and its row length.
 fn ring_shape(w: usize, max_radius: usize) -> (usize, usize) {
     ((2 * max_radius + 2).next_power_of_two() - 1, w + 1)
+}
+
+impl<T> SatRing<T> {
+    /// The first of `windows` (by index) whose support may reach `least` units (`None`:
+    /// none may), judging by the rows' peaks: a box of `2 r + 1` columns holds at most that
+    /// many times each row's peak. Every smaller window holds less than `least`, whatever
+    /// its columns; summed rows must cover the windows' rows.
+    fn first_reachable(&self, windows: &RowWindows, least: Option<u128>) -> usize {
+        let Some(least) = least else {
+            return windows.radii.len();
+        };
+        let tried = windows.radii.iter().zip(&windows.rows);
+        for (i, (&r, &(y0, y1))) in tried.enumerate() {
+            let rows: u128 = (y0..y1).map(|y| self.peaks[y & self.mask] as u128).sum();
+            if (2 * r as u128 + 1) * rows >= least {
+                return i;
+            }
+        }
+        windows.radii.len()
+    }
 }
 
 /// Rows `a` and `b` (different) of a table of rows `stride` long, the first shared.
@@ -660,37 +686,54 @@ impl RowWindows {
 
 /// The smallest supported window around `source` in a band (see the module docs), or `None`
 /// where its energy stays removed: columns `x0..x1` and rows `y0..y1`. `windows` are those of
-/// the source's row, `least` the entry a box's support must reach (`None`: never).
+/// the source's row, of which those before `first` cannot reach `least`, the entry a box's
+/// support must reach (`None`: never).
+///
+/// The search looks only from `first` on: where no window there holds a solid pixel, none
+/// before it does either (they are inside it) and none reached `least`, so the search over
+/// every window would have gone on to `first` too. Where the first one looked at holds a solid
+/// pixel, the answer turns on whether the smallest window does (the edge rule).
 #[inline(always)]
 fn window<T: Packed>(
     sat: &SatRing<T>,
     windows: &RowWindows,
+    first: usize,
     w: usize,
     least: Option<T>,
     source: &Source,
 ) -> Option<(usize, usize, usize, usize)> {
     let x = source.x as usize;
-    let tried = windows
-        .radii
-        .iter()
-        .zip(&windows.rows)
-        .zip(&windows.offsets);
-    for (i, ((&r, &(y0, y1)), &(r0, r1))) in tried.enumerate() {
-        let (x0, x1) = (x.saturating_sub(r), (x + r + 1).min(w));
-        let boxed = sat.boxed(x0, x1, r0, r1);
-        if boxed.solid() > 0 {
-            // The band is solid in a pixel of the window: energy cut at the edge of a light
-            // (module docs), given back in place right next to it if the band holds
-            // `edge_share` of the pixel's samples (`Source::edge`), else left removed.
-            if i == 0 && source.edge {
-                let y = source.y as usize;
-                return Some((x, x + 1, y, y + 1));
+    let columns = |r: usize| (x.saturating_sub(r), (x + r + 1).min(w));
+    let boxed = |i: usize| {
+        let (x0, x1) = columns(windows.radii[i]);
+        let (r0, r1) = windows.offsets[i];
+        sat.boxed(x0, x1, r0, r1)
+    };
+    // The energy given back in place, or left removed, where the band is solid in a pixel of
+    // a window: cut at the edge of a light (module docs), given back right next to it (the
+    // smallest window holds the solid pixel) if the band holds `edge_share` of the pixel's
+    // samples (`Source::edge`).
+    let in_place = || {
+        let y = source.y as usize;
+        Some((x, x + 1, y, y + 1))
+    };
+    for i in first..windows.radii.len() {
+        let found = boxed(i);
+        if found.solid() > 0 {
+            if source.edge && (i == 0 || (i == first && boxed(0).solid() > 0)) {
+                return in_place();
             }
             return None;
         }
-        if least.is_some_and(|least| boxed >= least) {
+        if least.is_some_and(|least| found >= least) {
+            let (x0, x1) = columns(windows.radii[i]);
+            let (y0, y1) = windows.rows[i];
             return Some((x0, x1, y0, y1));
         }
+    }
+    if source.edge && first == windows.radii.len() && boxed(0).solid() > 0 {
+        // No window was looked at, and the smallest holds a solid pixel.
+        return in_place();
     }
     None
 }
@@ -868,8 +911,10 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
         max_radius: m,
         ..
     } = params.spread();
-    // `n >= support` for a box of `n` units is `entry >= least` (`None`: never).
-    let least = least_units(support).and_then(T::fit);
+    // `n >= support` for a box of `n` units is `n >= least_units`, `entry >= least` (`None`:
+    // never).
+    let least_units = least_units(support);
+    let least = least_units.and_then(T::fit);
     let k = consts.cascades();
     let (ya, yb) = (ys.start, ys.end);
     // A window reaches at most `m` rows up and `m + 1` down (its difference array's row below
@@ -948,7 +993,7 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
             windows.at(ys);
             for (j, sat) in sats.iter_mut().enumerate() {
                 let plane = &support[j * ring_rows * w..][..ring_rows * w];
-                let mut summed = false;
+                let (mut summed, mut first) = (false, 0);
                 for c in 0..sources.lists.len() {
                     let row = sources.take_row(c, j, ys);
                     if row.is_empty() || ys < s0 {
@@ -959,9 +1004,12 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
                     if !summed && !sat.reach(plane, ring_rows, w, from, to) {
                         return false;
                     }
+                    if !summed {
+                        first = sat.first_reachable(&windows, least_units);
+                    }
                     summed = true;
                     for source in row {
-                        if let Some(window) = window(sat, &windows, w, least, source) {
+                        if let Some(window) = window(sat, &windows, first, w, least, source) {
                             give_back.add(window, source.removed);
                         }
                     }
