@@ -394,10 +394,50 @@ struct SatRing<T> {
 const SOLID_BITS: u32 = 11;
 const _: () = assert!(MAX_AREA < 1 << SOLID_BITS);
 
+/// [`Packed::entries`] for `u64`, as [`Packed::of`] wherever the support is below `2^26`
+/// samples (far above what `u64` entries hold), in instructions that work on vectors: the
+/// units, an integer below `2^52`, are the low bits of `units + 2^52` as an `f64` (no `f64` to
+/// `i64` conversion, which vectors lack before AVX-512); the largest word by its bits (the
+/// words are never negative once their sign is cleared, and compare as their bits do).
+#[inline(always)]
+fn u64_entries(words: &[f32], out: &mut [u64]) -> f32 {
+    const TWO_52: f64 = (1u64 << 52) as f64;
+    let mut peak = 0u32;
+    for (&word, out) in words.iter().zip(out) {
+        let own = word.to_bits() & !SIGN;
+        peak = peak.max(own);
+        let units = (f32::from_bits(own) as f64 * COUNT_ONE as f64 + TWO_52)
+            .to_bits()
+            .wrapping_sub(TWO_52.to_bits());
+        *out = units << SOLID_BITS | (word.to_bits() >> 31) as u64;
+    }
+    f32::from_bits(peak)
+}
+
+/// [`u64_entries`] compiled for AVX2: 4 words a vector instruction.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn u64_entries_avx2(words: &[f32], out: &mut [u64]) -> f32 {
+    u64_entries(words, out)
+}
+
 /// The integers [`SatRing`] packs a band's support and solid pixels in (wrapping).
 trait Packed: Copy + Default + Ord {
     /// A support word's entry: its support in units, and 1 if the band is solid there.
     fn of(word: f32) -> Self;
+    /// The entries of `words`, into `out`; returns the largest support word (sign cleared),
+    /// which may be too large for `Self` ([`Packed::holds`]): the entries are then not used.
+    fn entries(_kernel: Kernel, words: &[f32], out: &mut [Self]) -> f32 {
+        let mut peak = 0u32;
+        for (&word, out) in words.iter().zip(out) {
+            peak = peak.max(word.to_bits() & !SIGN);
+            *out = Self::of(word);
+        }
+        f32::from_bits(peak)
+    }
     fn add(self, other: Self) -> Self;
     fn sub(self, other: Self) -> Self;
     /// The solid pixels of a box's entry.
@@ -413,6 +453,17 @@ impl Packed for u64 {
     #[inline(always)]
     fn of(word: f32) -> Self {
         (support_units(word) as u64) << SOLID_BITS | (word.to_bits() >> 31) as u64
+    }
+    fn entries(kernel: Kernel, words: &[f32], out: &mut [Self]) -> f32 {
+        match kernel {
+            #[cfg(target_arch = "x86_64")]
+            Kernel::Avx2 => {
+                assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
+                // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
+                unsafe { u64_entries_avx2(words, out) }
+            }
+            _ => u64_entries(words, out),
+        }
     }
     #[inline(always)]
     fn add(self, other: Self) -> Self {
@@ -526,7 +577,15 @@ impl<T: Packed> SatRing<T> {
     /// `y % ring_rows`): it goes on from the rows it holds, or starts again at `from` where that
     /// computes fewer rows (a band whose sources are far apart is summed only around them).
     /// Returns `false` if a pixel's support is too large for box sums in `T`.
-    fn reach(&mut self, plane: &[f32], ring_rows: usize, w: usize, from: usize, to: usize) -> bool {
+    fn reach(
+        &mut self,
+        kernel: Kernel,
+        plane: &[f32],
+        ring_rows: usize,
+        w: usize,
+        from: usize,
+        to: usize,
+    ) -> bool {
         if self.built < from {
             // Whatever slot `from` holds is the new start's row: a box's sums take it off.
             self.built = from;
@@ -536,18 +595,18 @@ impl<T: Packed> SatRing<T> {
             let (above, here) = (y & self.mask, (y + 1) & self.mask);
             let cells = &plane[(y % ring_rows) * w..][..w];
             let (above, here) = two_rows(&mut self.cells, above, here, self.stride);
-            let mut row = T::default();
-            let mut peak = 0u32;
-            for ((&word, above), here) in cells.iter().zip(&above[1..]).zip(&mut here[1..]) {
-                peak = peak.max(word.to_bits() & !SIGN);
-                row = row.add(T::of(word));
-                *here = above.add(row);
-            }
-            if !T::holds(f32::from_bits(peak)) {
+            // The row's entries first (a loop of vector instructions), then their running sum.
+            let peak = T::entries(kernel, cells, &mut here[1..]);
+            if !T::holds(peak) {
                 return false;
             }
+            let mut row = T::default();
+            for (above, here) in above[1..].iter().zip(&mut here[1..]) {
+                row = row.add(*here);
+                *here = above.add(row);
+            }
             // At most 2^58 units (a pixel's samples), so a `u64`.
-            self.peaks[y & self.mask] = support_units(f32::from_bits(peak)) as u64;
+            self.peaks[y & self.mask] = support_units(peak) as u64;
             self.built += 1;
         }
         true
@@ -1001,7 +1060,7 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
                     }
                     // The table rows this row's windows read.
                     let (from, to) = (ys.saturating_sub(m), (ys + m + 1).min(h));
-                    if !summed && !sat.reach(plane, ring_rows, w, from, to) {
+                    if !summed && !sat.reach(kernel, plane, ring_rows, w, from, to) {
                         return false;
                     }
                     if !summed {
