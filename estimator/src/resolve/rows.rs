@@ -697,10 +697,27 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
                 part.support[j][at.support..at.support + at.count]
                     .copy_from_slice(&words[..at.count]);
-                let sources = &mut part.sources[part.column][j];
-                for x in (0..at.count).filter(|_| any) {
-                    let rgb = [removed[0][x], removed[1][x], removed[2][x]];
-                    if n[x] != 0.0 && (rgb[0] != 0.0 || rgb[1] != 0.0 || rgb[2] != 0.0) {
+                if any {
+                    // The pixels that are sources as bits (a vector loop), then only those
+                    // visited: whether a band is a source in a pixel is a coin toss at low
+                    // sample counts, a branch per pixel mispredicted.
+                    const _: () = assert!(STRIP <= 64, "a strip's pixels are bits of a u64");
+                    let mut is_source = 0u64;
+                    for x in 0..STRIP {
+                        let source = (n[x] != 0.0)
+                            & ((removed[0][x] != 0.0)
+                                | (removed[1][x] != 0.0)
+                                | (removed[2][x] != 0.0));
+                        is_source |= (source as u64) << x;
+                    }
+                    debug_assert!(
+                        at.count == STRIP || is_source >> at.count == 0,
+                        "pixels past the frame's edge are empty (n is 0)"
+                    );
+                    let sources = &mut part.sources[part.column][j];
+                    while is_source != 0 {
+                        let x = is_source.trailing_zeros() as usize;
+                        is_source &= is_source - 1;
                         // The edge rule's test, on the support as its word holds it.
                         let edge = c
                             .edge_share
@@ -708,7 +725,7 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                         sources.push(Source {
                             x: (at.x0 + x) as u32,
                             y: at.y as u32,
-                            removed: rgb,
+                            removed: [removed[0][x], removed[1][x], removed[2][x]],
                             edge,
                         });
                     }
