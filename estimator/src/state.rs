@@ -829,47 +829,86 @@ impl FrameState {
     ) -> SplatReport {
         let mut pipe = Pipeline::new(kernel, &self.layout);
         let mut report = SplatReport::default();
-        let mut block = [[0.0f32; 3]; BLOCK];
-        let mut pixel = [0usize; BLOCK];
         for chunk in records.chunks(BLOCK) {
-            let len = chunk.len();
-            let mut inside = true;
-            for (i, &(x, y, rgb)) in chunk.iter().enumerate() {
-                // `y - y0` wraps to a huge row for rows above the band.
-                let row = y.wrapping_sub(self.y0);
-                inside &= x < self.width && row < self.rows;
-                // Only used if every record is inside (then this cannot wrap).
-                pixel[i] = (row as usize)
-                    .wrapping_mul(self.width as usize)
-                    .wrapping_add(x as usize);
-                block[i] = rgb;
-            }
-            if !(inside && pipe.tables.all_valid(&block[..len])) {
-                pipe.flush(self);
-                report.add(&self.splat_all(chunk.iter().copied()));
-                continue;
-            }
-            // Room for the block as if every sample in flight and in the block were in one
-            // pixel: first against all samples of the state (no cell read), then, in a state
-            // holding 2^32 samples or more, against the pixels' own counts.
-            let others = pipe.in_flight() + len as u64;
-            let room = self.samples + others <= MAX_PIXEL_SAMPLES || {
-                let stride = cell_len(self.layout.cascades());
-                pixel[..len].iter().all(|&p| {
-                    cell_spp(&self.cells[p * stride..(p + 1) * stride]) + others
-                        <= MAX_PIXEL_SAMPLES
-                })
-            };
-            if !room {
-                pipe.flush(self);
-                report.add(&self.splat_all(chunk.iter().copied()));
-                continue;
-            }
-            pipe.push(self, &block[..len], |i| pixel[i]);
-            report.accepted += len as u64;
+            self.splat_block(&mut pipe, chunk, &mut report);
         }
         pipe.flush(self);
         report
+    }
+
+    /// [`FrameState::splat_records`] of records as they come from `records`, with the same
+    /// state and report: for records that are not in one slice (a batch's runs of rows that
+    /// fall in this band, say), without copying them into one first. They are taken a block
+    /// at a time.
+    pub fn splat_records_from<I>(&mut self, records: I) -> SplatReport
+    where
+        I: IntoIterator<Item = (u32, u32, [f32; 3])>,
+    {
+        let mut pipe = Pipeline::new(Kernel::detect(), &self.layout);
+        let mut report = SplatReport::default();
+        let mut records = records.into_iter();
+        let mut chunk = [(0u32, 0u32, [0.0f32; 3]); BLOCK];
+        loop {
+            let mut len = 0;
+            for (slot, record) in chunk.iter_mut().zip(records.by_ref()) {
+                *slot = record;
+                len += 1;
+            }
+            if len == 0 {
+                break;
+            }
+            self.splat_block(&mut pipe, &chunk[..len], &mut report);
+        }
+        pipe.flush(self);
+        report
+    }
+
+    /// Splats a block of at most [`BLOCK`] records through `pipe`, adding to `report`: the
+    /// vectorized path if every record is inside the state, valid and has room, else one by
+    /// one (after what is in flight).
+    #[inline(always)]
+    fn splat_block(
+        &mut self,
+        pipe: &mut Pipeline,
+        chunk: &[(u32, u32, [f32; 3])],
+        report: &mut SplatReport,
+    ) {
+        let mut block = [[0.0f32; 3]; BLOCK];
+        let mut pixel = [0usize; BLOCK];
+        let len = chunk.len();
+        let mut inside = true;
+        for (i, &(x, y, rgb)) in chunk.iter().enumerate() {
+            // `y - y0` wraps to a huge row for rows above the band.
+            let row = y.wrapping_sub(self.y0);
+            inside &= x < self.width && row < self.rows;
+            // Only used if every record is inside (then this cannot wrap).
+            pixel[i] = (row as usize)
+                .wrapping_mul(self.width as usize)
+                .wrapping_add(x as usize);
+            block[i] = rgb;
+        }
+        if !(inside && pipe.tables.all_valid(&block[..len])) {
+            pipe.flush(self);
+            report.add(&self.splat_all(chunk.iter().copied()));
+            return;
+        }
+        // Room for the block as if every sample in flight and in the block were in one
+        // pixel: first against all samples of the state (no cell read), then, in a state
+        // holding 2^32 samples or more, against the pixels' own counts.
+        let others = pipe.in_flight() + len as u64;
+        let room = self.samples + others <= MAX_PIXEL_SAMPLES || {
+            let stride = cell_len(self.layout.cascades());
+            pixel[..len].iter().all(|&p| {
+                cell_spp(&self.cells[p * stride..(p + 1) * stride]) + others <= MAX_PIXEL_SAMPLES
+            })
+        };
+        if !room {
+            pipe.flush(self);
+            report.add(&self.splat_all(chunk.iter().copied()));
+            return;
+        }
+        pipe.push(self, &block[..len], |i| pixel[i]);
+        report.accepted += len as u64;
     }
 
     /// Splats `rgb(i)` into pixel `(x0 + i, y)` for `i < n`, a block at a time, through a

@@ -137,6 +137,9 @@ proptest! {
             prop_assert!(fast == simple, "{:?}: cells differ", kernel);
             prop_assert_eq!(fast.total_samples(), simple.total_samples());
         }
+        let mut from = FrameState::new(W, H, layout.clone());
+        prop_assert_eq!(from.splat_records_from(in_two_runs(&records)), expected);
+        prop_assert!(from == simple, "splat_records_from: cells differ");
         let mut all = FrameState::new(W, H, layout);
         prop_assert_eq!(all.splat_all(records.iter().copied()), expected);
         prop_assert!(all == simple);
@@ -169,7 +172,17 @@ proptest! {
             prop_assert_eq!(report, expected, "{:?}", kernel);
             prop_assert!(fast == simple, "{:?}: cells differ", kernel);
         }
+        let mut from = FrameState::band(W, H, band, layout);
+        prop_assert_eq!(from.splat_records_from(in_two_runs(&records)), expected);
+        prop_assert!(from == simple, "splat_records_from: cells differ");
     }
+}
+
+/// `records` as an iterator over two runs of them (split a third of the way in), as a band's
+/// runs of a batch come: not one slice.
+fn in_two_runs(records: &[Rec]) -> impl Iterator<Item = Rec> + '_ {
+    let (a, b) = records.split_at(records.len() / 3);
+    a.iter().chain(b).copied()
 }
 
 /// Every edge value in every channel position, as whole rows, on every kernel.
@@ -299,4 +312,7 @@ fn full_pixels_are_refused_as_one_by_one() {
         assert_eq!(fast.splat_records_with(kernel, &records), expected);
         assert!(fast == simple, "{kernel:?}");
     }
+    let mut from = state.clone();
+    assert_eq!(from.splat_records_from(in_two_runs(&records)), expected);
+    assert!(from == simple, "splat_records_from");
 }
