@@ -1,8 +1,8 @@
 //! One frame held by the server: the core's state split into row bands, each behind its own lock.
 //!
 //! Workers post batches concurrently. A single lock per frame would serialize them, so the state
-//! is kept as horizontal bands ([`FrameState::band`]); a batch is bucketed by band and each band is
-//! locked only while its own samples are added. A batch is still applied atomically as seen from
+//! is kept as horizontal bands ([`FrameState::band`]); a batch's records are sorted by band (as
+//! runs of them) and each band is locked only while its own samples are added. A batch is still applied atomically as seen from
 //! a reader: writers hold a shared *gate* while they apply, and anything that needs a consistent
 //! cut (resolve, export, snapshots) takes the gate exclusively. So a resolve never sees half a
 //! batch, and an applied batch is never half-durable.

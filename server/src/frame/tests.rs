@@ -12,7 +12,7 @@ use splatd_proto::{Batch, Origin, StateError};
 
 use super::*;
 use splatd_proto::Record;
-use splatd_scenes::synth::FireflyScene;
+use splatd_scenes::synth::{FireflyScene, SplitMix64};
 
 fn spec(w: u32, h: u32) -> FrameSpec {
     FrameSpec::new(CreateFrame::new("f", w, h)).expect("valid")
@@ -81,6 +81,33 @@ fn banded_frame_resolves_like_one_state() {
         (info.spp_min, info.spp_max, info.samples),
         (24, 24, 24 * 910)
     );
+}
+
+/// A batch whose records hop between bands (shuffled, and one band's records apart from the
+/// rest) is splatted as the same samples into each band: each band takes its runs of the
+/// batch in order, however short.
+#[test]
+fn a_batch_hopping_between_bands_gives_the_one_state() {
+    let scene = FireflyScene::new(13, 70, 7);
+    let frame = ShardedFrame::new(spec(13, 70));
+    assert!(frame.bands.len() > 2, "the test needs several bands");
+    let mut reference = FrameState::new(13, 70, CascadeLayout::with_defaults());
+    let mut rng = SplitMix64::new(3);
+    for pass in 0..4 {
+        let mut recs = records(&scene, pass);
+        if pass % 2 == 0 {
+            for i in (1..recs.len()).rev() {
+                recs.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
+            }
+        } else {
+            // Scan order with the first band's rows last: two runs of one band, far apart.
+            recs.rotate_left(13 * 4);
+        }
+        reference.splat_all(recs.iter().map(|r| (r.x, r.y, r.rgb)));
+        let got = frame.ingest(&batch(1, pass, recs)).unwrap();
+        assert_eq!(got.accepted, 13 * 70);
+    }
+    assert!(frame.cut().whole() == reference, "the frame differs");
 }
 
 #[test]
