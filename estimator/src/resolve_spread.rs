@@ -762,37 +762,38 @@ fn window<T: Packed>(
     source: &Source,
 ) -> Option<(usize, usize, usize, usize)> {
     let x = source.x as usize;
-    let columns = |r: usize| (x.saturating_sub(r), (x + r + 1).min(w));
-    let boxed = |i: usize| {
-        let (x0, x1) = columns(windows.radii[i]);
+    let columns = |i: usize| {
+        let r = windows.radii[i];
+        (x.saturating_sub(r), (x + r + 1).min(w))
+    };
+    let boxed = |i: usize, (x0, x1): (usize, usize)| {
         let (r0, r1) = windows.offsets[i];
         sat.boxed(x0, x1, r0, r1)
     };
-    // The energy given back in place, or left removed, where the band is solid in a pixel of
-    // a window: cut at the edge of a light (module docs), given back right next to it (the
-    // smallest window holds the solid pixel) if the band holds `edge_share` of the pixel's
-    // samples (`Source::edge`).
+    // Where the band is solid in a pixel of a window, the energy was cut at the edge of a light
+    // (module docs): given back right next to it (the smallest window holds the solid pixel)
+    // if the band holds `edge_share` of the pixel's samples (`Source::edge`), else left
+    // removed. Whether the smallest window holds one is known without a look only where it
+    // was looked at, or where a window around it was and held none.
     let in_place = || {
         let y = source.y as usize;
-        Some((x, x + 1, y, y + 1))
+        (x, x + 1, y, y + 1)
     };
+    let smallest_is_solid = || boxed(0, columns(0)).solid() > 0;
     for i in first..windows.radii.len() {
-        let found = boxed(i);
+        let (x0, x1) = columns(i);
+        let found = boxed(i, (x0, x1));
         if found.solid() > 0 {
-            if source.edge && (i == 0 || (i == first && boxed(0).solid() > 0)) {
-                return in_place();
-            }
-            return None;
+            return (source.edge && (i == 0 || (i == first && smallest_is_solid()))).then(in_place);
         }
         if least.is_some_and(|least| found >= least) {
-            let (x0, x1) = columns(windows.radii[i]);
             let (y0, y1) = windows.rows[i];
             return Some((x0, x1, y0, y1));
         }
     }
-    if source.edge && first == windows.radii.len() && boxed(0).solid() > 0 {
-        // No window was looked at, and the smallest holds a solid pixel.
-        return in_place();
+    if first == windows.radii.len() {
+        // No window was looked at.
+        return (source.edge && smallest_is_solid()).then(in_place);
     }
     None
 }
@@ -1052,21 +1053,24 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
             windows.at(ys);
             for (j, sat) in sats.iter_mut().enumerate() {
                 let plane = &support[j * ring_rows * w..][..ring_rows * w];
-                let (mut summed, mut first) = (false, 0);
+                // Once the table rows this row's windows read are summed: the first window
+                // that may reach the support.
+                let mut reachable = None;
                 for c in 0..sources.lists.len() {
                     let row = sources.take_row(c, j, ys);
                     if row.is_empty() || ys < s0 {
                         continue;
                     }
-                    // The table rows this row's windows read.
-                    let (from, to) = (ys.saturating_sub(m), (ys + m + 1).min(h));
-                    if !summed && !sat.reach(kernel, plane, ring_rows, w, from, to) {
-                        return false;
-                    }
-                    if !summed {
-                        first = sat.first_reachable(&windows, least_units);
-                    }
-                    summed = true;
+                    let first = match reachable {
+                        Some(first) => first,
+                        None => {
+                            let (from, to) = (ys.saturating_sub(m), (ys + m + 1).min(h));
+                            if !sat.reach(kernel, plane, ring_rows, w, from, to) {
+                                return false;
+                            }
+                            *reachable.insert(sat.first_reachable(&windows, least_units))
+                        }
+                    };
                     for source in row {
                         if let Some(window) = window(sat, &windows, first, w, least, source) {
                             give_back.add(window, source.removed);
