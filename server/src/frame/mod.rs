@@ -2,10 +2,11 @@
 //!
 //! Workers post batches concurrently. A single lock per frame would serialize them, so the state
 //! is kept as horizontal bands ([`FrameState::band`]); a batch's records are sorted by band (as
-//! runs of them) and each band is locked only while its own samples are added. A batch is still applied atomically as seen from
-//! a reader: writers hold a shared *gate* while they apply, and anything that needs a consistent
-//! cut (resolve, export, snapshots) takes the gate exclusively. So a resolve never sees half a
-//! batch, and an applied batch is never half-durable.
+//! runs of them) and each band is locked only while its own samples are added. A batch is still
+//! applied atomically as seen from a reader: writers hold a shared *gate* while they apply, and
+//! anything that needs a consistent cut (resolve, export, snapshots) takes the gate
+//! exclusively. So a resolve never sees half a batch, and an applied batch is never
+//! half-durable.
 //!
 //! Nothing copies the frame under the gate: at 4K the bands are 1.6 GB, and copying them stopped
 //! every writer for a second (and every render did it). Each band (and the AOV sums) is behind
