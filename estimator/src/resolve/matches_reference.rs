@@ -385,17 +385,29 @@ fn support_sums_past_u64_give_back_the_reference_bits() {
     let p = ResolveParams::new(Variant::Spread, 1e6, 1.0, 0.9)
         .expect("valid")
         .with_spread(spread);
-    let expected = reference::resolve_bands(&[&state], &p, 1).expect("frame");
-    let paper = reference::resolve_bands(&[&state], &p.with_variant(Variant::Paper), 1).unwrap();
-    let at = (centre * w + centre) as usize;
+    centre_given_back_with_the_reference_bits(&state, &p, centre, "the widest window");
+}
+
+/// The reference resolve of `state` with `p` gives the centre pixel (`centre`, `centre`) back
+/// energy the paper removed (`what` gives it back), and the spread stage gives the reference's
+/// bits on 1 and 2 threads.
+fn centre_given_back_with_the_reference_bits(
+    state: &FrameState,
+    p: &ResolveParams,
+    centre: u32,
+    what: &str,
+) {
+    let expected = reference::resolve_bands(&[state], p, 1).expect("frame");
+    let paper = reference::resolve_bands(&[state], &p.with_variant(Variant::Paper), 1).unwrap();
+    let at = (centre * state.width() + centre) as usize;
     assert!(
         expected.reweighted[at][0] > paper.reweighted[at][0],
-        "the widest window gives the centre's energy back"
+        "{what}: a window gives the centre's energy back"
     );
     for threads in [1, 2] {
         let mut out = Resolved::default();
-        resolve_bands_with(Kernel::detect(), &[&state], &p, threads, &mut out).expect("frame");
-        assert!(bits(&out) == bits(&expected), "{threads} threads");
+        resolve_bands_with(Kernel::detect(), &[state], p, threads, &mut out).expect("frame");
+        assert!(bits(&out) == bits(&expected), "{what}, {threads} threads");
     }
 }
 
@@ -433,18 +445,6 @@ fn support_sums_near_the_top_of_u64_entries_give_back_the_reference_bits() {
             cell[4 * 3 + 3] += samples * COUNT_ONE;
         }
         let state = FrameState::from_cells(w, h, 0..h, layout.clone(), cells).expect("valid");
-        let expected = reference::resolve_bands(&[&state], &p, 1).expect("frame");
-        let paper =
-            reference::resolve_bands(&[&state], &p.with_variant(Variant::Paper), 1).expect("frame");
-        let at = (centre * w + centre) as usize;
-        assert!(
-            expected.reweighted[at][0] > paper.reweighted[at][0],
-            "{name}: a window gives the firefly's energy back"
-        );
-        for threads in [1, 2] {
-            let mut out = Resolved::default();
-            resolve_bands_with(Kernel::detect(), &[&state], &p, threads, &mut out).expect("frame");
-            assert!(bits(&out) == bits(&expected), "{name}, {threads} threads");
-        }
+        centre_given_back_with_the_reference_bits(&state, &p, centre, name);
     }
 }
