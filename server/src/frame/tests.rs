@@ -128,15 +128,41 @@ fn a_bad_record_anywhere_leaves_the_frame_untouched() {
     );
     recs[39].rgb[1] = 1.0;
     recs[20].x = 4;
-    let err = frame.ingest(&batch(1, 0, recs)).unwrap_err();
+    let err = frame.ingest(&batch(1, 0, recs.clone())).unwrap_err();
     assert!(
         err.to_string().starts_with("record 20 (pixel (4, 20)")
             && err.to_string().contains("outside the 4x40 frame"),
         "{err}"
     );
+    // Below the frame; a negative sample; both, the first one named.
+    recs[20].x = 1;
+    recs[25].y = 40;
+    let below = |err: &IngestError| {
+        err.to_string().starts_with("record 25 (pixel (1, 40)")
+            && err.to_string().contains("outside the 4x40 frame")
+    };
+    let err = frame.ingest(&batch(1, 0, recs.clone())).unwrap_err();
+    assert!(below(&err), "{err}");
+    recs[25].y = 25;
+    recs[31].rgb[0] = -1.0;
+    let err = frame.ingest(&batch(1, 0, recs.clone())).unwrap_err();
+    assert!(
+        matches!(
+            err,
+            IngestError::Sample {
+                index: 31,
+                error: SampleError::Negative,
+                ..
+            }
+        ),
+        "{err}"
+    );
+    recs[25].y = 40;
+    let err = frame.ingest(&batch(1, 0, recs)).unwrap_err();
+    assert!(below(&err), "{err}");
     assert_eq!(frame.cut().whole().total_samples(), 0);
     let info = frame.info();
-    assert_eq!((info.rejected_batches, info.rejected_samples), (2, 80));
+    assert_eq!((info.rejected_batches, info.rejected_samples), (5, 200));
     assert_eq!(frame.version(), 0);
 }
 
