@@ -572,12 +572,11 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
             } else {
                 for x in 0..STRIP {
-                    [kap[x], inv_kappa[x]] = match table.get(n[x] as usize) {
-                        Some(&looked_up) if n[x] < KAP_TABLE as f64 => looked_up,
-                        _ => {
-                            let kap = c.kappa * n[x].powf(c.kappa_exponent);
-                            [kap, 1.0 / kap]
-                        }
+                    [kap[x], inv_kappa[x]] = if n[x] < KAP_TABLE as f64 {
+                        table[n[x] as usize]
+                    } else {
+                        let kap = c.kappa * n[x].powf(c.kappa_exponent);
+                        [kap, 1.0 / kap]
                     };
                 }
             }
