@@ -23,9 +23,7 @@ fn main() {
         .get(2)
         .map_or(Quality::High, |a| a.parse().expect("QUALITY"));
     let max_mib: Option<u32> = args.get(3).map(|a| a.parse().expect("MAX_MEMORY_MIB"));
-    let oidn = Oidn::load()
-        .unwrap_or_else(|e| panic!("{e}"))
-        .with_max_memory_mib(max_mib);
+    let oidn = Oidn::load().unwrap_or_else(|e| panic!("{e}"));
     let mut seed = 1u32;
     let mut noise = move || {
         seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
@@ -48,6 +46,7 @@ fn main() {
             hdr: true,
             quality,
             clean_aux: false,
+            max_memory_mib: max_mib,
         };
         let started = Instant::now();
         let out = oidn.denoise(&input).unwrap_or_else(|e| panic!("{e}"));

@@ -152,6 +152,11 @@ pub struct DenoiseInput<'a> {
     /// The guides are noise-free (OIDN's `cleanAux`); leave it off for guides averaged over few
     /// samples, or their noise stays in the output.
     pub clean_aux: bool,
+    /// The most memory the filter may use, in MiB (OIDN's `maxMemoryMB`, which it meets by
+    /// denoising in overlapping tiles, a little slower), or `None` for OIDN's own limit. OIDN
+    /// says its actual use "may be higher"; untiled, a 1920x1080 `high` denoise used 1.21 GB
+    /// (582 bytes a pixel) here, and a cap of 1266 MiB left it untiled.
+    pub max_memory_mib: Option<u32>,
 }
 
 impl DenoiseInput<'_> {
@@ -247,8 +252,6 @@ pub struct Oidn {
     device: Device,
     path: PathBuf,
     version: String,
-    /// OIDN's `maxMemoryMB` for every filter; `None` leaves OIDN's own limit.
-    max_memory_mib: Option<u32>,
     // Dropped last (fields drop in order, after `Drop::drop` released the device): the
     // function pointers in `api` point into it.
     _lib: libloading::Library,
@@ -335,7 +338,6 @@ impl Oidn {
             device,
             path,
             version: String::new(),
-            max_memory_mib: None,
             _lib: lib,
         };
         // A server shares its cores with its own threads: OIDN's default pins its worker threads
@@ -361,20 +363,6 @@ impl Oidn {
     /// OIDN's version, e.g. `2.5.1` (the device's `version` parameter).
     pub fn version(&self) -> String {
         self.version.clone()
-    }
-
-    /// Asks OIDN to keep each filter's memory below `mib` MiB (its `maxMemoryMB`, which it meets
-    /// by denoising in tiles, a little slower), or leaves OIDN's own limit with `None`. OIDN says
-    /// the actual use "may be higher"; without a limit a 1920x1080 `high` denoise peaks near
-    /// 1.2 GB here.
-    pub fn with_max_memory_mib(mut self, mib: Option<u32>) -> Oidn {
-        self.max_memory_mib = mib;
-        self
-    }
-
-    /// The `maxMemoryMB` set by [`Oidn::with_max_memory_mib`].
-    pub fn max_memory_mib(&self) -> Option<u32> {
-        self.max_memory_mib
     }
 
     /// The library this was loaded from, as given.
@@ -435,7 +423,7 @@ impl Oidn {
             (self.api.set_filter_bool)(filter, c"hdr".as_ptr(), input.hdr);
             (self.api.set_filter_bool)(filter, c"cleanAux".as_ptr(), input.clean_aux);
             (self.api.set_filter_int)(filter, c"quality".as_ptr(), input.quality.raw());
-            if let Some(mib) = self.max_memory_mib {
+            if let Some(mib) = input.max_memory_mib {
                 let mib = c_int::try_from(mib).unwrap_or(c_int::MAX);
                 (self.api.set_filter_int)(filter, c"maxMemoryMB".as_ptr(), mib);
             }

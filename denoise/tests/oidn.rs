@@ -212,6 +212,7 @@ fn input(scene: &Scene, guided: bool, quality: Quality) -> DenoiseInput<'_> {
         hdr: true,
         quality,
         clean_aux: false,
+        max_memory_mib: None,
     }
 }
 
@@ -252,6 +253,80 @@ fn denoises_as_oidn_denoise_does_guided_and_unguided() {
             "the output is barely smoother than the input"
         );
     }
+}
+
+/// A filter's memory cap reaches OIDN: capped below what an image needs untiled, OIDN denoises in
+/// tiles and its peak memory falls. The tiles overlap by OIDN's whole receptive field, so the
+/// output is the untiled one, bit for bit. (OIDN 2.5.1 tiles no smaller than 768x768, so it
+/// never tiles a smaller image, whatever the cap.) Each denoise runs in a child process of this
+/// test binary ([`memory_probe`]), whose peak resident memory is its own.
+#[test]
+fn a_memory_cap_tiles_with_less_memory_and_the_same_output() {
+    let Some(lib) = library() else { return };
+    let probe = |cap: &str| -> (u64, String) {
+        let out = Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", "memory_probe", "--nocapture"])
+            .env("SPLATD_OIDN_LIB", &lib)
+            .env("SPLATD_OIDN_MEMORY_PROBE", cap)
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&out.stdout).into_owned();
+        assert!(
+            out.status.success(),
+            "{said}{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let line = said
+            .lines()
+            .find_map(|l| l.strip_prefix("probe: "))
+            .unwrap_or_else(|| panic!("the probe said {said}"));
+        let (grew, digest) = line.split_once(' ').unwrap();
+        (grew.parse().unwrap(), digest.to_owned())
+    };
+    let (untiled, untiled_digest) = probe("none");
+    let (tiled, tiled_digest) = probe("16");
+    eprintln!("1024x768 high: OIDN's peak {untiled} bytes untiled, {tiled} capped at 16 MiB");
+    // Measured: 431.5 MB untiled, 324.5 MB in two tiles.
+    assert!(
+        tiled + (64 << 20) < untiled,
+        "capped at 16 MiB OIDN peaked at {tiled} bytes, untiled at {untiled}: the cap did not \
+         reach it"
+    );
+    assert_eq!(tiled_digest, untiled_digest, "tiling changed OIDN's output");
+}
+
+/// The child of [`a_memory_cap_tiles_with_less_memory_and_the_same_output`]: one `high` denoise
+/// of a 1024x768 image at the cap `SPLATD_OIDN_MEMORY_PROBE` names (`none` for no cap); prints
+/// how much its peak resident memory grew during the denoise and a digest of the output's bits.
+#[test]
+fn memory_probe() {
+    let Some(cap) = std::env::var_os("SPLATD_OIDN_MEMORY_PROBE") else {
+        return;
+    };
+    let cap = cap.to_str().unwrap().parse::<u32>().ok();
+    let oidn = Oidn::load().unwrap_or_else(|e| panic!("{e}"));
+    let scene = scene(1024, 768);
+    let peak = || -> u64 {
+        let status = std::fs::read_to_string("/proc/self/status").unwrap();
+        let kib = status
+            .lines()
+            .find_map(|l| l.strip_prefix("VmHWM:"))
+            .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+            .expect("VmHWM in /proc/self/status");
+        kib << 10
+    };
+    let before = peak();
+    let out = oidn
+        .denoise(&DenoiseInput {
+            max_memory_mib: cap,
+            ..input(&scene, true, Quality::High)
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+    let grew = peak() - before;
+    let digest = out.iter().flatten().fold(0xcbf2_9ce4_8422_2325u64, |h, v| {
+        (h ^ u64::from(v.to_bits())).wrapping_mul(0x0100_0000_01b3)
+    });
+    println!("probe: {grew} {digest:016x}");
 }
 
 #[test]

@@ -107,10 +107,16 @@ pub struct Config {
     /// `denoiser_unavailable`. `bash tests/setup/oidn.sh` installs OIDN and prints the path.
     #[arg(long, env = "SPLATD_OIDN_LIB", value_name = "PATH")]
     pub oidn_lib: Option<PathBuf>,
-    /// MiB one denoise may use inside OIDN (its maxMemoryMB: it denoises in tiles to stay
-    /// below), reserved from --work-memory-mib with the denoise's images.
+    /// MiB every denoise reserves for OIDN from --work-memory-mib, with its images, before it
+    /// starts. When OIDN runs it also gets what the working memory has free then, up to what
+    /// the image needs untiled (about 640 bytes a pixel); short of that it denoises in tiles
+    /// (the same output, slower).
     #[arg(long, default_value_t = 512)]
-    pub oidn_max_memory_mib: u32,
+    pub oidn_min_memory_mib: u32,
+    /// Most MiB one denoise may use inside OIDN (its maxMemoryMB: it denoises in tiles to stay
+    /// below). Without it, as much as the image needs untiled, when the working memory has it.
+    #[arg(long)]
+    pub oidn_max_memory_mib: Option<u32>,
 }
 
 /// `Config` as a whole command line, only to parse the defaults.
@@ -155,6 +161,14 @@ impl Config {
             work_memory_bytes: self.work_memory_mib << 20,
             work_wait: Duration::from_secs(self.work_wait_secs),
             render_share: self.render_share,
+        }
+    }
+
+    /// What a denoise may use inside OIDN.
+    pub fn oidn_memory(&self) -> crate::render::denoise::OidnMemory {
+        crate::render::denoise::OidnMemory {
+            least_mib: self.oidn_min_memory_mib,
+            most_mib: self.oidn_max_memory_mib,
         }
     }
 

@@ -9,14 +9,18 @@
 //! * `error`: the operation fails with an injected I/O error, as a failing disk would make it;
 //! * `full`: the operation fails as on a full disk (`StorageFull`, what `ENOSPC` reads as).
 //! * `refuse`: the operation fails with `EINVAL`, as from a file system that does not take the
-//!   request (a direct write, say).
+//!   request (a direct write, say);
+//! * `pause`: the thread stops there until the test lets it go: it creates `POINT.reached` in
+//!   the directory [`PAUSE_DIR_ENV`] names, then waits for `POINT.release` to appear there (at
+//!   most [`PAUSE_LIMIT`], so a test that never releases it does not hang the server).
 //!
 //! With `@n` the action happens on the `n`-th hit only (counting from 1), otherwise on every hit.
 //! Points: `snapshot.bin:before_rename` (a snapshot is written to `snapshot.tmp` and synced, not
 //! yet renamed over the previous one), `snapshot.bin:before_write` and the same for
 //! `frame.json`; `direct_write` (a write around the page cache, which falls back to an ordinary
 //! one when refused); `batch:before_apply` (a batch or pass is about to be applied; only `abort`
-//! has an effect there: the server dies between two acknowledgements). Unset (in production), a hit costs one check of an initialized `OnceLock`.
+//! has an effect there: the server dies between two acknowledgements); `denoise:before_oidn`
+//! (a denoise's input is made and OIDN is about to run; for `pause`). Unset (in production), a hit costs one check of an initialized `OnceLock`.
 
 use std::collections::HashMap;
 use std::io;
@@ -26,12 +30,19 @@ use std::sync::OnceLock;
 /// The environment variable that configures failpoints.
 pub const ENV: &str = "SPLATD_FAILPOINTS";
 
+/// The environment variable naming the directory of `pause`'s files.
+pub const PAUSE_DIR_ENV: &str = "SPLATD_FAILPOINT_DIR";
+
+/// The longest a `pause` waits for its release.
+pub const PAUSE_LIMIT: std::time::Duration = std::time::Duration::from_secs(60);
+
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Action {
     Abort,
     Error,
     Full,
     Refuse,
+    Pause,
 }
 
 #[derive(Debug)]
@@ -69,6 +80,7 @@ fn parse(spec: &str) -> Result<HashMap<String, Point>, String> {
             "error" => Action::Error,
             "full" => Action::Full,
             "refuse" => Action::Refuse,
+            "pause" => Action::Pause,
             other => return Err(format!("{entry:?}: unknown action {other:?}")),
         };
         points.insert(
@@ -119,6 +131,24 @@ fn act(name: &str, point: &Point) -> io::Result<()> {
             format!("injected full disk at failpoint {name} (hit {n})"),
         )),
         Action::Refuse => Err(io::Error::from_raw_os_error(libc::EINVAL)),
+        Action::Pause => {
+            pause(name);
+            Ok(())
+        }
+    }
+}
+
+/// `pause` at point `name`: says so with `name.reached`, then waits for `name.release`.
+fn pause(name: &str) {
+    let dir = std::path::PathBuf::from(std::env::var_os(PAUSE_DIR_ENV).unwrap_or_else(|| {
+        panic!("failpoint {name}: pause needs {PAUSE_DIR_ENV}");
+    }));
+    std::fs::write(dir.join(format!("{name}.reached")), b"")
+        .unwrap_or_else(|e| panic!("failpoint {name}: {e}"));
+    let release = dir.join(format!("{name}.release"));
+    let started = std::time::Instant::now();
+    while !release.exists() && started.elapsed() < PAUSE_LIMIT {
+        std::thread::sleep(std::time::Duration::from_millis(10));
     }
 }
 
@@ -138,6 +168,7 @@ mod tests {
         assert!(act("a", a).is_ok(), "only the second hit");
         let c = &points["c"];
         assert!(act("c", c).is_err() && act("c", c).is_err(), "every hit");
+        assert_eq!(parse("d=pause@1").unwrap()["d"].action, Action::Pause);
     }
 
     #[test]

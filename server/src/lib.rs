@@ -262,12 +262,13 @@ impl AppState {
             tracing::warn!("no tokens configured: anyone who can reach this server may use it");
         }
         let denoiser =
-            render::denoise::Denoiser::load(config.oidn_lib.as_deref(), config.oidn_max_memory_mib);
+            render::denoise::Denoiser::load(config.oidn_lib.as_deref(), config.oidn_memory());
         match denoiser.oidn() {
             Ok(oidn) => tracing::info!(
                 version = %oidn.version(),
                 library = %oidn.path().display(),
-                max_memory_mib = config.oidn_max_memory_mib,
+                min_memory_mib = config.oidn_min_memory_mib,
+                max_memory_mib = ?config.oidn_max_memory_mib,
                 "Open Image Denoise loaded: image.exr?denoise=oidn is served"
             ),
             Err(e) if config.oidn_lib.is_some() => {

@@ -29,6 +29,9 @@ pub const RENDERS: &str = "splatd_renders_total";
 pub const RENDER_PACE_SECONDS: &str = "splatd_render_pace_seconds";
 /// Seconds OIDN took for a denoised image (histogram).
 pub const DENOISE_SECONDS: &str = "splatd_denoise_seconds";
+/// Images OIDN denoised, label `memory`: `untiled` when it had what the image needs untiled,
+/// `tiled` when the working memory was short and it denoised in tiles (the same output, slower).
+pub const DENOISED_IMAGES: &str = "splatd_denoised_images_total";
 /// Imported states, label `result` (`applied`, `duplicate`).
 pub const IMPORTS: &str = "splatd_imports_total";
 /// Exported states.
@@ -71,7 +74,7 @@ pub const FRAME_CONVERGED_BELOW: &str = "splatd_frame_converged_below";
 pub const FRAME_FIGURES_AGE: &str = "splatd_frame_figures_age_seconds";
 
 /// Every name above.
-pub const ALL: [&str; 31] = [
+pub const ALL: [&str; 32] = [
     SAMPLES_INGESTED,
     BATCHES_INGESTED,
     BATCHES_DUPLICATE,
@@ -84,6 +87,7 @@ pub const ALL: [&str; 31] = [
     RENDERS,
     RENDER_PACE_SECONDS,
     DENOISE_SECONDS,
+    DENOISED_IMAGES,
     IMPORTS,
     EXPORTS,
     PUSHES,

@@ -566,6 +566,7 @@ fn denoised_rows(
                     hdr: true,
                     quality: Quality::Default,
                     clean_aux: false,
+                    max_memory_mib: None,
                 })?)
             };
             let means: Vec<Vec<[f32; 3]>> = (0..runs)

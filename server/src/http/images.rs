@@ -16,7 +16,7 @@ use crate::frame::{core_resolve_params, FrameCut, ShardedFrame};
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Query};
 use crate::render::denoise;
-use crate::work::WorkBudget;
+use crate::work::{Reservation, WorkBudget};
 use crate::AppState;
 use splatd_formats::exr::{cascade_layers, encode_exr_in, ExtraLayer, Provenance};
 
@@ -52,11 +52,17 @@ pub async fn get_image(
     // cascades when asked for), at 12 bytes per pixel and layer.
     // AOV means: two copies (planes and channels) of 4 bytes per channel and pixel.
     let aov_bytes = px * 8 * frame.spec().aov_channels() as u64;
-    // A denoise: OIDN's own memory, the plan's images for one input (more are reserved once
-    // the plan says how many), and the `denoised` layer in the EXR. All counted as if held at
-    // once, though the state copy is dropped before OIDN runs.
+    // A denoise: OIDN's own memory (its floor: more is taken when OIDN runs, if free), the
+    // plan's images for one input (more are reserved once the plan says how many), a copy of
+    // the resolve (three RGB layers and the counts) and the `denoised` layer in the EXR. The
+    // state copy's share is given back before OIDN runs.
     let denoise_bytes = match oidn {
-        Some(_) => app.denoiser.working_bytes(px) + denoise::image_bytes(px, 1) + px * 12 * 2,
+        Some(_) => {
+            app.denoiser.memory().reserved_bytes(px)
+                + denoise::image_bytes(px, 1)
+                + px * 44
+                + px * 12 * 2
+        }
         None => 0,
     };
     let cost =
@@ -67,7 +73,7 @@ pub async fn get_image(
     let scratches = app.clone();
     let exr = app
         .renders
-        .get_or_render(&frame, key, cost, move |frame, wanted| {
+        .get_or_render(&frame, key, cost, move |frame, wanted, reservation| {
             let provenance = Provenance {
                 layout: &frame.spec().layout,
                 params: &params,
@@ -98,8 +104,14 @@ pub async fn get_image(
                     encode(resolved, &[], &[], Vec::new())
                 });
             }
-            kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
-                let mut extra = if query.cascades {
+            let denoising = oidn.as_deref().map(|oidn| Denoising {
+                oidn,
+                memory: scratches.denoiser.memory(),
+                budget: &budget,
+                quality: query.denoise_quality.unwrap_or_default(),
+            });
+            let image = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+                let extra = if query.cascades {
                     cascade_layers(cut.cascade_means())
                 } else {
                     Vec::new()
@@ -109,23 +121,39 @@ pub async fn get_image(
                     .as_ref()
                     .map(|sums| splatd_formats::exr::aov_planes(&frame.spec().request.aovs, sums))
                     .unwrap_or_default();
-                let mut more_attributes = Vec::new();
-                if let Some(oidn) = oidn {
-                    let planes: Vec<&[f32]> = aovs.iter().map(|(_, p)| p.as_slice()).collect();
-                    let quality = query.denoise_quality.unwrap_or_default();
-                    let run = denoise_cut(
-                        &oidn, frame, &cut, &params, threads, &planes, px, &budget, quality,
-                    )?;
-                    more_attributes = run.attributes();
-                    extra.push(ExtraLayer {
-                        name: denoise::DENOISED_LAYER.to_owned(),
-                        rgb: run.rgb,
-                    });
-                }
-                // The encoding needs nothing of the state.
-                drop(cut);
-                encode(resolved, &extra, &aovs, more_attributes)
-            })
+                let Some(denoising) = denoising else {
+                    // The encoding needs nothing of the state.
+                    give_back_cut(frame, cut, reservation);
+                    return encode(resolved, &extra, &aovs, Vec::new()).map(Image::Encoded);
+                };
+                let plan = denoising.plan(frame, cut, reservation, &params, threads);
+                Ok(Image::ToDenoise(Box::new(ToDenoise {
+                    denoising,
+                    resolved: resolved.clone(),
+                    extra,
+                    aovs,
+                    plan,
+                })))
+            })?;
+            // OIDN runs with the kept resolve free for other renders of the frame.
+            let ToDenoise {
+                denoising,
+                resolved,
+                mut extra,
+                aovs,
+                plan,
+            } = match image {
+                Image::Encoded(bytes) => return Ok(bytes),
+                Image::ToDenoise(to_denoise) => *to_denoise,
+            };
+            let planes: Vec<&[f32]> = aovs.iter().map(|(_, p)| p.as_slice()).collect();
+            let run = denoising.run(frame, plan, &planes)?;
+            let attributes = run.attributes();
+            extra.push(ExtraLayer {
+                name: denoise::DENOISED_LAYER.to_owned(),
+                rgb: run.rgb,
+            });
+            encode(&resolved, &extra, &aovs, attributes)
         })
         .await?;
     metrics::histogram!(crate::meters::RESOLVE_SECONDS).record(started.elapsed().as_secs_f64());
@@ -211,11 +239,13 @@ pub async fn get_preview(
     };
     let px = pixels(&frame);
     // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG; for the
-    // denoised layer, what a denoise holds (see `get_image`) and the AOV means.
+    // denoised layer, what a denoise holds (see `get_image`), a copy of the resolve (three RGB
+    // layers and the counts) and the AOV means.
     let denoise_bytes = match oidn {
         Some(_) => {
-            app.denoiser.working_bytes(px)
+            app.denoiser.memory().reserved_bytes(px)
                 + denoise::image_bytes(px, 1)
+                + px * 44
                 + px * 4 * frame.spec().aov_channels() as u64
         }
         None => 0,
@@ -224,9 +254,10 @@ pub async fn get_preview(
     let key = format!("png {:?} {:?} {}", query.layer, query.exposure, query.stops);
     let budget = app.renders.budget().clone();
     let kept = app.renders.kept().clone();
+    let memory = app.denoiser.memory();
     let png = app
         .renders
-        .get_or_render(&frame, key, cost, move |frame, wanted| {
+        .get_or_render(&frame, key, cost, move |frame, wanted, reservation| {
             // A layer that needs nothing of the state is answered by a resolve of the version
             // read before this render began or a later one, kept by a render of another kind.
             let encode = |resolved: &splatd_estimator::Resolved, denoised: Option<&[[f32; 3]]>| {
@@ -249,21 +280,26 @@ pub async fn get_preview(
                     encode(resolved, None)
                 });
             };
-            kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
-                let aovs = cut
-                    .aovs
-                    .as_ref()
-                    .map(|sums| sums.means())
-                    .unwrap_or_default();
-                let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
-                let high = DenoiseQuality::High;
-                let denoised = denoise_cut(
-                    &oidn, frame, &cut, &params, threads, &planes, px, &budget, high,
-                )?
-                .rgb;
-                drop(cut);
-                encode(resolved, Some(&denoised))
-            })
+            let denoising = Denoising {
+                oidn: &oidn,
+                memory,
+                budget: &budget,
+                quality: DenoiseQuality::High,
+            };
+            let (resolved, aovs, plan) =
+                kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+                    let aovs = cut
+                        .aovs
+                        .as_ref()
+                        .map(|sums| sums.means())
+                        .unwrap_or_default();
+                    let plan = denoising.plan(frame, cut, reservation, &params, threads);
+                    (resolved.clone(), aovs, plan)
+                });
+            // OIDN runs with the kept resolve free for other renders of the frame.
+            let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
+            let denoised = denoising.run(frame, plan, &planes)?.rgb;
+            encode(&resolved, Some(&denoised))
         })
         .await?;
     Ok((
@@ -275,38 +311,91 @@ pub async fn get_preview(
     ))
 }
 
-/// The denoised final of `cut` (a copy of `frame`, dropped once the denoiser input is made)
-/// at OIDN's `quality`, guided by the frame's guides among `aov_planes` (all its AOV channel
-/// means). The plan's inputs beyond the first are reserved from `budget` here, now or never
-/// (the caller reserved for one).
-#[allow(clippy::too_many_arguments)]
-fn denoise_cut(
-    oidn: &splatd_denoise::Oidn,
-    frame: &ShardedFrame,
-    cut: &FrameCut,
-    params: &ResolveParams,
-    threads: usize,
-    aov_planes: &[&[f32]],
-    px: u64,
-    budget: &Arc<WorkBudget>,
+/// Drops `cut`, a copy of `frame`'s state, and gives its share of the render's working memory
+/// back.
+fn give_back_cut(frame: &ShardedFrame, cut: FrameCut, reservation: &mut Reservation) {
+    drop(cut);
+    reservation.shrink_to(
+        reservation
+            .bytes()
+            .saturating_sub(frame.spec().memory_bytes()),
+    );
+}
+
+/// A denoise to run: OIDN, the memory it may use, and its quality.
+struct Denoising<'a> {
+    oidn: &'a splatd_denoise::Oidn,
+    memory: denoise::OidnMemory,
+    budget: &'a Arc<WorkBudget>,
     quality: DenoiseQuality,
-) -> Result<denoise::DenoiseRun, ApiError> {
-    let bands = cut.band_refs();
-    let plan = DenoisePlan::new(&bands, params, threads);
-    drop(bands);
-    let inputs = plan.inputs().len() as u64;
-    let _more_memory = if inputs > 1 {
-        let more = denoise::image_bytes(px, inputs) - denoise::image_bytes(px, 1);
-        Some(budget.reserve_now(more).map_err(|b| ApiError::busy(&b))?)
-    } else {
-        None
-    };
-    Ok(denoise::run(
-        oidn,
-        frame.id(),
-        plan,
-        &frame.spec().guides,
-        aov_planes,
-        quality,
-    )?)
+}
+
+impl Denoising<'_> {
+    /// The denoiser input of `cut`, a copy of `frame` resolved at `params` on `threads`. The
+    /// cut is dropped, and its share of the render's `reservation` given back, once it is made.
+    fn plan(
+        &self,
+        frame: &ShardedFrame,
+        cut: FrameCut,
+        reservation: &mut Reservation,
+        params: &ResolveParams,
+        threads: usize,
+    ) -> DenoisePlan {
+        let bands = cut.band_refs();
+        let plan = DenoisePlan::new(&bands, params, threads);
+        drop(bands);
+        give_back_cut(frame, cut, reservation);
+        plan
+    }
+
+    /// The denoised final of `plan`, guided by the frame's guides among `aov_planes` (all its
+    /// AOV channel means). The plan's inputs beyond the first are reserved from the budget here,
+    /// now or never (the render reserved for one), and OIDN gets what memory is free
+    /// ([`denoise::OidnMemory::grant`]).
+    fn run(
+        &self,
+        frame: &ShardedFrame,
+        plan: DenoisePlan,
+        aov_planes: &[&[f32]],
+    ) -> Result<denoise::DenoiseRun, ApiError> {
+        let px = plan.width() as u64 * plan.height() as u64;
+        let inputs = plan.inputs().len() as u64;
+        let _more_images = if inputs > 1 {
+            let more = denoise::image_bytes(px, inputs) - denoise::image_bytes(px, 1);
+            Some(
+                self.budget
+                    .reserve_now(more)
+                    .map_err(|b| ApiError::busy(&b))?,
+            )
+        } else {
+            None
+        };
+        let grant = self.memory.grant(px, self.budget);
+        Ok(denoise::run(
+            self.oidn,
+            frame.id(),
+            plan,
+            &frame.spec().guides,
+            aov_planes,
+            self.quality,
+            &grant,
+        )?)
+    }
+}
+
+/// What a render of `image.exr` made with the frame's kept resolve: the file, or, for a denoise,
+/// everything but OIDN's output, taken out so that OIDN runs with the kept resolve free.
+enum Image<'a> {
+    Encoded(Bytes),
+    ToDenoise(Box<ToDenoise<'a>>),
+}
+
+/// A denoised `image.exr` before OIDN: a copy of the resolve, the other extra layers, the AOV
+/// means and the denoiser input.
+struct ToDenoise<'a> {
+    denoising: Denoising<'a>,
+    resolved: splatd_estimator::Resolved,
+    extra: Vec<ExtraLayer>,
+    aovs: Vec<(String, Vec<f32>)>,
+    plan: DenoisePlan,
 }

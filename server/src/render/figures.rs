@@ -88,24 +88,29 @@ pub async fn need_map(
     let kept = app.renders.kept().clone();
     let bytes = app
         .renders
-        .get_or_render(frame, format!("need {tile}"), cost, move |frame, wanted| {
-            // The need map at the default tile goes with the kept resolve, which files its
-            // figures: a render that started with this one may just have made both.
-            let body = if tile == estimator::DEFAULT_NEED_TILE {
-                kept.with_need_since(frame, threads, wanted, |map, _| to_api(frame.id(), map))
-            } else {
-                let map = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
-                    NeedMap::build(&cut.band_refs(), resolved, &params, tile)
-                });
-                to_api(
-                    frame.id(),
-                    &map.map_err(|e| FiguresError::internal("need map", e))?,
-                )
-            };
-            serde_json::to_vec(&body)
-                .map(Bytes::from)
-                .map_err(|e| FiguresError::internal("need map JSON", e))
-        })
+        .get_or_render(
+            frame,
+            format!("need {tile}"),
+            cost,
+            move |frame, wanted, _| {
+                // The need map at the default tile goes with the kept resolve, which files its
+                // figures: a render that started with this one may just have made both.
+                let body = if tile == estimator::DEFAULT_NEED_TILE {
+                    kept.with_need_since(frame, threads, wanted, |map, _| to_api(frame.id(), map))
+                } else {
+                    let map = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
+                        NeedMap::build(&cut.band_refs(), resolved, &params, tile)
+                    });
+                    to_api(
+                        frame.id(),
+                        &map.map_err(|e| FiguresError::internal("need map", e))?,
+                    )
+                };
+                serde_json::to_vec(&body)
+                    .map(Bytes::from)
+                    .map_err(|e| FiguresError::internal("need map JSON", e))
+            },
+        )
         .await?;
     Ok(bytes)
 }

@@ -31,7 +31,7 @@ use std::sync::{Arc, Mutex};
 use bytes::Bytes;
 
 use crate::frame::ShardedFrame;
-use crate::work::{Busy, WorkBudget};
+use crate::work::{Busy, Reservation, WorkBudget};
 
 pub mod denoise;
 pub mod figures;
@@ -190,7 +190,8 @@ impl Renders {
     /// The bytes of `query` rendered from `frame` with every sample it holds now: the latest
     /// render's if it read this version or a later one, else the next render's, rendered by
     /// `render` on a thread of its own after reserving `cost` bytes of working memory and shared
-    /// with everyone waiting for it.
+    /// with everyone waiting for it. `render` holds that reservation, to give back what it no
+    /// longer needs ([`Reservation::shrink_to`]) before its slow part.
     ///
     /// The version is read before rendering (after the frame's pace, [`pace`]) and given to
     /// `render`; if samples arrive meanwhile, the bytes may show a slightly newer state than the
@@ -203,7 +204,7 @@ impl Renders {
         frame: &Arc<ShardedFrame>,
         query: String,
         cost: u64,
-        render: impl FnOnce(&ShardedFrame, u64) -> Result<Bytes, E> + Send + 'static,
+        render: impl FnOnce(&ShardedFrame, u64, &mut Reservation) -> Result<Bytes, E> + Send + 'static,
     ) -> Result<Bytes, RenderError<E>> {
         let wanted = frame.version();
         let entry = self.entry(Key {
@@ -223,7 +224,7 @@ impl Renders {
             metrics::histogram!(crate::meters::RENDER_PACE_SECONDS).record(waited.as_secs_f64());
         }
         let version = frame.version();
-        let reservation = self.budget.reserve(cost).await?;
+        let mut reservation = self.budget.reserve(cost).await?;
         self.rendered
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         metrics::counter!(crate::meters::RENDERS).increment(1);
@@ -232,7 +233,7 @@ impl Renders {
         let paces = self.paces.clone();
         let rendered = on_render_thread(move || {
             let started = std::time::Instant::now();
-            let bytes = render(&frame, version);
+            let bytes = render(&frame, version, &mut reservation);
             drop(reservation);
             if let Ok(bytes) = &bytes {
                 filed.file(version, bytes);
@@ -283,9 +284,10 @@ mod tests {
 
     fn counting(
         calls: &Arc<AtomicUsize>,
-    ) -> impl FnOnce(&ShardedFrame, u64) -> Result<Bytes, String> + Send + 'static {
+    ) -> impl FnOnce(&ShardedFrame, u64, &mut Reservation) -> Result<Bytes, String> + Send + 'static
+    {
         let calls = calls.clone();
-        move |f: &ShardedFrame, _| {
+        move |f: &ShardedFrame, _, _| {
             calls.fetch_add(1, Ordering::SeqCst);
             Ok(Bytes::from(format!("v{}", f.version())))
         }
@@ -340,7 +342,7 @@ mod tests {
             let (renders, f, calls) = (renders.clone(), f.clone(), calls.clone());
             tokio::spawn(async move {
                 renders
-                    .get_or_render(&f, "q".into(), 100, move |f: &ShardedFrame, _| {
+                    .get_or_render(&f, "q".into(), 100, move |f: &ShardedFrame, _, _| {
                         calls.fetch_add(1, Ordering::SeqCst);
                         let version = f.version();
                         started.send(()).unwrap();
@@ -401,7 +403,7 @@ mod tests {
         let renders = Renders::new(8, WorkBudget::new(1 << 20, Duration::ZERO));
         let before = nice();
         let seen = renders
-            .get_or_render(&frame(), "q".into(), 1, |_: &ShardedFrame, _| {
+            .get_or_render(&frame(), "q".into(), 1, |_: &ShardedFrame, _, _| {
                 Ok::<_, String>(Bytes::from(nice().to_string()))
             })
             .await
@@ -421,7 +423,7 @@ mod tests {
         let f = frame();
         for q in 0..5 {
             let bytes = renders
-                .get_or_render(&f, format!("q{q}"), 1, |_, _| {
+                .get_or_render(&f, format!("q{q}"), 1, |_, _, _| {
                     Ok::<_, String>(Bytes::from(vec![0u8; 40]))
                 })
                 .await
