@@ -779,3 +779,44 @@ fn a_frame_being_denoised_is_served_to_everyone_else() {
     std::fs::write(dir.path().join("denoise:before_oidn.release"), b"").unwrap();
     assert_eq!(denoise.join().unwrap().unwrap(), 200);
 }
+
+/// A frame whose denoise needs more than the whole working memory is denoised alone, not
+/// refused: every image a denoise holds is reserved before it starts. (When the plan's second
+/// image was reserved later, the request's own first reservation made it 503 `busy` every time;
+/// a 3840x2160 frame does that on a server with the default 2048 MiB.)
+#[test]
+fn a_denoise_larger_than_the_working_memory_runs_alone() {
+    let Some(lib) = oidn_library() else { return };
+    let server = Server::start_with_env(&["--work-memory-mib", "1"], &[("SPLATD_OIDN_LIB", &lib)]);
+    let client = Client::new(&server.url).unwrap();
+    let rt = runtime();
+    let image = rt.block_on(async {
+        client
+            .create_frame(&CreateFrame::new("f", W, H))
+            .await
+            .unwrap();
+        // Eight samples a pixel, all alike: enough for the resolve to keep them all.
+        for seq in 0..8 {
+            let records = (0..W * H)
+                .map(|i| Record::new(i % W, i / W, [1.0, 0.5, 0.25]))
+                .collect();
+            client
+                .post_batch(&Batch::new("f", 1, seq, records).unwrap())
+                .await
+                .unwrap();
+        }
+        client.image("f", &query(Some(Denoise::Oidn))).await
+    });
+    let image = image.unwrap_or_else(|e| panic!("a denoise alone on the server: {e}"));
+    let dir = tempfile::tempdir().unwrap();
+    let exr = Exr::read(dir.path(), "alone.exr", &image);
+    assert_eq!(exr.attributes["splatd:denoiseInputImages"], 2);
+    let denoised = exr.rgb("denoised.", ["R", "G", "B"]);
+    for (c, want) in [1.0, 0.5, 0.25].into_iter().enumerate() {
+        let mean = denoised.iter().map(|p| f64::from(p[c])).sum::<f64>() / denoised.len() as f64;
+        assert!(
+            (mean / want - 1.0).abs() < 0.05,
+            "a flat frame denoises to about itself: channel {c} {mean}, not {want}"
+        );
+    }
+}

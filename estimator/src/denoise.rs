@@ -76,6 +76,14 @@ impl DenoiseDesign {
         }
     }
 
+    /// How many images the design hands the denoiser (the length of [`DenoisePlan::inputs`]).
+    pub fn images(self) -> usize {
+        match self {
+            DenoiseDesign::Paper => 1,
+            DenoiseDesign::PaperRatio | DenoiseDesign::MildRatio | DenoiseDesign::GentleRatio => 2,
+        }
+    }
+
     /// The paper's resolve this design hands the denoiser, from the frame's parameters.
     pub fn paper_params(self, params: &ResolveParams) -> ResolveParams {
         let fixed = |kappa| {
@@ -283,6 +291,7 @@ mod tests {
             let banded =
                 DenoisePlan::with_design(&bands.iter().collect::<Vec<_>>(), &params, 3, design);
             assert_eq!(whole.inputs(), banded.inputs(), "{design:?}");
+            assert_eq!(whole.inputs().len(), design.images(), "{design:?}");
         }
     }
 

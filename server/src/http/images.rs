@@ -53,13 +53,12 @@ pub async fn get_image(
     // AOV means: two copies (planes and channels) of 4 bytes per channel and pixel.
     let aov_bytes = px * 8 * frame.spec().aov_channels() as u64;
     // A denoise: OIDN's own memory (its floor: more is taken when OIDN runs, if free), the
-    // plan's images for one input (more are reserved once the plan says how many), a copy of
-    // the resolve (three RGB layers and the counts) and the `denoised` layer in the EXR. The
-    // state copy's share is given back before OIDN runs.
+    // plan's images, a copy of the resolve (three RGB layers and the counts) and the `denoised`
+    // layer in the EXR. The state copy's share is given back before OIDN runs.
     let denoise_bytes = match oidn {
         Some(_) => {
             app.denoiser.memory().reserved_bytes(px)
-                + denoise::image_bytes(px, 1)
+                + denoise::image_bytes(px)
                 + px * 44
                 + px * 12 * 2
         }
@@ -244,7 +243,7 @@ pub async fn get_preview(
     let denoise_bytes = match oidn {
         Some(_) => {
             app.denoiser.memory().reserved_bytes(px)
-                + denoise::image_bytes(px, 1)
+                + denoise::image_bytes(px)
                 + px * 44
                 + px * 4 * frame.spec().aov_channels() as u64
         }
@@ -349,9 +348,7 @@ impl Denoising<'_> {
     }
 
     /// The denoised final of `plan`, guided by the frame's guides among `aov_planes` (all its
-    /// AOV channel means). The plan's inputs beyond the first are reserved from the budget here,
-    /// now or never (the render reserved for one), and OIDN gets what memory is free
-    /// ([`denoise::OidnMemory::grant`]).
+    /// AOV channel means), OIDN getting what memory is free ([`denoise::OidnMemory::grant`]).
     fn run(
         &self,
         frame: &ShardedFrame,
@@ -359,17 +356,6 @@ impl Denoising<'_> {
         aov_planes: &[&[f32]],
     ) -> Result<denoise::DenoiseRun, ApiError> {
         let px = plan.width() as u64 * plan.height() as u64;
-        let inputs = plan.inputs().len() as u64;
-        let _more_images = if inputs > 1 {
-            let more = denoise::image_bytes(px, inputs) - denoise::image_bytes(px, 1);
-            Some(
-                self.budget
-                    .reserve_now(more)
-                    .map_err(|b| ApiError::busy(&b))?,
-            )
-        } else {
-            None
-        };
         let grant = self.memory.grant(px, self.budget);
         Ok(denoise::run(
             self.oidn,

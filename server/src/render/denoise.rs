@@ -20,7 +20,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use splatd_denoise::{DenoiseInput, Oidn, Quality};
-use splatd_estimator::denoise::DenoisePlan;
+use splatd_estimator::denoise::{DenoisePlan, DEFAULT_DENOISE_DESIGN};
 use splatd_estimator::ParamError;
 use splatd_proto::api::{AovSpec, DenoiseGuides, DenoiseQuality};
 
@@ -364,11 +364,14 @@ impl DenoiseRun {
     }
 }
 
-/// Bytes a denoise holds beside OIDN's own ([`Denoiser::working_bytes`]) for a plan of
-/// `inputs` images: the plan's resolve (three RGB layers and the sample counts, 44 bytes a
-/// pixel) and inputs, the two guides, one output per input and the final, at 12 bytes a pixel
-/// each.
-pub fn image_bytes(pixels: u64, inputs: u64) -> u64 {
+/// Bytes a denoise of `pixels` pixels holds beside OIDN's own ([`OidnMemory`]): the plan's
+/// resolve (three RGB layers and the sample counts, 44 bytes a pixel), and at 12 bytes a pixel
+/// each its inputs (as many as [`DEFAULT_DENOISE_DESIGN`] makes), the two guides, one output per
+/// input and the final. All are reserved before the denoise starts: a request reserving more
+/// later could be refused by its own first reservation (a 3840x2160 frame, larger than the
+/// default working memory, runs alone, and was then refused its second image, every time).
+pub fn image_bytes(pixels: u64) -> u64 {
+    let inputs = DEFAULT_DENOISE_DESIGN.images() as u64;
     pixels * (44 + 12 * (2 * inputs + 3))
 }
 
