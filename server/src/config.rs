@@ -111,7 +111,7 @@ pub struct Config {
     /// starts. When OIDN runs it also gets what the working memory has free then, up to what
     /// the image needs untiled (about 640 bytes a pixel); short of that it denoises in tiles
     /// (the same output, slower).
-    #[arg(long, default_value_t = 512)]
+    #[arg(long, default_value_t = crate::render::denoise::DEFAULT_LEAST_MIB)]
     pub oidn_min_memory_mib: u32,
     /// Most MiB one denoise may use inside OIDN (its maxMemoryMB: it denoises in tiles to stay
     /// below). Without it, as much as the image needs untiled, when the working memory has it.

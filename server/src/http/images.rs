@@ -52,16 +52,10 @@ pub async fn get_image(
     // cascades when asked for), at 12 bytes per pixel and layer.
     // AOV means: two copies (planes and channels) of 4 bytes per channel and pixel.
     let aov_bytes = px * 8 * frame.spec().aov_channels() as u64;
-    // A denoise: OIDN's own memory (its floor: more is taken when OIDN runs, if free), the
-    // plan's images, a copy of the resolve (three RGB layers and the counts) and the `denoised`
-    // layer in the EXR. The state copy's share is given back before OIDN runs.
+    // A denoise (`denoise_bytes`) and the `denoised` layer in the EXR. The state copy's share
+    // is given back before OIDN runs.
     let denoise_bytes = match oidn {
-        Some(_) => {
-            app.denoiser.memory().reserved_bytes(px)
-                + denoise::image_bytes(px)
-                + px * 44
-                + px * 12 * 2
-        }
+        Some(_) => denoise_bytes(app.denoiser.memory(), px) + px * 12 * 2,
         None => 0,
     };
     let cost =
@@ -238,14 +232,10 @@ pub async fn get_preview(
     };
     let px = pixels(&frame);
     // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG; for the
-    // denoised layer, what a denoise holds (see `get_image`), a copy of the resolve (three RGB
-    // layers and the counts) and the AOV means.
+    // denoised layer, a denoise (`denoise_bytes`) and the AOV means.
     let denoise_bytes = match oidn {
         Some(_) => {
-            app.denoiser.memory().reserved_bytes(px)
-                + denoise::image_bytes(px)
-                + px * 44
-                + px * 4 * frame.spec().aov_channels() as u64
+            denoise_bytes(app.denoiser.memory(), px) + px * 4 * frame.spec().aov_channels() as u64
         }
         None => 0,
     };
@@ -308,6 +298,13 @@ pub async fn get_preview(
         ],
         png,
     ))
+}
+
+/// Bytes a render that denoises `px` pixels reserves for the denoise: OIDN's floor (more is
+/// taken when OIDN runs, if free), the plan's images, and the copy of the resolve it encodes
+/// from once it has let go of the kept one (three RGB layers and the counts).
+fn denoise_bytes(memory: denoise::OidnMemory, px: u64) -> u64 {
+    memory.reserved_bytes(px) + denoise::image_bytes(px) + px * 44
 }
 
 /// Drops `cut`, a copy of `frame`'s state, and gives its share of the render's working memory

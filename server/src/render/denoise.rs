@@ -141,10 +141,13 @@ pub struct OidnMemory {
     pub most_mib: Option<u32>,
 }
 
+/// MiB every denoise reserves for OIDN unless set (`--oidn-min-memory-mib`).
+pub const DEFAULT_LEAST_MIB: u32 = 512;
+
 impl Default for OidnMemory {
     fn default() -> OidnMemory {
         OidnMemory {
-            least_mib: 512,
+            least_mib: DEFAULT_LEAST_MIB,
             most_mib: None,
         }
     }
