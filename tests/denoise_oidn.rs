@@ -19,8 +19,8 @@ use std::process::Command;
 
 use crate::common;
 use crate::common::{
-    read_exr_attributes_with_python, read_exr_with_python, run_setup, runtime, Log, Options,
-    Server, ServerProcess,
+    parse_metrics, read_exr_attributes_with_python, read_exr_with_python, run_setup, runtime,
+    scrape_metrics, Log, Options, Server, ServerProcess,
 };
 use bytes::Bytes;
 use splatd_proto::api::{AovSpec, CreateFrame, Denoise, DenoiseGuides, DenoiseQuality, ImageQuery};
@@ -614,16 +614,14 @@ fn a_server_without_a_usable_oidn_refuses_denoising_and_nothing_else() {
 }
 
 /// `splatd_denoised_images_total` by its `memory` label, from a server's `/metrics`.
-fn denoised_images(url: &str) -> (u64, u64) {
-    let text = reqwest::blocking::get(format!("{url}/metrics"))
-        .unwrap()
-        .text()
-        .unwrap();
+fn denoised_images(url: &str) -> (f64, f64) {
+    let m = parse_metrics(&scrape_metrics(url));
     let count = |memory: &str| {
-        let name = format!("splatd_denoised_images_total{{memory=\"{memory}\"}} ");
-        text.lines()
-            .find_map(|l| l.strip_prefix(&name))
-            .map_or(0, |v| v.parse().unwrap())
+        m.get(&format!(
+            "splatd_denoised_images_total{{memory=\"{memory}\"}}"
+        ))
+        .copied()
+        .unwrap_or(0.0)
     };
     (count("untiled"), count("tiled"))
 }
@@ -687,13 +685,13 @@ fn a_denoise_gets_free_working_memory_and_tiles_only_when_short() {
         .into();
     let (untiled, tiled) = denoised_images(&roomy.url);
     assert!(
-        untiled > 0 && tiled == 0,
+        untiled > 0.0 && tiled == 0.0,
         "with the working memory free: {untiled} images untiled, {tiled} tiled"
     );
     let (untiled_capped, tiled_capped) = denoised_images(&capped.url);
     assert_eq!(
         (untiled_capped, tiled_capped),
-        (0, untiled),
+        (0.0, untiled),
         "capped at 100 MiB: every image tiled"
     );
     assert!(

@@ -1,34 +1,10 @@
 //! `/metrics` of a real server in the Prometheus text format, counting what happened.
 
-use std::collections::HashMap;
 use std::time::{Duration, Instant};
 
-use crate::common::{runtime, Server};
+use crate::common::{parse_metrics, runtime, scrape_metrics, Server};
 use splatd_proto::api::{CreateFrame, ImageQuery};
 use splatd_proto::{Batch, Client, Record};
-
-/// `name{labels} value` lines into a map (comments skipped).
-fn parse(text: &str) -> HashMap<String, f64> {
-    text.lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-        .map(|l| {
-            let (name, value) = l.rsplit_once(' ').expect("name and value");
-            (name.to_owned(), value.parse().expect("a number"))
-        })
-        .collect()
-}
-
-/// `GET /metrics`: the text, checked to be Prometheus text.
-fn scrape(url: &str) -> String {
-    let response = reqwest::blocking::get(format!("{url}/metrics")).unwrap();
-    assert_eq!(response.status(), 200);
-    let content_type = response.headers()["content-type"]
-        .to_str()
-        .unwrap()
-        .to_owned();
-    assert!(content_type.starts_with("text/plain"), "{content_type}");
-    response.text().unwrap()
-}
 
 /// Batches of worker 1 numbered `seqs` to frame `m`, each 10 samples at pixel (1, 2).
 async fn post_tens(client: &Client, seqs: std::ops::Range<u64>) {
@@ -68,9 +44,9 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
     });
     // The first scrape renders the frame's first convergence point, at a time within it.
     let first_scrape = Instant::now();
-    let text = scrape(&server.url);
+    let text = scrape_metrics(&server.url);
     let first_scraped = Instant::now();
-    let m = parse(&text);
+    let m = parse_metrics(&text);
     let get = |k: &str| *m.get(k).unwrap_or_else(|| panic!("no {k} in:\n{text}"));
     assert_eq!(get("splatd_samples_ingested_total"), 30.0);
     assert_eq!(get("splatd_batches_ingested_total"), 3.0);
@@ -119,9 +95,9 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
         post_tens(&client, 10..20).await;
     });
     let second_scrape = Instant::now();
-    let text = scrape(&server.url);
+    let text = scrape_metrics(&server.url);
     let second_scraped = Instant::now();
-    let m = parse(&text);
+    let m = parse_metrics(&text);
     let rate = *m
         .get("splatd_frame_samples_per_second{frame=\"m\"}")
         .unwrap_or_else(|| panic!("no rate in:\n{text}"));

@@ -271,3 +271,26 @@ pub fn python_package_venv(dir: &Path) -> std::path::PathBuf {
     );
     python
 }
+
+/// `name{labels} value` lines into a map (comments skipped).
+pub fn parse_metrics(text: &str) -> std::collections::HashMap<String, f64> {
+    text.lines()
+        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
+        .map(|l| {
+            let (name, value) = l.rsplit_once(' ').expect("name and value");
+            (name.to_owned(), value.parse().expect("a number"))
+        })
+        .collect()
+}
+
+/// `GET /metrics`: the text, checked to be Prometheus text.
+pub fn scrape_metrics(url: &str) -> String {
+    let response = reqwest::blocking::get(format!("{url}/metrics")).unwrap();
+    assert_eq!(response.status(), 200);
+    let content_type = response.headers()["content-type"]
+        .to_str()
+        .unwrap()
+        .to_owned();
+    assert!(content_type.starts_with("text/plain"), "{content_type}");
+    response.text().unwrap()
+}
