@@ -818,3 +818,67 @@ fn a_denoise_larger_than_the_working_memory_runs_alone() {
         );
     }
 }
+
+/// A farm's first passes: after one pass and after two, guided and unguided, the denoised final
+/// keeps the energy of OIDN on the plain mean (what a farm without splatd would ship), and is
+/// OIDN's output on the rebuilt input. With one sample a pixel the paper's resolve once took
+/// out everything, so a frame's first pass denoised to black, and two passes to 0.75 of it.
+#[test]
+fn a_frames_first_passes_denoise_with_their_energy() {
+    let Some(lib) = oidn_library() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let passes = dir.path().join("passes");
+    write_passes(&passes);
+    let server = Server::start_with_env(&[], &[("SPLATD_OIDN_LIB", &lib)]);
+    let client = Client::new(&server.url).unwrap();
+    let rt = runtime();
+    let guided = CreateFrame {
+        aovs: aovs(),
+        ..CreateFrame::new("guided", W, H)
+    };
+    let unguided = CreateFrame::new("unguided", W, H);
+    let images = rt.block_on(async {
+        let mut images = Vec::new();
+        for frame in [&guided, &unguided] {
+            client.create_frame(frame).await.unwrap();
+        }
+        for k in 0..2 {
+            let body = Bytes::from(std::fs::read(passes.join(format!("pass_{k}.exr"))).unwrap());
+            for frame in ["guided", "unguided"] {
+                client.post_pass(frame, 1, k, body.clone()).await.unwrap();
+                let denoised = client
+                    .image(frame, &query(Some(Denoise::Oidn)))
+                    .await
+                    .unwrap();
+                let input = client.image(frame, &first_input()).await.unwrap();
+                images.push((format!("{frame}, {} pass(es)", k + 1), denoised, input));
+            }
+        }
+        images
+    });
+    for (i, (what, denoised, input)) in images.iter().enumerate() {
+        let d = dir.path();
+        let exr = Exr::read(d, &format!("final{i}.exr"), denoised);
+        let paper = Exr::read(d, &format!("input{i}.exr"), input);
+        let guided = what.starts_with("guided");
+        let (albedo, normal) = if guided {
+            (Some("ViewLayer.DiffCol"), Some("ViewLayer.Normal"))
+        } else {
+            (None, None)
+        };
+        check_against_oidn_denoise(&lib, d, &exr, &paper, albedo, normal, "high", what);
+        // OIDN on the plain mean, as `oidnDenoise` runs it.
+        let mean = exr.rgb("mean.", ["R", "G", "B"]);
+        let albedo = albedo.map(|a| exr.rgb(&format!("{a}."), ["R", "G", "B"]));
+        let normal = normal.map(|n| exr.rgb(&format!("{n}."), ["X", "Y", "Z"]));
+        let guides = albedo.as_deref().map(|a| (a, normal.as_deref()));
+        let oidn_mean = oidn_denoise(&lib, d, &mean, guides, "high");
+        let energy =
+            luminance_sum(&exr.rgb("denoised.", ["R", "G", "B"])) / luminance_sum(&oidn_mean);
+        eprintln!("{what}: the denoised final has {energy:.4} of OIDN(mean)'s energy");
+        assert!(
+            (0.98..=1.02).contains(&energy),
+            "{what}: the denoised final has {energy} of OIDN(mean)'s energy"
+        );
+    }
+}

@@ -278,6 +278,36 @@ mod tests {
     }
 
     #[test]
+    fn a_first_pass_reaches_the_denoiser_whole() {
+        // One and two samples a pixel of a flat frame: the paper's input is the mean (its
+        // first pass used to reach OIDN black, and two passes three quarters of it).
+        for spp in 1..=2 {
+            let mut state = FrameState::new(8, 6, CascadeLayout::with_defaults());
+            for y in 0..6 {
+                for x in 0..8 {
+                    for _ in 0..spp {
+                        state.splat(x, y, [1.0, 0.5, 0.25]).unwrap();
+                    }
+                }
+            }
+            let plan = DenoisePlan::new(&[&state], &ResolveParams::with_defaults(), 1);
+            let [paper, mean] = plan.inputs() else {
+                panic!("two inputs")
+            };
+            for (p, m) in paper.iter().zip(mean) {
+                for c in 0..3 {
+                    assert!((p[c] - m[c]).abs() <= 1e-6 * m[c], "{spp} spp: {p:?} {m:?}");
+                }
+            }
+            // A denoiser that returns its input: the final is the frame.
+            let outputs = plan.inputs().to_vec();
+            for p in plan.combine(outputs) {
+                assert!((p[1] - 0.5).abs() < 1e-6, "{spp} spp: {p:?}");
+            }
+        }
+    }
+
+    #[test]
     fn bands_give_the_same_inputs_as_the_whole_frame() {
         let state = firefly_frame(6, 9, 8);
         let layout = state.layout().clone();

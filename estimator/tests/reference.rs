@@ -139,13 +139,23 @@ impl Reference {
                             pool_total += self.samples[q].len() as f64;
                         }
                     }
-                    let pooled = n * pool_n / pool_total;
+                    // The paper's count term takes a pixel with fewer samples than full weight
+                    // needs (kappa + kappa_min) as having that many, but at most kappa_min
+                    // times its neighbourhood's samples (so that a band seen by one sample of
+                    // the neighbourhood stays at or below kappa_min).
+                    let counted = match params.variant() {
+                        Variant::Paper if n < kappa + kmin => {
+                            n.max((kappa + kmin).min(kmin * pool_total))
+                        }
+                        _ => n,
+                    };
+                    let pooled = counted * pool_n / pool_total;
                     let own = self.support(counts, j);
                     // How far the count and value terms may be off: the supports' rounding, and
                     // the rounding of the bands below carried in `f` (luminance weights add to
                     // 1, so a channel bound is a luminance bound).
                     let wc_err =
-                        (n * pool_err / pool_total).max(self.support(count_err, j)) / kappa;
+                        (counted * pool_err / pool_total).max(self.support(count_err, j)) / kappa;
                     let wv_err = f_err / (kappa * self.scale(j));
                     let lf = lum(f);
                     let c = self.scale(j);

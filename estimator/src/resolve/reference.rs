@@ -4,7 +4,7 @@
 //! Test-only.
 
 use super::reference_spread::{spread, BAND_FLOATS};
-use super::{ResolveParams, Resolved, TilingError, Variant, SHADER_E_MIN_FLOOR};
+use super::{support_samples, ResolveParams, Resolved, TilingError, Variant, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS};
 use crate::state::{cascade_units, cell_len, FrameState};
 
@@ -246,10 +246,18 @@ fn pixel(
     // per band and channel), as the fast resolve scales them.
     let inv = 1.0 / n;
     // Support relative to this pixel's own sample count (see the module docs).
-    let pool_scale = if pooled[k] > 0.0 { n / pooled[k] } else { 0.0 };
     let kappa = params.kappa_at(n);
     let inv_kappa = 1.0 / kappa;
     let kmin = params.kappa_min;
+    let own_n = match params.variant {
+        Variant::Paper => support_samples(n, kappa + kmin, kmin * pooled[k]),
+        Variant::Spread | Variant::Shader | Variant::Off => n,
+    };
+    let pool_scale = if pooled[k] > 0.0 {
+        own_n / pooled[k]
+    } else {
+        0.0
+    };
     let mut f = [0.0f64; 3];
     let mut total = [0.0f64; 3];
     let mut removed = [0.0f64; 3];

@@ -33,7 +33,7 @@
 // The group loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
 
-use super::{ResolveParams, Variant, SHADER_E_MIN_FLOOR};
+use super::{support_samples, ResolveParams, Variant, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_CASCADES};
 use crate::resolve_spread::{support_word, Source};
 use crate::state::{cell_len, Kernel, HI_BITS, HI_MASK};
@@ -94,6 +94,10 @@ pub(crate) struct Consts {
     base: f64,
     solid_share: f64,
     edge_share: Option<f64>,
+    /// Whether the count term takes a pixel to have the samples full weight needs
+    /// ([`support_samples`]): with [`Variant::Paper`], not with `spread`, whose second stage
+    /// already gives a sparse pixel's energy back (and gave lower errors without it).
+    counts_full_support: bool,
     /// `kappa * N^kappa_exponent` and its reciprocal for `N < KAP_TABLE` (`N.powf` is most of a
     /// row's arithmetic otherwise, and a scalar division per pixel with its branchy lookup was
     /// 11 % of the `paper` row loop's samples; the table holds the same bits as computing them).
@@ -125,6 +129,7 @@ impl Consts {
             base: layout.base(),
             solid_share: params.spread().solid_share(),
             edge_share: params.spread().edge_share(),
+            counts_full_support: params.variant == Variant::Paper,
             kap_table: Vec::new(),
         };
         if c.kappa_exponent != 0.0 {
@@ -550,14 +555,6 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 .map(|p| p[j * STRIP..(j + 1) * STRIP].try_into().expect("a strip"))
         };
         let n = own(k);
-        // Support relative to each pixel's own sample count (see the module docs of resolve).
-        let [na, nb, nc] = pool(k);
-        let mut pool_scale = [0.0; STRIP];
-        for x in 0..STRIP {
-            let pooled_n = na[x] + nb[x] + nc[x];
-            let s = n[x] / pooled_n;
-            pool_scale[x] = if pooled_n > 0.0 { s } else { 0.0 };
-        }
         let mut inv_kappa = [1.0 / c.kappa; STRIP];
         // kappa(N), for the weights and the spread stage's solid test.
         let mut kap = [c.kappa; STRIP];
@@ -580,6 +577,21 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                     };
                 }
             }
+        }
+        // Support relative to each pixel's own sample count (see the module docs of resolve),
+        // with the paper's weights as if the pixel had the samples full weight needs, where it
+        // has fewer (`support_samples`).
+        let [na, nb, nc] = pool(k);
+        let mut pool_scale = [0.0; STRIP];
+        for x in 0..STRIP {
+            let pooled_n = na[x] + nb[x] + nc[x];
+            let own_n = if V == PAPER && c.counts_full_support {
+                support_samples(n[x], kap[x] + kmin, kmin * pooled_n)
+            } else {
+                n[x]
+            };
+            let s = own_n / pooled_n;
+            pool_scale[x] = if pooled_n > 0.0 { s } else { 0.0 };
         }
         // The spread stage's solid test: a band is solid where its support reaches this (the
         // same f32 comparison as the plain computation's).
