@@ -1,6 +1,6 @@
 //! splatd's estimator quality benchmark; not part of the test suite.
 //!
-//! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time]`
+//! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time] [--denoised-only | --farm-only]`
 //! `quality --picture docs/quality.png [--picture-scene smalllight]`
 //!
 //! For every scene (the synthetic stream with its exact mean, and every path-traced stream in
@@ -26,6 +26,13 @@
 //! them: relMSE, its ratio to the best denoised anchor (goal <= 0.8x at every spp), and the
 //! energy relative to OIDN(mean)'s (goal within 2 % at 64 and 256 spp). `--denoised-only`
 //! skips the raw table (for iterating on designs; the recorded tables come from one run of both).
+//!
+//! Last, the FARM table: frames as a render farm posts them, 1 to 8 passes of 16 or 64 spp
+//! (each pass's pixel one sample of splatd's estimator, the mean of that many consecutive 1-spp
+//! passes), so 1 to 8 samples a pixel. For each: the plain mean and splatd's raw default (not
+//! denoised), OIDN(mean), and splatd's denoised final of every design, unguided and guided;
+//! goals of the default design: relMSE <= OIDN(mean)'s and energy within 2 % of it on every
+//! row. `--farm-only` prints only that table.
 
 use std::path::{Path, PathBuf};
 
@@ -117,12 +124,16 @@ struct Scene {
     runs: Vec<Vec<Vec<[f32; 3]>>>,
     gt: Vec<[f32; 3]>,
     /// Per run and per entry of [`SPPS`], the means of the albedo and normal AOVs over the
-    /// run's first `spp` passes (empty for a stream without AOVs).
+    /// run's first `spp` passes for every `spp` of [`GUIDE_SPPS`] (empty for a stream without
+    /// AOVs).
     guides: Vec<Vec<Guides>>,
     /// The ground truth's own relMSE as render_streams.py estimated it (its chunks' spread):
     /// a floor under every relMSE of the scene.
     gt_noise: Option<f64>,
 }
+
+/// The pass counts whose AOV means are kept as guides: the 1-spp rows' and the farm rows'.
+const GUIDE_SPPS: [usize; 5] = [16, 32, 64, 128, 256];
 
 /// A denoiser's guides: the albedo and normal means of a run's first passes.
 struct Guides {
@@ -131,6 +142,12 @@ struct Guides {
 }
 
 impl Scene {
+    /// The guides of run `r` after its first `spp` 1-spp passes, if the stream has AOVs.
+    fn guide(&self, r: usize, spp: usize) -> Option<&Guides> {
+        let at = GUIDE_SPPS.iter().position(|&s| s == spp)?;
+        self.guides.get(r).map(|g| &g[at])
+    }
+
     fn synthetic(size: u32, realizations: usize) -> Self {
         let runs = (0..realizations)
             .map(|r| {
@@ -200,14 +217,15 @@ impl Scene {
             bail!("{name}: {p} passes, at least {} needed", SPPS[2]);
         }
         // The AOVs (streams rendered before they existed have none): only their means over
-        // each run's first 16, 64, 256 passes are kept.
+        // each run's first GUIDE_SPPS passes are kept.
         let mut guides = Vec::new();
         if dir.join("albedo.f32").exists() && dir.join("normal.f32").exists() {
             let means = |file: &str| -> Result<Vec<Vec<Vec<[f32; 3]>>>> {
                 let all = floats(file, pixels * p as usize)?;
                 Ok((0..runs.len())
                     .map(|r| {
-                        SPPS.iter()
+                        GUIDE_SPPS
+                            .iter()
                             .map(|&spp| {
                                 let passes = &all[r * SPPS[2] * pixels..];
                                 (0..pixels)
@@ -556,7 +574,7 @@ fn denoised_rows(
         };
         for &guided in guides {
             let denoise = |r: usize, color: &[[f32; 3]]| -> Result<Vec<[f32; 3]>> {
-                let g = guided.then(|| &scene.guides[r][si]);
+                let g = guided.then(|| scene.guide(r, spp).expect("guides"));
                 Ok(oidn.denoise(&DenoiseInput {
                     width: w,
                     height: h,
@@ -705,7 +723,8 @@ fn main() -> Result<()> {
     let only: Option<Vec<String>> =
         value("--scenes").map(|s| s.split(',').map(str::to_owned).collect());
     let wanted = |name: &str| only.as_ref().is_none_or(|o| o.iter().any(|n| n == name));
-    let denoised_only = args.iter().any(|a| a == "--denoised-only");
+    let farm_only = args.iter().any(|a| a == "--farm-only");
+    let denoised_only = farm_only || args.iter().any(|a| a == "--denoised-only");
 
     let mut scenes = Vec::new();
     if wanted("synthetic") {
@@ -950,7 +969,175 @@ fn main() -> Result<()> {
     if args.iter().any(|a| a == "--time") {
         resolve_time()?;
     }
-    denoised_table(&scenes)
+    if !farm_only {
+        denoised_table(&scenes)?;
+    }
+    farm_table(&scenes)
+}
+
+/// The farm table's frames, as (passes, spp of each pass): a farm hands out a frame as a few
+/// passes of many samples, each pixel of a pass one sample of splatd's estimator, so a frame
+/// holds few samples a pixel (its first pass one) however many the renderer took.
+const FARM: [(usize, usize); 7] = [
+    (1, 16),
+    (2, 16),
+    (4, 16),
+    (8, 16),
+    (1, 64),
+    (2, 64),
+    (4, 64),
+];
+
+/// A frame of `passes` passes of a run, each pass the mean of `spp` consecutive 1-spp passes.
+fn farm_state(scene: &Scene, run: &[Vec<[f32; 3]>], passes: usize, spp: usize) -> FrameState {
+    let mut state = FrameState::new(scene.width, scene.height, CascadeLayout::with_defaults());
+    let w = scene.width;
+    for pass in run.chunks_exact(spp).take(passes) {
+        for p in 0..pass[0].len() {
+            let mut sum = [0.0f64; 3];
+            for sample in pass {
+                for c in 0..3 {
+                    sum[c] += sample[p][c] as f64;
+                }
+            }
+            let rgb = sum.map(|v| (v / spp as f64) as f32);
+            state.splat_checked(p as u32 % w, p as u32 / w, rgb);
+        }
+    }
+    state
+}
+
+/// The FARM table (`--farm`, or after the denoised table): frames of 1 to 8 passes of 16 or
+/// 64 spp, as a farm posts them. For each, relMSE and the energy relative to OIDN(mean)'s of
+/// the plain mean, splatd's raw default, OIDN(mean) (what a farm ships without splatd) and
+/// splatd's denoised final of every design, unguided and guided by the passes' AOV means.
+/// Goals of the default design: relMSE <= OIDN(mean)'s and energy within 2 % of it, every row.
+fn farm_table(scenes: &[Scene]) -> Result<()> {
+    let oidn = match Oidn::load() {
+        Ok(oidn) => oidn,
+        Err(e) => {
+            println!("\nFARM: skipped, OIDN not loaded ({e})");
+            return Ok(());
+        }
+    };
+    println!(
+        "\nFARM PASSES: frames of P passes of S spp (each pass one sample a pixel); OIDN {} as \
+         above; relMSE and energy (vs OIDN(mean) of the same realization and guide) are means \
+         over the realizations; ratio = relMSE / OIDN(mean)'s",
+        oidn.version()
+    );
+    println!(
+        "{:<10} {:>6} {:>2} {:<5} {:<38} {:>9} {:>7} {:>9}  goals of the default",
+        "scene", "PxS", "R", "guide", "estimator", "relMSE", "ratio", "energy"
+    );
+    let (mut ratio_goal, mut energy_goal) = (Goal::default(), Goal::default());
+    let defaults = ResolveParams::with_defaults();
+    for scene in scenes {
+        let (w, h) = (scene.width as usize, scene.height as usize);
+        for (passes, spp) in FARM {
+            let runs: Vec<usize> = (0..scene.runs.len())
+                .filter(|&r| scene.runs[r].len() >= passes * spp)
+                .collect();
+            let states: Vec<FrameState> = runs
+                .iter()
+                .map(|&r| farm_state(scene, &scene.runs[r], passes, spp))
+                .collect();
+            let guides: &[bool] = if scene.guides.is_empty() {
+                &[false]
+            } else {
+                &[false, true]
+            };
+            for &guided in guides {
+                let denoise = |i: usize, color: &[[f32; 3]]| -> Result<Vec<[f32; 3]>> {
+                    let g = guided.then(|| scene.guide(runs[i], passes * spp).expect("guides"));
+                    Ok(oidn.denoise(&DenoiseInput {
+                        width: w,
+                        height: h,
+                        color,
+                        albedo: g.map(|g| &g.albedo[..]),
+                        normal: g.map(|g| &g.normal[..]),
+                        hdr: true,
+                        quality: Quality::Default,
+                        clean_aux: false,
+                        max_memory_mib: None,
+                    })?)
+                };
+                let mut reference = Vec::new();
+                let mut rows: Vec<(String, Denoised)> = Vec::new();
+                let mut mean_row = Denoised::default();
+                for (i, state) in states.iter().enumerate() {
+                    let d = denoise(i, &state.resolve(&ResolveParams::off()).reweighted)?;
+                    reference.push(energy(&d));
+                    mean_row.rel_mse.push(rel_mse(&d, &scene.gt));
+                    mean_row.energy.push(0.0);
+                }
+                let score = |image: &dyn Fn(usize) -> Result<Vec<[f32; 3]>>| -> Result<Denoised> {
+                    let mut s = Denoised::default();
+                    for (i, reference) in reference.iter().enumerate() {
+                        let d = image(i)?;
+                        s.rel_mse.push(rel_mse(&d, &scene.gt));
+                        s.energy.push(energy(&d) / reference - 1.0);
+                    }
+                    Ok(s)
+                };
+                if !guided {
+                    let mean = score(&|i| Ok(states[i].resolve(&ResolveParams::off()).reweighted))?;
+                    rows.push(("mean (not denoised)".into(), mean));
+                    let raw = score(&|i| Ok(states[i].resolve(&defaults).reweighted))?;
+                    rows.push(("splatd raw default (not denoised)".into(), raw));
+                }
+                let oidn_mean_err = mean_row.err();
+                rows.push(("OIDN(mean)".into(), mean_row));
+                for design in DenoiseDesign::ALL {
+                    let s = score(&|i| {
+                        let plan = DenoisePlan::with_design(&[&states[i]], &defaults, 2, design);
+                        let outputs = plan
+                            .inputs()
+                            .iter()
+                            .map(|input| denoise(i, input))
+                            .collect::<Result<Vec<_>>>()?;
+                        Ok(plan.combine(outputs))
+                    })?;
+                    let default = if design == DEFAULT_DENOISE_DESIGN {
+                        " (default)"
+                    } else {
+                        ""
+                    };
+                    rows.push((format!("splatd {}{default}", design.name()), s));
+                }
+                let guide = if guided { "aovs" } else { "none" };
+                for (label, s) in &rows {
+                    let ratio = s.err() / oidn_mean_err;
+                    let mut goals = String::new();
+                    if label.ends_with("(default)") {
+                        let row = format!("{} {passes}x{spp} {guide}", scene.name);
+                        let e = s.energy();
+                        goals = format!(
+                            "ratio<=1: {}  |energy|<=2%: {}",
+                            ratio_goal.check(ratio <= 1.0, &format!("{row} {ratio:.2}x")),
+                            energy_goal
+                                .check(e.abs() <= 0.02, &format!("{row} {:+.2} %", 100.0 * e))
+                        );
+                    }
+                    println!(
+                        "{:<10} {:>6} {:>2} {:<5} {:<38} {:>9.5} {:>7.3} {:>+8.2}%  {goals}",
+                        scene.name,
+                        format!("{passes}x{spp}"),
+                        runs.len(),
+                        guide,
+                        label,
+                        s.err(),
+                        ratio,
+                        100.0 * s.energy(),
+                    );
+                }
+            }
+        }
+    }
+    println!("goals of splatd's default design on farm passes:");
+    ratio_goal.report("relMSE <= OIDN(mean)'s");
+    energy_goal.report("energy within 2 % of OIDN(mean)'s");
+    Ok(())
 }
 
 /// The DENOISED table (see the module docs), after the raw one in the same run.
