@@ -578,9 +578,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 }
             }
         }
-        // Support relative to each pixel's own sample count (see the module docs of resolve),
-        // with the paper's weights as if the pixel had the samples full weight needs, where it
-        // has fewer (`support_samples`).
+        // Support relative to each pixel's own sample count (see the module docs of resolve);
+        // with `paper`, a pixel with fewer samples than full weight needs counted as having
+        // them (`support_samples`).
         let [na, nb, nc] = pool(k);
         let mut pool_scale = [0.0; STRIP];
         for x in 0..STRIP {
