@@ -279,8 +279,8 @@ mod tests {
 
     #[test]
     fn a_first_pass_reaches_the_denoiser_whole() {
-        // One and two samples a pixel of a flat frame: the paper's input is the mean (its
-        // first pass used to reach OIDN black, and two passes three quarters of it).
+        // One and two samples a pixel of a flat frame: the paper's input is the mean (it used
+        // to reach OIDN black from a first pass, and at half of it from two).
         for spp in 1..=2 {
             let mut state = FrameState::new(8, 6, CascadeLayout::with_defaults());
             for y in 0..6 {

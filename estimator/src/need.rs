@@ -465,7 +465,7 @@ mod tests {
     #[test]
     fn a_frame_is_converged_only_when_little_enough_energy_is_removed() {
         // The two pixels, and a firefly in A that no neighbour supports: the resolve removes
-        // all but its value term's share, about 5000 / 9 of A's 9 samples' 5004 / 9.
+        // nearly all of it, and it is nearly all of the frame's energy.
         let mut state = two_pixels();
         state.splat(0, 0, [5000.0; 3]).unwrap();
         let c = map(&state, 2).convergence();

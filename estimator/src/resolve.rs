@@ -179,15 +179,16 @@ impl ResolveParams {
     }
 }
 
-/// The sample count [`Variant::Paper`]'s count term takes a pixel to have: its own `n`, or, where that
-/// is below `full` (`kappa(N) + kappa_min`, the support full weight needs), as many as `full`
-/// but never more than `lone` (`kappa_min` times the samples of the pixel's 3x3 neighbourhood).
+/// The sample count [`Variant::Paper`]'s count term takes a pixel to have: its own `n`, or,
+/// where that is below `full` (`kappa(N) + kappa_min`, the support full weight needs), as many
+/// as `full` but never more than `lone` (`kappa_min` times the samples of the pixel's 3x3
+/// neighbourhood).
 ///
 /// A pixel's pooled support `n̄_j` is the share of its neighbourhood's samples that fall in band
 /// `j`, times this count. With the pixel's own `n` the count term cannot reach full weight below
 /// `N = kappa(N) + kappa_min`: at one sample a pixel (`kappa_min = 1`) nothing passes, so a
-/// frame's first pass resolved to black and a denoised final of two passes lost a quarter of
-/// its energy. Taking the count as `full` there, a band that holds every sample of the
+/// frame's first pass resolved to black, and the denoised final of two passes lost a quarter to
+/// a half of its energy. Taking the count as `full` there, a band that holds every sample of the
 /// neighbourhood gets full weight at any `N`, while the cap at `lone` keeps a band seen by one
 /// sample of the whole neighbourhood at `n̄_j <= kappa_min`: no weight, as in the paper. Where
 /// `n >= full` (every `N` past a few samples) this is `n`, bit for bit.
@@ -475,8 +476,7 @@ mod tests {
             let state = flat(6, 5, spp, [1.0, 0.5, 0.25]);
             for p in &params {
                 let r = state.resolve(p);
-                // Up to the rounding of `n̄ - kappa_min` against `kappa` (the reweighted layer
-                // of `spread` gets that back).
+                // Up to the rounding of `n̄ - kappa_min` against `kappa`.
                 for (i, (rw, removed)) in r.reweighted.iter().zip(&r.removed).enumerate() {
                     for c in 0..3 {
                         let mean = r.mean[i][c];

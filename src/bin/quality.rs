@@ -1,6 +1,7 @@
 //! splatd's estimator quality benchmark; not part of the test suite.
 //!
-//! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time] [--denoised-only | --farm-only]`
+//! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time]
+//!          [--denoised-only | --farm-only]`
 //! `quality --picture docs/quality.png [--picture-scene smalllight]`
 //!
 //! For every scene (the synthetic stream with its exact mean, and every path-traced stream in

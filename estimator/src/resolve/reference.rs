@@ -245,7 +245,8 @@ fn pixel(
     // Every layer and band of the pixel is scaled by `1 / N` (a multiplication, not a division
     // per band and channel), as the fast resolve scales them.
     let inv = 1.0 / n;
-    // Support relative to this pixel's own sample count (see the module docs).
+    // Support relative to this pixel's own sample count (see the module docs); with `paper`, a
+    // pixel with fewer samples than full weight needs counted as having them.
     let kappa = params.kappa_at(n);
     let inv_kappa = 1.0 / kappa;
     let kmin = params.kappa_min;
