@@ -179,19 +179,26 @@ impl ResolveParams {
     }
 }
 
+/// The share of a sparse pixel's neighbourhood's samples that a band needs for full weight
+/// with [`Variant::Paper`] (see [`support_samples`]): a half. Chosen by the quality benchmark's
+/// farm table against a whole neighbourhood (1) and the cap alone: at one and two passes a
+/// whole neighbourhood left the caustic scene's 2x4-pixel light at half weight (the final 19-21 %
+/// darker than OIDN(mean)), a half kept every row within 2 % of OIDN(mean)'s energy.
+pub(crate) const SPARSE_FULL_SHARE: f64 = 0.5;
+
 /// The sample count [`Variant::Paper`]'s count term takes a pixel to have: its own `n`, or,
-/// where that is below `full` (`kappa(N) + kappa_min`, the support full weight needs), as many
-/// as `full` but never more than `lone` (`kappa_min` times the samples of the pixel's 3x3
-/// neighbourhood).
+/// where that is below `full` (`kappa(N) + kappa_min`, the support full weight needs), `full /
+/// SPARSE_FULL_SHARE`, but never more than `lone` (`kappa_min` times the samples of the pixel's
+/// 3x3 neighbourhood), nor less than `n`.
 ///
 /// A pixel's pooled support `n̄_j` is the share of its neighbourhood's samples that fall in band
 /// `j`, times this count. With the pixel's own `n` the count term cannot reach full weight below
 /// `N = kappa(N) + kappa_min`: at one sample a pixel (`kappa_min = 1`) nothing passes, so a
 /// frame's first pass resolved to black, and the denoised final of two passes lost a quarter to
-/// a half of its energy. Taking the count as `full` there, a band that holds every sample of the
-/// neighbourhood gets full weight at any `N`, while the cap at `lone` keeps a band seen by one
-/// sample of the whole neighbourhood at `n̄_j <= kappa_min`: no weight, as in the paper. Where
-/// `n >= full` (every `N` past a few samples) this is `n`, bit for bit.
+/// a half of its energy. Counted this way, a band that holds half the samples around the pixel
+/// gets full weight at any `N`, while the cap at `lone` keeps a band seen by one sample of the
+/// whole neighbourhood at `n̄_j <= kappa_min`: no weight, as in the paper. Where `n >= full`
+/// (every `N` past a few samples) this is `n`, bit for bit.
 ///
 /// `spread` keeps the pixel's own `n`: its second stage gives a sparse pixel's removed energy
 /// back over the windows around it, which the quality benchmark's farm table measured 2-5x
@@ -201,7 +208,8 @@ pub(crate) fn support_samples(n: f64, full: f64, lone: f64) -> f64 {
     if n >= full {
         n
     } else {
-        let floor = if full < lone { full } else { lone };
+        let wanted = full / SPARSE_FULL_SHARE;
+        let floor = if wanted < lone { wanted } else { lone };
         if floor > n {
             floor
         } else {
@@ -489,6 +497,25 @@ mod tests {
                 }
             }
         }
+    }
+
+    #[test]
+    fn at_one_sample_a_band_holding_half_the_samples_around_it_is_kept() {
+        // One sample a pixel: grey on the centre's cross, bright on its diagonals, so the grey
+        // band holds 5 of the 9 samples around the centre (more than SPARSE_FULL_SHARE).
+        let mut state = FrameState::new(5, 5, CascadeLayout::with_defaults());
+        for y in 0..5u32 {
+            for x in 0..5u32 {
+                let diagonal = x.abs_diff(2) == 1 && y.abs_diff(2) == 1;
+                state
+                    .splat(x, y, if diagonal { [5000.0; 3] } else { [0.5; 3] })
+                    .unwrap();
+            }
+        }
+        let r = state.resolve(&ResolveParams::new(Variant::Paper, 2.0, 1.0, 0.0).unwrap());
+        assert_eq!(r.reweighted[12], [0.5; 3], "the centre keeps its grey");
+        // A diagonal pixel's bright band holds 1 of the 9 samples around it: removed.
+        assert_eq!(r.reweighted[6], [0.0; 3]);
     }
 
     #[test]

@@ -140,12 +140,13 @@ impl Reference {
                         }
                     }
                     // The paper's count term takes a pixel with fewer samples than full weight
-                    // needs (kappa + kappa_min) as having that many, but at most kappa_min
-                    // times its neighbourhood's samples (so that a band seen by one sample of
-                    // the neighbourhood stays at or below kappa_min).
+                    // needs (kappa + kappa_min) as having so many that half its
+                    // neighbourhood's samples give full weight, but at most kappa_min times
+                    // those samples (so that a band seen by one sample of the neighbourhood
+                    // stays at or below kappa_min).
                     let counted = match params.variant() {
                         Variant::Paper if n < kappa + kmin => {
-                            n.max((kappa + kmin).min(kmin * pool_total))
+                            n.max((2.0 * (kappa + kmin)).min(kmin * pool_total))
                         }
                         _ => n,
                     };
