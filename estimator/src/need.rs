@@ -431,8 +431,8 @@ mod tests {
         // A: support n_0 = 8, u_0 = clamp(1 - 7/4) = 0; the resolve keeps everything.
         // B: own support 2, u_0 = 1 - 1/4 = 0.75, deficit 0.75 * L(B_0) / N = 0.75 * 0.5.
         //    Pooled over the clamped 3x3 (columns A, B, B), every sample of the neighbourhood is
-        //    in band 0. B has fewer samples than full weight needs (kappa + kappa_min = 5), so
-        //    the resolve counts it as 10, twice that (`support_samples`; the cap, kappa_min
+        //    in band 0. B has fewer samples than full weight needs (kappa + kappa_min = 5); the
+        //    resolve counts it as 10, twice that (`support_samples`; the cap, kappa_min
         //    times the 36 samples of the neighbourhood, is above): n̄ = 10 * 36 / 36 = 10 and
         //    w_0 = min(1, (10 - 1)/4) = 1, nothing removed. The deficit stays: B's own bands are short
         //    of samples, which is what the need map asks more of.

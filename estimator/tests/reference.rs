@@ -139,15 +139,13 @@ impl Reference {
                             pool_total += self.samples[q].len() as f64;
                         }
                     }
-                    // The paper's count term takes a pixel with fewer samples than full weight
-                    // needs (kappa + kappa_min) as having so many that half its
-                    // neighbourhood's samples give full weight, but at most kappa_min times
-                    // those samples (so that a band seen by one sample of the neighbourhood
-                    // stays at or below kappa_min).
+                    // The paper's count term takes a pixel as having so many samples that half
+                    // its neighbourhood's samples give full weight (twice kappa + kappa_min),
+                    // but at most kappa_min times those samples (so that a band seen by one
+                    // sample of the neighbourhood stays at or below kappa_min), and at least
+                    // its own.
                     let counted = match params.variant() {
-                        Variant::Paper if n < kappa + kmin => {
-                            n.max((2.0 * (kappa + kmin)).min(kmin * pool_total))
-                        }
+                        Variant::Paper => n.max((2.0 * (kappa + kmin)).min(kmin * pool_total)),
                         _ => n,
                     };
                     let pooled = counted * pool_n / pool_total;

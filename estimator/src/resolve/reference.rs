@@ -246,7 +246,7 @@ fn pixel(
     // per band and channel), as the fast resolve scales them.
     let inv = 1.0 / n;
     // Support relative to this pixel's own sample count (see the module docs); with `paper`, a
-    // pixel with fewer samples than full weight needs counted as having them.
+    // pixel counted as having at least twice the samples full weight needs.
     let kappa = params.kappa_at(n);
     let inv_kappa = 1.0 / kappa;
     let kmin = params.kappa_min;

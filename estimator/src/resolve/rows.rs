@@ -579,8 +579,8 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
             }
         }
         // Support relative to each pixel's own sample count (see the module docs of resolve);
-        // with `paper`, a pixel with fewer samples than full weight needs counted as having
-        // them (`support_samples`).
+        // with `paper`, a pixel counted as having at least twice the samples full weight needs
+        // (`support_samples`).
         let [na, nb, nc] = pool(k);
         let mut pool_scale = [0.0; STRIP];
         for x in 0..STRIP {
