@@ -241,14 +241,7 @@ mod tests {
 
     /// A frame of constant grey with one firefly in the middle.
     fn firefly_frame(w: u32, h: u32, spp: u32) -> FrameState {
-        let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
-        for y in 0..h {
-            for x in 0..w {
-                for _ in 0..spp {
-                    state.splat(x, y, [0.5, 0.4, 0.3]).unwrap();
-                }
-            }
-        }
+        let mut state = FrameState::flat(w, h, spp, [0.5, 0.4, 0.3]);
         state.splat(w / 2, h / 2, [5000.0; 3]).unwrap();
         state
     }
@@ -282,14 +275,7 @@ mod tests {
         // One and two samples a pixel of a flat frame: the paper's input is the mean (it used
         // to reach OIDN black from a first pass, and at half of it from two).
         for spp in 1..=2 {
-            let mut state = FrameState::new(8, 6, CascadeLayout::with_defaults());
-            for y in 0..6 {
-                for x in 0..8 {
-                    for _ in 0..spp {
-                        state.splat(x, y, [1.0, 0.5, 0.25]).unwrap();
-                    }
-                }
-            }
+            let state = FrameState::flat(8, 6, spp, [1.0, 0.5, 0.25]);
             let plan = DenoisePlan::new(&[&state], &ResolveParams::with_defaults(), 1);
             let [paper, mean] = plan.inputs() else {
                 panic!("two inputs")

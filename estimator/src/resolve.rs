@@ -454,19 +454,6 @@ mod tests {
         }
     }
 
-    /// A `w x h` frame of `spp` samples of `rgb` in every pixel.
-    fn flat(w: u32, h: u32, spp: u32, rgb: [f32; 3]) -> FrameState {
-        let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
-        for y in 0..h {
-            for x in 0..w {
-                for _ in 0..spp {
-                    state.splat(x, y, rgb).unwrap();
-                }
-            }
-        }
-        state
-    }
-
     #[test]
     fn a_band_holding_every_sample_around_it_is_kept_at_any_sample_count() {
         // Fewer samples than full weight needs (kappa + kappa_min: 3 with kappa 2, 4 with the
@@ -478,7 +465,7 @@ mod tests {
             ResolveParams::with_defaults().with_variant(Variant::Paper),
         ];
         for spp in 1..=3 {
-            let state = flat(6, 5, spp, [1.0, 0.5, 0.25]);
+            let state = FrameState::flat(6, 5, spp, [1.0, 0.5, 0.25]);
             for p in &params {
                 let r = state.resolve(p);
                 // Up to the rounding of `n̄ - kappa_min` against `kappa`.

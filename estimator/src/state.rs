@@ -1478,6 +1478,23 @@ fn add_share_carry(cascade: &mut [u64], s: [f64; 3], units: f64, count: u64) -> 
 }
 
 #[cfg(test)]
+impl FrameState {
+    /// A `w x h` frame of the default layout with `spp` samples of `rgb` in every pixel (for the
+    /// crate's tests).
+    pub(crate) fn flat(w: u32, h: u32, spp: u32, rgb: [f32; 3]) -> FrameState {
+        let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
+        for y in 0..h {
+            for x in 0..w {
+                for _ in 0..spp {
+                    state.splat(x, y, rgb).unwrap();
+                }
+            }
+        }
+        state
+    }
+}
+
+#[cfg(test)]
 mod tests {
     use super::*;
 

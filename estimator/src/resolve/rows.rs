@@ -94,10 +94,6 @@ pub(crate) struct Consts {
     base: f64,
     solid_share: f64,
     edge_share: Option<f64>,
-    /// Whether the count term takes a pixel to have the samples full weight needs
-    /// ([`support_samples`]): with [`Variant::Paper`], not with `spread`, whose second stage
-    /// already gives a sparse pixel's energy back (and gave lower errors without it).
-    counts_full_support: bool,
     /// `kappa * N^kappa_exponent` and its reciprocal for `N < KAP_TABLE` (`N.powf` is most of a
     /// row's arithmetic otherwise, and a scalar division per pixel with its branchy lookup was
     /// 11 % of the `paper` row loop's samples; the table holds the same bits as computing them).
@@ -129,7 +125,6 @@ impl Consts {
             base: layout.base(),
             solid_share: params.spread().solid_share(),
             edge_share: params.spread().edge_share(),
-            counts_full_support: params.variant == Variant::Paper,
             kap_table: Vec::new(),
         };
         if c.kappa_exponent != 0.0 {
@@ -585,7 +580,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
         let mut pool_scale = [0.0; STRIP];
         for x in 0..STRIP {
             let pooled_n = na[x] + nb[x] + nc[x];
-            let own_n = if V == PAPER && c.counts_full_support {
+            // `paper` only: `spread` (also the PAPER kernel) keeps its own `N`, its second
+            // stage gives a sparse pixel's energy back (see `support_samples`).
+            let own_n = if V == PAPER && c.variant == Variant::Paper {
                 support_samples(n[x], kap[x] + kmin, kmin * pooled_n)
             } else {
                 n[x]
