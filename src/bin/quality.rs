@@ -554,6 +554,85 @@ impl Goal {
     }
 }
 
+/// OIDN (`hdr`, default quality, guides not marked clean) on one of `scene`'s images, guided by
+/// `guides` if given.
+fn oidn_on(
+    oidn: &Oidn,
+    scene: &Scene,
+    color: &[[f32; 3]],
+    guides: Option<&Guides>,
+) -> Result<Vec<[f32; 3]>> {
+    Ok(oidn.denoise(&DenoiseInput {
+        width: scene.width as usize,
+        height: scene.height as usize,
+        color,
+        albedo: guides.map(|g| &g.albedo[..]),
+        normal: guides.map(|g| &g.normal[..]),
+        hdr: true,
+        quality: Quality::Default,
+        clean_aux: false,
+        max_memory_mib: None,
+    })?)
+}
+
+/// Scores images against the ground truth and OIDN(mean) of the same realization.
+struct VersusOidnMean<'g> {
+    gt: &'g [[f32; 3]],
+    /// OIDN(mean)'s energy, per realization.
+    energy: Vec<f64>,
+}
+
+impl<'g> VersusOidnMean<'g> {
+    /// From OIDN(mean) of every realization; with OIDN(mean)'s own row.
+    fn new(gt: &'g [[f32; 3]], oidn_means: &[Vec<[f32; 3]>]) -> (Self, Denoised) {
+        let mut row = Denoised::default();
+        for d in oidn_means {
+            row.rel_mse.push(rel_mse(d, gt));
+            row.energy.push(0.0);
+        }
+        let energy = oidn_means.iter().map(|d| energy(d)).collect();
+        (Self { gt, energy }, row)
+    }
+
+    /// relMSE and energy relative to OIDN(mean) of `image(r)` for every realization `r`.
+    fn score(&self, image: impl Fn(usize) -> Result<Vec<[f32; 3]>>) -> Result<Denoised> {
+        let mut s = Denoised::default();
+        for (r, reference) in self.energy.iter().enumerate() {
+            let d = image(r)?;
+            s.rel_mse.push(rel_mse(&d, self.gt));
+            s.energy.push(energy(&d) / reference - 1.0);
+        }
+        Ok(s)
+    }
+}
+
+/// A design's row label: `splatd <name>`, with ` (default)` for [`DEFAULT_DENOISE_DESIGN`]
+/// (the goals are checked on the row whose label ends so).
+fn design_label(design: DenoiseDesign) -> String {
+    let default = if design == DEFAULT_DENOISE_DESIGN {
+        " (default)"
+    } else {
+        ""
+    };
+    format!("splatd {}{default}", design.name())
+}
+
+/// splatd's denoised final of `state` with `design` (the default resolve parameters), `denoise`
+/// run on each of the plan's inputs.
+fn design_final(
+    state: &FrameState,
+    design: DenoiseDesign,
+    denoise: impl Fn(&[[f32; 3]]) -> Result<Vec<[f32; 3]>>,
+) -> Result<Vec<[f32; 3]>> {
+    let plan = DenoisePlan::with_design(&[state], &ResolveParams::with_defaults(), 2, design);
+    let outputs = plan
+        .inputs()
+        .iter()
+        .map(|input| denoise(input))
+        .collect::<Result<Vec<_>>>()?;
+    Ok(plan.combine(outputs))
+}
+
 /// The denoised table's rows of one scene: for every spp and guide (none, and the AOVs' means
 /// where the stream has them), OIDN on every anchor and on every design's final.
 fn denoised_rows(
@@ -563,9 +642,7 @@ fn denoised_rows(
     ratio_goal: &mut Goal,
     energy_goal: &mut Goal,
 ) -> Result<()> {
-    let (w, h) = (scene.width as usize, scene.height as usize);
     let runs = scene.runs.len();
-    let defaults = ResolveParams::with_defaults();
     let lum = |img: &[[f32; 3]]| energy(img);
     for (si, &spp) in SPPS.iter().enumerate() {
         let guides: &[bool] = if scene.guides.is_empty() {
@@ -574,41 +651,19 @@ fn denoised_rows(
             &[false, true]
         };
         for &guided in guides {
-            let denoise = |r: usize, color: &[[f32; 3]]| -> Result<Vec<[f32; 3]>> {
+            let denoise = |r: usize, color: &[[f32; 3]]| {
                 let g = guided.then(|| scene.guide(r, spp).expect("guides"));
-                Ok(oidn.denoise(&DenoiseInput {
-                    width: w,
-                    height: h,
-                    color,
-                    albedo: g.map(|g| &g.albedo[..]),
-                    normal: g.map(|g| &g.normal[..]),
-                    hdr: true,
-                    quality: Quality::Default,
-                    clean_aux: false,
-                    max_memory_mib: None,
-                })?)
+                oidn_on(oidn, scene, color, g)
             };
             let means: Vec<Vec<[f32; 3]>> = (0..runs)
                 .map(|r| states[r][si].resolve(&ResolveParams::off()).reweighted)
                 .collect();
-            let mut reference = Vec::new(); // OIDN(mean)'s energy per realization
+            let oidn_means = (0..runs)
+                .map(|r| denoise(r, &means[r]))
+                .collect::<Result<Vec<_>>>()?;
+            let (versus, mean_row) = VersusOidnMean::new(&scene.gt, &oidn_means);
+            let score = |images: &dyn Fn(usize) -> Result<Vec<[f32; 3]>>| versus.score(images);
             let mut rows: Vec<(String, bool, Denoised)> = Vec::new();
-            let mut mean_row = Denoised::default();
-            for (r, mean) in means.iter().enumerate() {
-                let d = denoise(r, mean)?;
-                reference.push(lum(&d));
-                mean_row.rel_mse.push(rel_mse(&d, &scene.gt));
-                mean_row.energy.push(0.0);
-            }
-            let score = |images: &dyn Fn(usize) -> Result<Vec<[f32; 3]>>| -> Result<Denoised> {
-                let mut s = Denoised::default();
-                for (r, reference) in reference.iter().enumerate() {
-                    let d = images(r)?;
-                    s.rel_mse.push(rel_mse(&d, &scene.gt));
-                    s.energy.push(lum(&d) / reference - 1.0);
-                }
-                Ok(s)
-            };
             rows.push(("OIDN(mean)".into(), true, mean_row));
             // Clamps that remove at most 5 % of the mean's energy (averaged over realizations).
             let mut clamps = Vec::new();
@@ -652,21 +707,8 @@ fn denoised_rows(
                 .expect("two G-MoN settings");
             rows.push((format!("OIDN(G-MoN) [{setting}]"), true, s));
             for design in DenoiseDesign::ALL {
-                let s = score(&|r| {
-                    let plan = DenoisePlan::with_design(&[&states[r][si]], &defaults, 2, design);
-                    let outputs = plan
-                        .inputs()
-                        .iter()
-                        .map(|input| denoise(r, input))
-                        .collect::<Result<Vec<_>>>()?;
-                    Ok(plan.combine(outputs))
-                })?;
-                let default = if design == DEFAULT_DENOISE_DESIGN {
-                    " (default)"
-                } else {
-                    ""
-                };
-                rows.push((format!("splatd {}{default}", design.name()), false, s));
+                let s = score(&|r| design_final(&states[r][si], design, |i| denoise(r, i)))?;
+                rows.push((design_label(design), false, s));
             }
             let best = rows
                 .iter()
@@ -1034,7 +1076,6 @@ fn farm_table(scenes: &[Scene]) -> Result<()> {
     let (mut ratio_goal, mut energy_goal) = (Goal::default(), Goal::default());
     let defaults = ResolveParams::with_defaults();
     for scene in scenes {
-        let (w, h) = (scene.width as usize, scene.height as usize);
         for (passes, spp) in FARM {
             let runs: Vec<usize> = (0..scene.runs.len())
                 .filter(|&r| scene.runs[r].len() >= passes * spp)
@@ -1043,68 +1084,37 @@ fn farm_table(scenes: &[Scene]) -> Result<()> {
                 .iter()
                 .map(|&r| farm_state(scene, &scene.runs[r], passes, spp))
                 .collect();
+            let means: Vec<Vec<[f32; 3]>> = states
+                .iter()
+                .map(|state| state.resolve(&ResolveParams::off()).reweighted)
+                .collect();
             let guides: &[bool] = if scene.guides.is_empty() {
                 &[false]
             } else {
                 &[false, true]
             };
             for &guided in guides {
-                let denoise = |i: usize, color: &[[f32; 3]]| -> Result<Vec<[f32; 3]>> {
+                let denoise = |i: usize, color: &[[f32; 3]]| {
                     let g = guided.then(|| scene.guide(runs[i], passes * spp).expect("guides"));
-                    Ok(oidn.denoise(&DenoiseInput {
-                        width: w,
-                        height: h,
-                        color,
-                        albedo: g.map(|g| &g.albedo[..]),
-                        normal: g.map(|g| &g.normal[..]),
-                        hdr: true,
-                        quality: Quality::Default,
-                        clean_aux: false,
-                        max_memory_mib: None,
-                    })?)
+                    oidn_on(&oidn, scene, color, g)
                 };
-                let mut reference = Vec::new();
+                let oidn_means = (0..states.len())
+                    .map(|i| denoise(i, &means[i]))
+                    .collect::<Result<Vec<_>>>()?;
+                let (versus, mean_row) = VersusOidnMean::new(&scene.gt, &oidn_means);
                 let mut rows: Vec<(String, Denoised)> = Vec::new();
-                let mut mean_row = Denoised::default();
-                for (i, state) in states.iter().enumerate() {
-                    let d = denoise(i, &state.resolve(&ResolveParams::off()).reweighted)?;
-                    reference.push(energy(&d));
-                    mean_row.rel_mse.push(rel_mse(&d, &scene.gt));
-                    mean_row.energy.push(0.0);
-                }
-                let score = |image: &dyn Fn(usize) -> Result<Vec<[f32; 3]>>| -> Result<Denoised> {
-                    let mut s = Denoised::default();
-                    for (i, reference) in reference.iter().enumerate() {
-                        let d = image(i)?;
-                        s.rel_mse.push(rel_mse(&d, &scene.gt));
-                        s.energy.push(energy(&d) / reference - 1.0);
-                    }
-                    Ok(s)
-                };
                 if !guided {
-                    let mean = score(&|i| Ok(states[i].resolve(&ResolveParams::off()).reweighted))?;
+                    let mean = versus.score(|i| Ok(means[i].clone()))?;
                     rows.push(("mean (not denoised)".into(), mean));
-                    let raw = score(&|i| Ok(states[i].resolve(&defaults).reweighted))?;
+                    let raw = versus.score(|i| Ok(states[i].resolve(&defaults).reweighted))?;
                     rows.push(("splatd raw default (not denoised)".into(), raw));
                 }
                 let oidn_mean_err = mean_row.err();
                 rows.push(("OIDN(mean)".into(), mean_row));
                 for design in DenoiseDesign::ALL {
-                    let s = score(&|i| {
-                        let plan = DenoisePlan::with_design(&[&states[i]], &defaults, 2, design);
-                        let outputs = plan
-                            .inputs()
-                            .iter()
-                            .map(|input| denoise(i, input))
-                            .collect::<Result<Vec<_>>>()?;
-                        Ok(plan.combine(outputs))
-                    })?;
-                    let default = if design == DEFAULT_DENOISE_DESIGN {
-                        " (default)"
-                    } else {
-                        ""
-                    };
-                    rows.push((format!("splatd {}{default}", design.name()), s));
+                    let s =
+                        versus.score(|i| design_final(&states[i], design, |x| denoise(i, x)))?;
+                    rows.push((design_label(design), s));
                 }
                 let guide = if guided { "aovs" } else { "none" };
                 for (label, s) in &rows {
