@@ -245,14 +245,14 @@ fn pixel(
     // Every layer and band of the pixel is scaled by `1 / N` (a multiplication, not a division
     // per band and channel), as the fast resolve scales them.
     let inv = 1.0 / n;
-    // Support relative to this pixel's own sample count (see the module docs); with `paper`, a
-    // pixel counted as having at least twice the samples full weight needs.
+    // Support relative to this pixel's own sample count (see the module docs); with the paper's
+    // weights, a pixel counted as having at least twice the samples full weight needs.
     let kappa = params.kappa_at(n);
     let inv_kappa = 1.0 / kappa;
     let kmin = params.kappa_min;
     let own_n = match params.variant {
-        Variant::Paper => support_samples(n, kappa + kmin, kmin * pooled[k]),
-        Variant::Spread | Variant::Shader | Variant::Off => n,
+        Variant::Paper | Variant::Spread => support_samples(n, kappa + kmin, kmin * pooled[k]),
+        Variant::Shader | Variant::Off => n,
     };
     let pool_scale = if pooled[k] > 0.0 {
         own_n / pooled[k]

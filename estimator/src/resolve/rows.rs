@@ -574,15 +574,13 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
             }
         }
         // Support relative to each pixel's own sample count (see the module docs of resolve);
-        // with `paper`, a pixel counted as having at least twice the samples full weight needs
-        // (`support_samples`).
+        // with the paper's weights (`paper`, and `spread`'s first stage), a pixel counted as
+        // having at least twice the samples full weight needs (`support_samples`).
         let [na, nb, nc] = pool(k);
         let mut pool_scale = [0.0; STRIP];
         for x in 0..STRIP {
             let pooled_n = na[x] + nb[x] + nc[x];
-            // `paper` only: `spread` (also the PAPER kernel) keeps its own `N`, its second
-            // stage gives a sparse pixel's energy back (see `support_samples`).
-            let own_n = if V == PAPER && c.variant == Variant::Paper {
+            let own_n = if V == PAPER {
                 support_samples(n[x], kap[x] + kmin, kmin * pooled_n)
             } else {
                 n[x]
