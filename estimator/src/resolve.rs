@@ -207,7 +207,7 @@ pub(crate) const SPARSE_FULL_SHARE: f64 = 0.5;
 /// windows of up to 17x17 pixels: a farm's first passes came out blurred, worse than the plain
 /// mean on 9 of the quality benchmark's 35 farm rows (3.7x the mean's relMSE on the slit scene
 /// at one pass of 64 spp), and with the caustic scene's visible light (a band no window
-/// supports) gone, 29-41 % of the frame's energy. Counted this way no row is worse than the
+/// supports) gone, 31-43 % of the frame's energy. Counted this way no row is worse than the
 /// mean and the light stays; only the blur's gain on the noisiest rows is lost.
 #[inline(always)]
 pub(crate) fn support_samples(n: f64, full: f64, lone: f64) -> f64 {
@@ -537,7 +537,7 @@ mod tests {
     fn the_default_keeps_a_small_light_in_a_farms_first_passes_and_removes_a_firefly() {
         // A farm's pass is one sample a pixel. A 2x4-pixel light on grey is supported by no
         // window of the spread stage (8 samples of its band, far below 64): with the pixel's own
-        // count the first stage removed it all and it stayed removed, 29-41 % of the caustic
+        // count the first stage removed it all and it stayed removed, 31-43 % of the caustic
         // scene's energy at one to four passes. A firefly, one sample in its band among the
         // nine around it, is still removed at every pass.
         let params = ResolveParams::with_defaults();
