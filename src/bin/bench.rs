@@ -10,7 +10,10 @@
 //!   incremental resolve after a batch in 1 % of the pixels against a whole one, merge
 //!   against memcpy, and the state size. Default size 1920x1080. The cells (and the baselines'
 //!   buffers) ask for transparent huge pages, as the server's frames do; `--pages 4k` leaves
-//!   them on 4 KiB pages to measure what the TLB costs.
+//!   them on 4 KiB pages to measure what the TLB costs. `--spp N` (default 4) sets the samples
+//!   per pixel of every step: below about 16 a pixel is sparse, and the resolve's first stage
+//!   trusts the bands that most of the samples around it share (docs/ALGORITHM.md, "Few samples
+//!   a pixel"), which leaves its second stage less to give back than at 16 and more.
 //! * `bench need`: need-guided against uniform sampling at the same total number of samples, on
 //!   the synthetic scene (exact mean) and the demo's path-traced scene (against a reference of
 //!   many more samples): relMSE of the reweighted image for both, and their ratio.
@@ -46,9 +49,17 @@ fn main() -> Result<()> {
                 Some("4k") => false,
                 Some(other) => bail!("--pages {other:?}: use huge or 4k"),
             },
+            match value("--spp") {
+                None => 4,
+                Some(n) => n
+                    .parse()
+                    .ok()
+                    .filter(|&n| (1..=1024).contains(&n))
+                    .with_context(|| format!("--spp {n:?}: a whole number in 1..=1024"))?,
+            },
         ),
         Some("need") => need(),
-        _ => bail!("usage: bench need | bench speed [--size WxH] [--pages huge|4k]"),
+        _ => bail!("usage: bench need | bench speed [--size WxH] [--pages huge|4k] [--spp N]"),
     }
 }
 
@@ -391,11 +402,11 @@ fn buffer<T: Clone + Default>(len: usize, huge: bool) -> Vec<T> {
     buf
 }
 
-fn speed(size: (u32, u32), huge: bool) -> Result<()> {
+fn speed(size: (u32, u32), huge: bool, spp: usize) -> Result<()> {
     let (w, h) = size;
     let pixels = w as usize * h as usize;
-    // Four samples per pixel: the state is far larger than any cache at either size.
-    let n_records = 4 * pixels;
+    // Four samples per pixel by default: the state is far larger than any cache at either size.
+    let n_records = spp * pixels;
     let mut rng = SplitMix64::new(1);
     let mut value = || {
         let z = 0.2 * rng.next_f64().powf(-1.0 / 1.3);
@@ -404,7 +415,7 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
     // Scan order: four passes, each one sample per pixel row by row, as a worker posting whole
     // passes or tiles sends them. Random order: the same records shuffled, the adversarial case
     // in which every record misses every cache.
-    let passes: Vec<Vec<[f32; 3]>> = (0..4)
+    let passes: Vec<Vec<[f32; 3]>> = (0..spp)
         .map(|_| (0..pixels).map(|_| value()).collect())
         .collect();
     let scan: Vec<(u32, u32, [f32; 3])> = passes
@@ -420,7 +431,7 @@ fn speed(size: (u32, u32), huge: bool) -> Result<()> {
         random.swap(i, (rng.next_u64() % (i as u64 + 1)) as usize);
     }
     println!(
-        "machine: {} cores; frame {w}x{h}, {n_records} records (4 per pixel); {} pages; times \
+        "machine: {} cores; frame {w}x{h}, {n_records} records ({spp} per pixel); {} pages; times \
          are {}",
         std::thread::available_parallelism()?.get(),
         if huge { "huge (2 MiB)" } else { "4 KiB" },
