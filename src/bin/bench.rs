@@ -412,7 +412,7 @@ fn speed(size: (u32, u32), huge: bool, spp: usize) -> Result<()> {
         let z = 0.2 * rng.next_f64().powf(-1.0 / 1.3);
         [z as f32, (z * 0.8) as f32, (z * 0.5) as f32]
     };
-    // Scan order: four passes, each one sample per pixel row by row, as a worker posting whole
+    // Scan order: `spp` passes, each one sample per pixel row by row, as a worker posting whole
     // passes or tiles sends them. Random order: the same records shuffled, the adversarial case
     // in which every record misses every cache.
     let passes: Vec<Vec<[f32; 3]>> = (0..spp)
