@@ -383,20 +383,52 @@ fn query(denoise: Option<Denoise>) -> ImageQuery {
     }
 }
 
+/// What the tests of denoised passes start from: Blender-named passes written in a temporary
+/// directory (which also holds what the test reads back), a server that loads OIDN from the
+/// library given, a client of it, a runtime, and two frames for the same passes: guided by
+/// name (it declares Blender's DiffCol and Normal) and unguided (no AOVs declared, so the
+/// passes' AOV layers are not read).
+struct DenoisedPasses {
+    dir: tempfile::TempDir,
+    passes: PathBuf,
+    server: ServerProcess,
+    client: Client,
+    rt: tokio::runtime::Runtime,
+    guided: CreateFrame,
+    unguided: CreateFrame,
+}
+
+impl DenoisedPasses {
+    fn start(lib: &str) -> Self {
+        let dir = tempfile::tempdir().unwrap();
+        let passes = dir.path().join("passes");
+        write_passes(&passes);
+        let server = Server::start_with_env(&[], &[("SPLATD_OIDN_LIB", lib)]);
+        let client = Client::new(&server.url).unwrap();
+        DenoisedPasses {
+            dir,
+            passes,
+            server,
+            client,
+            rt: runtime(),
+            guided: guided_frame("guided"),
+            unguided: CreateFrame::new("unguided", W, H),
+        }
+    }
+}
+
 #[test]
 fn denoised_finals_guided_unguided_and_by_default() {
     let Some(lib) = oidn_library() else { return };
-    let dir = tempfile::tempdir().unwrap();
-    let passes = dir.path().join("passes");
-    write_passes(&passes);
-    let server = Server::start_with_env(&[], &[("SPLATD_OIDN_LIB", &lib)]);
-    let client = Client::new(&server.url).unwrap();
-    let rt = runtime();
-
-    // Guided by name: the frame declares Blender's DiffCol and Normal.
-    let guided = guided_frame("guided");
-    // Unguided: the same passes, no AOVs declared (the passes' AOV layers are not read).
-    let unguided = CreateFrame::new("unguided", W, H);
+    let DenoisedPasses {
+        dir,
+        passes,
+        server,
+        client,
+        rt,
+        guided,
+        unguided,
+    } = DenoisedPasses::start(&lib);
     // Denoised by default, guided by the albedo alone, chosen explicitly.
     let by_default = CreateFrame {
         aovs: aovs(),
@@ -851,14 +883,15 @@ fn a_denoise_larger_than_the_working_memory_runs_alone() {
 #[test]
 fn a_frames_first_passes_denoise_with_their_energy() {
     let Some(lib) = oidn_library() else { return };
-    let dir = tempfile::tempdir().unwrap();
-    let passes = dir.path().join("passes");
-    write_passes(&passes);
-    let server = Server::start_with_env(&[], &[("SPLATD_OIDN_LIB", &lib)]);
-    let client = Client::new(&server.url).unwrap();
-    let rt = runtime();
-    let guided = guided_frame("guided");
-    let unguided = CreateFrame::new("unguided", W, H);
+    let DenoisedPasses {
+        dir,
+        passes,
+        server: _server,
+        client,
+        rt,
+        guided,
+        unguided,
+    } = DenoisedPasses::start(&lib);
     let images = rt.block_on(async {
         let mut images = Vec::new();
         for frame in [&guided, &unguided] {
