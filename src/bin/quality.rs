@@ -150,6 +150,16 @@ impl Scene {
         self.guides.get(r).map(|g| &g[at])
     }
 
+    /// Whether OIDN is guided, for each row the tables print: unguided, and guided too where
+    /// the stream has AOVs.
+    fn guide_modes(&self) -> &'static [bool] {
+        if self.guides.is_empty() {
+            &[false]
+        } else {
+            &[false, true]
+        }
+    }
+
     fn synthetic(size: u32, realizations: usize) -> Self {
         let runs = (0..realizations)
             .map(|r| {
@@ -646,12 +656,7 @@ fn denoised_rows(
     let runs = scene.runs.len();
     let lum = |img: &[[f32; 3]]| energy(img);
     for (si, &spp) in SPPS.iter().enumerate() {
-        let guides: &[bool] = if scene.guides.is_empty() {
-            &[false]
-        } else {
-            &[false, true]
-        };
-        for &guided in guides {
+        for &guided in scene.guide_modes() {
             let denoise = |r: usize, color: &[[f32; 3]]| {
                 let g = guided.then(|| scene.guide(r, spp).expect("guides"));
                 oidn_on(oidn, scene, color, g)
@@ -1095,12 +1100,7 @@ fn farm_table(scenes: &[Scene]) -> Result<()> {
                 .iter()
                 .map(|state| state.resolve(&ResolveParams::off()).reweighted)
                 .collect();
-            let guides: &[bool] = if scene.guides.is_empty() {
-                &[false]
-            } else {
-                &[false, true]
-            };
-            for &guided in guides {
+            for &guided in scene.guide_modes() {
                 let denoise = |i: usize, color: &[[f32; 3]]| {
                     let g = guided.then(|| scene.guide(runs[i], passes * spp).expect("guides"));
                     oidn_on(&oidn, scene, color, g)
