@@ -177,6 +177,39 @@ impl ResolveParams {
             self.kappa * n.powf(self.kappa_exponent)
         }
     }
+
+    /// The fewest samples from which the count term counts a pixel's own samples whatever its
+    /// neighbourhood holds: the least `n` with `n >= (kappa(n) + kappa_min) / SPARSE_FULL_SHARE`
+    /// (16 with the defaults). Below it [`support_samples`] may count the pixel as having more
+    /// samples than it has, from the share its neighbours' samples give each band, so the
+    /// resolve judges a band by what the pixels around it agree on, not by the pixel's own
+    /// samples (see [`crate::Convergence::converged`]).
+    pub fn own_count_from(&self) -> u64 {
+        let own = |n: u64| {
+            let n = n as f64;
+            support_samples(n, self.kappa_at(n) + self.kappa_min, f64::INFINITY) == n
+        };
+        // `n - (kappa n^e + kappa_min) / share` falls and then rises without bound (`e < 1`),
+        // and is negative until it rises: so `own` is false below one `n` and true from it.
+        // With a huge `kappa` and `e` near 1 that `n` is past any count (`u64::MAX`: never).
+        let mut high = 1u64;
+        while !own(high) {
+            if high >= 1 << 62 {
+                return u64::MAX;
+            }
+            high *= 2;
+        }
+        let mut low = high / 2;
+        while high - low > 1 {
+            let mid = low + (high - low) / 2;
+            if own(mid) {
+                high = mid;
+            } else {
+                low = mid;
+            }
+        }
+        high
+    }
 }
 
 /// The share of a sparse pixel's neighbourhood's samples that a band needs for full weight
@@ -431,6 +464,30 @@ fn resolve_rows(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn own_count_from_is_where_the_count_term_stops_borrowing() {
+        // A scan of every count against the rule itself, for a few parameter sets.
+        for (kappa, kappa_min, e) in [
+            (3.0, 1.0, 0.3),
+            (4.0, 1.0, 0.0),
+            (1.0, 0.0, 0.0),
+            (20.0, 2.0, 0.5),
+        ] {
+            let p = ResolveParams::new(Variant::Paper, kappa, kappa_min, e).unwrap();
+            let first = (1..100_000u64)
+                .find(|&n| n as f64 >= (p.kappa_at(n as f64) + kappa_min) / SPARSE_FULL_SHARE)
+                .unwrap();
+            assert_eq!(
+                p.own_count_from(),
+                first,
+                "kappa {kappa}, kappa_min {kappa_min}, e {e}"
+            );
+        }
+        assert_eq!(ResolveParams::with_defaults().own_count_from(), 16);
+        let never = ResolveParams::new(Variant::Paper, 1e6, 1e6, 0.9999).unwrap();
+        assert_eq!(never.own_count_from(), u64::MAX);
+    }
     use crate::layout::{CascadeLayout, REC709_LUMINANCE};
 
     #[test]

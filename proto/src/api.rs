@@ -507,7 +507,14 @@ pub struct Convergence {
     pub samples_per_second: f64,
     /// The frame's threshold ([`CreateFrame::converged_below`]).
     pub converged_below: f64,
-    /// Every pixel has samples and `removed_fraction <= converged_below`.
+    /// The fewest samples a pixel needs to be judged by its own samples alone (16 with the
+    /// default resolve); below it the resolve counts what the pixel's neighbours agree on.
+    /// 0 from a server that does not say.
+    #[serde(default)]
+    pub own_count_from: u64,
+    /// Every pixel has samples, `removed_fraction <= converged_below`, and, while `spp_min <
+    /// own_count_from`, `deficit_fraction <= converged_below` too: a frame of a farm's first
+    /// passes is judged by each pixel's own samples, not by its neighbours' agreement.
     pub converged: bool,
     /// Earlier figures, oldest first: one point per resolved version of the frame, thinned to
     /// at most a few hundred points (every other one is dropped when the list is full).

@@ -104,6 +104,7 @@ impl History {
             deficit_fraction: c.deficit_fraction,
             samples_per_second: self.rate(seconds, samples),
             converged_below: threshold,
+            own_count_from: c.own_count_from,
             converged: c.converged(threshold),
             history: self.points.clone(),
         })
@@ -122,6 +123,7 @@ mod tests {
             spp_max: samples / 10,
             removed_fraction,
             deficit_fraction: 0.0,
+            own_count_from: 16,
         }
     }
 

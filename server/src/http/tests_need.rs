@@ -362,6 +362,7 @@ async fn the_threshold_is_set_at_creation_and_validated() {
     let (_, info) = get_json(&app, "/v1/frames/g").await;
     assert_eq!(info["convergence"]["converged_below"], json!(0.001));
     assert_eq!(info["convergence"]["removed_fraction"], json!(0.0));
+    assert_eq!(info["convergence"]["own_count_from"], json!(16));
     assert_eq!(info["convergence"]["converged"], json!(true));
 }
 
@@ -376,6 +377,7 @@ fn convergence_metrics_are_prometheus_gauges_per_frame() {
         deficit_fraction: 0.25,
         samples_per_second: 50.0,
         converged_below: 0.01,
+        own_count_from: 16,
         converged: false,
         history: Vec::new(),
     };

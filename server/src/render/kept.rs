@@ -224,7 +224,7 @@ impl KeptResolves {
                 .expect("a frame's bands tile it");
             let mut history = frame.history();
             let seconds = history.seconds();
-            history.record(cut.version, seconds, map.convergence());
+            history.record(cut.version, seconds, map.convergence(params));
             kept.need = Some(map);
         }
         kept.version = cut.version;
@@ -482,7 +482,7 @@ mod tests {
         let now = frame.version();
         let samples = kept.with_need_since(&frame, 1, now, |m, v| {
             assert_eq!(v, now);
-            m.convergence().samples
+            m.convergence(&ResolveParams::with_defaults()).samples
         });
         assert_eq!(samples, u64::from(2 * w * h));
         assert_eq!(frame.history().latest_version(), Some(now));
