@@ -1,7 +1,7 @@
 //! splatd's estimator quality benchmark; not part of the test suite.
 //!
 //! `quality [--data bench-data] [--scenes a,b] [--realizations R] [--time]
-//!          [--denoised-only | --farm-only]`
+//!          [--denoised-only | --farm-only | --verdict-only]`
 //! `quality --picture docs/quality.png [--picture-scene smalllight]`
 //!
 //! For every scene (the synthetic stream with its exact mean, and every path-traced stream in
@@ -34,7 +34,12 @@
 //! denoised), OIDN(mean), and splatd's denoised final of every design, unguided and guided;
 //! goals of the default design: relMSE <= OIDN(mean)'s and energy within 2 % of it on every
 //! row; of the raw default: relMSE <= the plain mean's (splatd's frame never worse than the
-//! one it replaces). `--farm-only` prints only that table.
+//! one it replaces). `--farm-only` prints only that table (and the next).
+//!
+//! Last, the CONVERGENCE table: the verdict `GET /v1/frames/{id}` gives (`converged`, with
+//! the removed and deficit fractions it comes from) on frames of farm passes and of 1-spp passes
+//! up to 256 spp, beside their relMSE (see [`verdict_table`]). `--verdict-only` prints only it
+//! (no OIDN needed; seconds).
 
 use std::path::{Path, PathBuf};
 
@@ -802,6 +807,9 @@ fn main() -> Result<()> {
             data.display()
         );
     }
+    if args.iter().any(|a| a == "--verdict-only") {
+        return verdict_table(&scenes);
+    }
     let defaults = ResolveParams::with_defaults();
     println!(
         "defaults: variant={:?} c0={DEFAULT_LOWEST_SCALE} kappa={DEFAULT_KAPPA} \
@@ -1021,7 +1029,8 @@ fn main() -> Result<()> {
     if !farm_only {
         denoised_table(&scenes)?;
     }
-    farm_table(&scenes)
+    farm_table(&scenes)?;
+    verdict_table(&scenes)
 }
 
 /// The farm table's frames, as (passes, spp of each pass): a farm hands out a frame as a few
@@ -1215,5 +1224,79 @@ fn denoised_table(scenes: &[Scene]) -> Result<()> {
     println!("* = anchor; denoised goals of splatd's default design:");
     ratio_goal.report("relMSE <= 0.8x the best denoised anchor (every spp and guide)");
     energy_goal.report("energy within 2 % of OIDN(mean)'s at 64 and 256 spp");
+    Ok(())
+}
+
+/// The CONVERGENCE table's frames, as (passes, spp of each pass): farm passes of 64 and 16
+/// spp, and 1-spp passes as a streaming renderer sends them, up to the 256 spp of a run.
+fn verdict_rows() -> Vec<(usize, usize)> {
+    let mut rows = Vec::new();
+    for spp in [64, 16, 1] {
+        rows.extend(
+            std::iter::successors(Some(1), |p| Some(p * 2))
+                .take_while(|p| p * spp <= SPPS[2])
+                .map(|p| (p, spp)),
+        );
+    }
+    rows
+}
+
+/// The CONVERGENCE table (`--verdict-only`, or last): what `GET /v1/frames/{id}` would say of
+/// each frame of the verdict rows ([`verdict_rows`]), with the default resolve and threshold
+/// (`removed_fraction`, `deficit_fraction`, `converged` in how many realizations), beside the
+/// relMSE of the plain mean and of the raw default, and that relMSE over the raw default's at
+/// 256 spp of the same kind of pass (how much the rest of a 256-spp budget would still give).
+/// A verdict is `--until-converged`'s stop: the frame a farm ships. No goal is printed: the
+/// table shows where the verdict falls; the unit tests of `need.rs` hold its rule.
+fn verdict_table(scenes: &[Scene]) -> Result<()> {
+    use splatd_estimator::{NeedMap, DEFAULT_CONVERGED_BELOW, DEFAULT_NEED_TILE};
+    let defaults = ResolveParams::with_defaults();
+    println!(
+        "\nCONVERGENCE: the verdict of GET /v1/frames/{{id}} (default resolve, converged_below \
+         {DEFAULT_CONVERGED_BELOW}, own_count_from {}) on frames of P passes of S spp; means \
+         over the realizations",
+        defaults.own_count_from()
+    );
+    println!(
+        "{:<10} {:>6} {:>9} {:>9} {:>9} {:>9} {:>9} {:>11}",
+        "scene", "PxS", "removed", "deficit", "converged", "mean", "raw", "raw/at 256"
+    );
+    for scene in scenes {
+        let n = scene.runs.len();
+        let mut rows = Vec::new();
+        for (passes, spp) in verdict_rows() {
+            let (mut removed, mut deficit, mut converged) = (0.0, 0.0, 0);
+            let (mut mean, mut raw) = (0.0, 0.0);
+            for run in &scene.runs {
+                let state = farm_state(scene, run, passes, spp);
+                let resolved = state.resolve(&defaults);
+                let c = NeedMap::build(&[&state], &resolved, &defaults, DEFAULT_NEED_TILE)?
+                    .convergence(&defaults);
+                removed += c.removed_fraction / n as f64;
+                deficit += c.deficit_fraction / n as f64;
+                converged += usize::from(c.converged(DEFAULT_CONVERGED_BELOW));
+                mean += rel_mse(&resolved.mean, &scene.gt) / n as f64;
+                raw += rel_mse(&resolved.reweighted, &scene.gt) / n as f64;
+            }
+            rows.push((passes, spp, removed, deficit, converged, mean, raw));
+        }
+        for &(passes, spp, removed, deficit, converged, mean, raw) in &rows {
+            let full = rows
+                .iter()
+                .find(|r| r.1 == spp && r.0 * r.1 == SPPS[2])
+                .map_or(f64::NAN, |r| r.6);
+            println!(
+                "{:<10} {:>6} {:>8.2}% {:>8.2}% {:>7}/{n} {:>9.5} {:>9.5} {:>10.2}x",
+                scene.name,
+                format!("{passes}x{spp}"),
+                100.0 * removed,
+                100.0 * deficit,
+                converged,
+                mean,
+                raw,
+                raw / full
+            );
+        }
+    }
     Ok(())
 }
