@@ -464,6 +464,7 @@ fn resolve_rows(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::layout::{CascadeLayout, REC709_LUMINANCE};
 
     #[test]
     fn own_count_from_is_where_the_count_term_stops_borrowing() {
@@ -488,7 +489,6 @@ mod tests {
         let never = ResolveParams::new(Variant::Paper, 1e6, 1e6, 0.9999).unwrap();
         assert_eq!(never.own_count_from(), u64::MAX);
     }
-    use crate::layout::{CascadeLayout, REC709_LUMINANCE};
 
     #[test]
     fn parameters_that_make_no_sense_are_refused_by_name() {
