@@ -35,7 +35,7 @@ pub use layout::{
     MIN_LUMINANCE_WEIGHT, REC709_LUMINANCE, TOP_HEADROOM_BITS,
 };
 pub use need::{
-    check_converged_below, check_tile, Convergence, NeedError, NeedMap, TileNeed,
+    check_converged_below, check_tile, Convergence, NeedError, NeedMap, TileNeed, Verdict,
     DEFAULT_BASE_DOUBT, DEFAULT_CONVERGED_BELOW, DEFAULT_NEED_TILE, DEFAULT_UNIFORM_SHARE,
     MAX_NEED_TILE,
 };

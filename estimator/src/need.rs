@@ -177,10 +177,39 @@ impl Convergence {
     /// smooth scene now reads converged after eight passes, those with small lights after
     /// sixteen (docs/ALGORITHM.md, "Convergence").
     pub fn converged(&self, threshold: f64) -> bool {
-        self.spp_min > 0
-            && self.removed_fraction <= threshold
-            && (self.spp_min >= self.own_count_from || self.deficit_fraction <= threshold)
+        self.verdict(threshold) == Verdict::Converged
     }
+
+    /// Whether the frame has converged at `threshold`, and if not, the first of the conditions
+    /// of [`Convergence::converged`] it fails: what a farm is waiting on.
+    pub fn verdict(&self, threshold: f64) -> Verdict {
+        // A figure that is not a number is not within the threshold: it fails its condition.
+        let within = |fraction: f64| fraction <= threshold;
+        if self.spp_min == 0 {
+            Verdict::PixelsWithoutSamples
+        } else if !within(self.removed_fraction) {
+            Verdict::RemovedEnergy
+        } else if self.spp_min < self.own_count_from && !within(self.deficit_fraction) {
+            Verdict::OwnSamples
+        } else {
+            Verdict::Converged
+        }
+    }
+}
+
+/// A frame's verdict at a threshold ([`Convergence::verdict`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Verdict {
+    /// Every condition holds.
+    Converged,
+    /// Some pixel has no samples.
+    PixelsWithoutSamples,
+    /// The resolve removes more than the threshold of the mean's energy.
+    RemovedEnergy,
+    /// The removed energy is below the threshold, but some pixel has fewer than
+    /// [`Convergence::own_count_from`] samples and the bands short of their own support hold
+    /// more than the threshold of the energy (`deficit_fraction`).
+    OwnSamples,
 }
 
 /// Tiles of a frame scored by how much they would gain from more samples.
@@ -541,6 +570,81 @@ mod tests {
         };
         assert!(own.converged(0.01));
         assert!(!Convergence { spp_min: 15, ..own }.converged(0.01));
+    }
+
+    #[test]
+    fn the_verdict_names_the_first_condition_a_frame_fails() {
+        let done = Convergence {
+            spp_min: 4,
+            removed_fraction: 0.005,
+            deficit_fraction: 0.005,
+            own_count_from: 16,
+            ..Convergence::default()
+        };
+        let at = |c: Convergence| c.verdict(0.01);
+        assert_eq!(at(done), Verdict::Converged);
+        // Each condition alone, then all at once: the first one named, in the order of
+        // `converged`'s rule.
+        assert_eq!(
+            at(Convergence { spp_min: 0, ..done }),
+            Verdict::PixelsWithoutSamples
+        );
+        assert_eq!(
+            at(Convergence {
+                removed_fraction: 0.02,
+                ..done
+            }),
+            Verdict::RemovedEnergy
+        );
+        assert_eq!(
+            at(Convergence {
+                deficit_fraction: 0.02,
+                ..done
+            }),
+            Verdict::OwnSamples
+        );
+        assert_eq!(
+            at(Convergence {
+                spp_min: 0,
+                removed_fraction: 0.02,
+                deficit_fraction: 0.02,
+                ..done
+            }),
+            Verdict::PixelsWithoutSamples
+        );
+        assert_eq!(
+            at(Convergence {
+                removed_fraction: 0.02,
+                deficit_fraction: 0.02,
+                ..done
+            }),
+            Verdict::RemovedEnergy
+        );
+        // From `own_count_from` samples the deficit no longer counts; a figure that is not a
+        // number fails its condition.
+        let many = Convergence {
+            spp_min: 16,
+            deficit_fraction: 0.5,
+            ..done
+        };
+        assert_eq!(at(many), Verdict::Converged);
+        assert_eq!(
+            at(Convergence {
+                removed_fraction: f64::NAN,
+                ..many
+            }),
+            Verdict::RemovedEnergy
+        );
+        assert_eq!(
+            at(Convergence {
+                deficit_fraction: f64::NAN,
+                ..done
+            }),
+            Verdict::OwnSamples
+        );
+        for c in [done, many, Convergence { spp_min: 0, ..done }] {
+            assert_eq!(c.converged(0.01), at(c) == Verdict::Converged, "{c:?}");
+        }
     }
 
     #[test]
