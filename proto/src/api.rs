@@ -516,9 +516,38 @@ pub struct Convergence {
     /// own_count_from`, `deficit_fraction <= converged_below` too: a frame of a farm's first
     /// passes is judged by each pixel's own samples, not by its neighbours' agreement.
     pub converged: bool,
+    /// While the frame has not converged, the first of those conditions it fails: what the
+    /// farm is waiting on. `None` once it has converged, and from a server that does not say.
+    #[serde(default)]
+    pub waiting_on: Option<WaitingOn>,
     /// Earlier figures, oldest first: one point per resolved version of the frame, thinned to
     /// at most a few hundred points (every other one is dropped when the list is full).
     pub history: Vec<ConvergencePoint>,
+}
+
+/// What keeps a frame from converging ([`Convergence::waiting_on`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WaitingOn {
+    /// Some pixel has no samples (`spp_min` is 0).
+    PixelsWithoutSamples,
+    /// The resolve removes more than `converged_below` of the mean's energy.
+    RemovedEnergy,
+    /// Some pixel has fewer than `own_count_from` samples, and the bands short of their own
+    /// support hold more than `converged_below` of the energy (`deficit_fraction`).
+    OwnSamples,
+}
+
+impl WaitingOn {
+    /// What the estimator's verdict waits on (`None` for a converged frame).
+    pub fn of(verdict: estimator::Verdict) -> Option<WaitingOn> {
+        match verdict {
+            estimator::Verdict::Converged => None,
+            estimator::Verdict::PixelsWithoutSamples => Some(WaitingOn::PixelsWithoutSamples),
+            estimator::Verdict::RemovedEnergy => Some(WaitingOn::RemovedEnergy),
+            estimator::Verdict::OwnSamples => Some(WaitingOn::OwnSamples),
+        }
+    }
 }
 
 /// One point of [`Convergence::history`].

@@ -106,6 +106,7 @@ impl History {
             converged_below: threshold,
             own_count_from: c.own_count_from,
             converged: c.converged(threshold),
+            waiting_on: api::WaitingOn::of(c.verdict(threshold)),
             history: self.points.clone(),
         })
     }

@@ -364,6 +364,44 @@ async fn the_threshold_is_set_at_creation_and_validated() {
     assert_eq!(info["convergence"]["removed_fraction"], json!(0.0));
     assert_eq!(info["convergence"]["own_count_from"], json!(16));
     assert_eq!(info["convergence"]["converged"], json!(true));
+    assert_eq!(info["convergence"]["waiting_on"], json!(null));
+
+    // Until then, what the frame waits on: pixels without samples, then, at one sample a
+    // pixel, each pixel's own samples, then (from 16) a firefly's removed energy.
+    let (status, _) = create(json!({"id": "w", "width": 2, "height": 2})).await;
+    assert_eq!(status, StatusCode::CREATED);
+    let frame = app.store.get("w").unwrap();
+    let mut seq = 0;
+    let mut post = |records: Vec<Record>| {
+        seq += 1;
+        frame
+            .ingest(&Batch::new("w", 1, seq, records).unwrap())
+            .unwrap();
+    };
+    let waiting_on = |app: AppState| async move {
+        let (_, info) = get_json(&app, "/v1/frames/w").await;
+        let c = &info["convergence"];
+        assert_eq!(c["converged"], json!(c["waiting_on"].is_null()), "{c}");
+        c["waiting_on"].clone()
+    };
+    post(
+        (0..3)
+            .map(|i| Record::new(i % 2, i / 2, [0.5; 3]))
+            .collect(),
+    );
+    assert_eq!(
+        waiting_on(app.clone()).await,
+        json!("pixels_without_samples")
+    );
+    post(vec![Record::new(1, 1, [0.5; 3])]);
+    assert_eq!(waiting_on(app.clone()).await, json!("own_samples"));
+    post(
+        (0..60)
+            .map(|i| Record::new(i % 2, (i / 2) % 2, [0.5; 3]))
+            .collect(),
+    );
+    post(vec![Record::new(0, 0, [5000.0; 3])]);
+    assert_eq!(waiting_on(app.clone()).await, json!("removed_energy"));
 }
 
 #[test]
@@ -379,6 +417,7 @@ fn convergence_metrics_are_prometheus_gauges_per_frame() {
         converged_below: 0.01,
         own_count_from: 16,
         converged: false,
+        waiting_on: Some(api::WaitingOn::RemovedEnergy),
         history: Vec::new(),
     };
     let figures = super::operations::FrameFigures {
