@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 use crate::common;
 use crate::common::{runtime, Server};
 use serde_json::{json, Value};
-use splatd_proto::api::CreateFrame;
-use splatd_proto::{Batch, Client};
+use splatd_proto::api::{Convergence, CreateFrame, WaitingOn};
+use splatd_proto::{Batch, Client, Record};
 use splatd_scenes::tracer::Tracer;
 
 const FRAME: &str = "live-shot";
@@ -349,6 +349,30 @@ fn base64_decode(text: &str) -> Vec<u8> {
     out
 }
 
+/// The server's latest convergence figures of `frame`.
+async fn verdict_of(client: &Client, frame: &str) -> Convergence {
+    client
+        .frame_info(frame)
+        .await
+        .expect("frame info")
+        .convergence
+        .expect("figures of a frame with samples")
+}
+
+/// What the page's verdict says for these figures: the server's verdict, and what it waits on
+/// in the page's words.
+fn page_verdict(c: &Convergence) -> String {
+    match c.waiting_on {
+        None => "yes".to_owned(),
+        Some(WaitingOn::PixelsWithoutSamples) => "no: pixels without samples".to_owned(),
+        Some(WaitingOn::RemovedEnergy) => "no".to_owned(),
+        Some(WaitingOn::OwnSamples) => format!(
+            "no: {:.1} % short of own samples",
+            100.0 * c.deficit_fraction
+        ),
+    }
+}
+
 /// Sends passes `passes` of the path tracer to the frame, one batch per pass.
 async fn post_passes(client: &Client, tracer: &Tracer, passes: std::ops::Range<u64>) {
     for pass in passes {
@@ -464,6 +488,10 @@ fn live_page_zooms_pans_splits_exposes_and_plots_convergence() {
             );
             assert!(num(&at4, &[layer, "sum"]) > 0.0, "{layer} is not black");
         }
+        // The verdict is the server's (here the caustic's removed energy holds it back).
+        let c = verdict_of(&client, FRAME).await;
+        assert_eq!(c.waiting_on, Some(WaitingOn::RemovedEnergy), "{c:?}");
+        assert_eq!(at4["converged"], page_verdict(&c).as_str(), "{c:?}");
         let (vw, vh) = (
             num(&at4, &["viewport", "width"]),
             num(&at4, &["viewport", "height"]),
@@ -707,6 +735,41 @@ fn live_page_reads_with_a_token_kept_in_the_session_only() {
             .execute("const t = document.getElementById('token'); return [t.value, t.type];")
             .await;
         assert_eq!(field, json!([READ, "password"]));
+
+        // A smooth frame of two samples a pixel removes nothing, yet is not converged: each
+        // pixel's own samples are short of full support, and the page says so.
+        client
+            .create_frame(&CreateFrame::new("grey", WIDTH, HEIGHT))
+            .await
+            .expect("frame created");
+        for seq in 0..2 {
+            let records = (0..WIDTH * HEIGHT)
+                .map(|p| Record::new(p % WIDTH, p / WIDTH, [0.5; 3]))
+                .collect();
+            let batch = Batch::new("grey", 1, seq, records).expect("a batch");
+            client.post_batch(&batch).await.expect("batch accepted");
+        }
+        let link = "nav a[data-frame=\"grey\"]";
+        session
+            .wait_for(
+                "the grey frame in the frame list",
+                &format!("return document.querySelector('{link}') !== null;"),
+                |v| v.as_bool().filter(|&b| b),
+            )
+            .await;
+        session.click(link).await;
+        // `-` until the figures of the grey frame's first render are in.
+        let probe = "return [document.getElementById('title').textContent, \
+                     document.getElementById('converged').textContent];";
+        let title = format!("grey ({WIDTH}x{HEIGHT})");
+        let shown = session
+            .wait_for("the grey frame's verdict", probe, |v| {
+                (v[0] == title.as_str() && v[1] != "-").then(|| v[1].clone())
+            })
+            .await;
+        let c = verdict_of(&client, "grey").await;
+        assert_eq!(c.waiting_on, Some(WaitingOn::OwnSamples), "{c:?}");
+        assert_eq!(shown, page_verdict(&c).as_str(), "{c:?}");
         drop(session);
         drop(driver);
     });
