@@ -23,7 +23,7 @@ use crate::common::{
     durable_args, python_package_venv, run_setup, runtime, skip_unless_ci, venv_site_packages,
     Server,
 };
-use splatd_proto::api::ImageQuery;
+use splatd_proto::api::{ImageQuery, WaitingOn};
 use splatd_proto::Client;
 
 const WRITE: &str = "w-blender-0123456789abcdef";
@@ -399,6 +399,36 @@ fn check_worker(blender: Blender) {
     );
     let posted = until.lines().filter(|l| l.starts_with("pass ")).count() as u64;
     assert_eq!(posted, done.spp_max, "{until}");
+
+    // A budget spent first: the job says what the frame still waits on, as the server does
+    // (two passes are far below the 16 samples a pixel from which each pixel's own count).
+    let short = worker_run(
+        &[
+            "--frame",
+            "until-short",
+            "--passes",
+            "2",
+            "--until-converged",
+            "--token",
+            READ_WRITE,
+        ],
+        "--until-converged with a budget of 2 passes",
+    );
+    let c = rt
+        .block_on(read.frame_info("until-short"))
+        .unwrap()
+        .convergence
+        .expect("figures of two passes");
+    let why = match c.waiting_on.expect("not converged at two passes") {
+        WaitingOn::PixelsWithoutSamples => "some pixels have no samples",
+        WaitingOn::RemovedEnergy => "the resolve removes",
+        WaitingOn::OwnSamples => "short of each pixel's own samples",
+    };
+    assert!(
+        short.contains("2 passes rendered, the budget, and it has not converged: ")
+            && short.contains(why),
+        "{c:?}\n{short}"
+    );
 
     // Nothing left in the temporary folder.
     let left: Vec<_> = std::fs::read_dir(&tmp).unwrap().collect();

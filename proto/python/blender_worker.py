@@ -50,8 +50,10 @@ while it renders the next one, and stops when it has; ``--passes`` is then the b
 verdict on a frame other workers keep changing waits for the frame's next render (seconds on
 a busy server), so the worker never waits for it between passes: the pass rendered while the
 server judged is posted only if the frame had not converged, so that the frame ends as it
-was judged (one render of a job's last pass may go unused). Reading a frame needs a token
-with the ``read`` role as well (roles ``read,write``).
+was judged (one render of a job's last pass may go unused). A job that spends its budget
+first says what the frame still waits on (``convergence.waiting_on``): pixels without samples,
+energy the resolve removes, or each pixel's own samples. Reading a frame needs a token with the
+``read`` role as well (roles ``read,write``).
 
 ``--aovs albedo,normal,depth`` renders those Cycles passes too (diffuse colour, normal, depth)
 and sends them with every pass: the pass is written as a multilayer EXR and the frame is created
@@ -432,16 +434,34 @@ def render(scene, path, layer):
         raise WorkerError(f"Blender wrote no pass to {path}: {e}") from None
 
 
-def converged(client, frame):
-    """The server's verdict on the frame (False while it has none)."""
+def convergence(client, frame):
+    """The server's convergence figures of the frame, with its verdict (None while it has none)."""
     try:
-        convergence = client.frame_info(frame).get("convergence")
+        return client.frame_info(frame).get("convergence")
     except sc.SplatdError as e:
         if e.status == 403:
             raise WorkerError("--until-converged reads the frame's convergence, which needs a "
                               f"token with the read role as well as write (roles read,write): {e}")
         raise
-    return bool(convergence and convergence.get("converged"))
+
+
+def converged(figures):
+    """Whether the server's verdict is that the frame has converged."""
+    return bool(figures and figures.get("converged"))
+
+
+def not_converged_because(figures):
+    """Why the frame has not converged, from what the server says it waits on (PROTOCOL.md)."""
+    if not figures:
+        return "the server has no figures of it yet"
+    below = figures["converged_below"]
+    return {
+        "pixels_without_samples": "some pixels have no samples",
+        "removed_energy": f"the resolve removes {figures['removed_fraction']:.2%} of its energy, "
+                          f"more than {below:.2%}",
+        "own_samples": f"{figures['deficit_fraction']:.2%} of its energy is in bands short of "
+                       f"each pixel's own samples, more than {below:.2%}",
+    }.get(figures.get("waiting_on"), "the server does not say why")
 
 
 def main(argv):
@@ -497,7 +517,7 @@ def main(argv):
     asking = concurrent.futures.ThreadPoolExecutor(max_workers=1) if judge else None
     verdict = None
     try:
-        if judge and converged(judge, frame):
+        if judge and converged(convergence(judge, frame)):
             print(f"frame {frame} has converged", flush=True)
             passes = range(0)
         for k in passes:
@@ -510,7 +530,7 @@ def main(argv):
             exr = render(scene, path, view_layer)
             if not args.keep_dir:
                 os.remove(path)
-            if verdict is not None and verdict.result():
+            if verdict is not None and converged(verdict.result()):
                 print(f"frame {frame} has converged (with the passes posted before pass {k}, "
                       f"which was rendered meanwhile and is not posted)", flush=True)
                 verdict = None
@@ -523,11 +543,12 @@ def main(argv):
             print(f"pass {k}: seed {seed}, shift ({dx:+.3f}, {dy:+.3f}) px, {ack['accepted']} "
                   f"samples{' (already there)' if ack['duplicate'] else ''}", flush=True)
             if asking:
-                verdict = asking.submit(converged, judge, frame)
+                verdict = asking.submit(convergence, judge, frame)
         if verdict is not None:
-            print(f"frame {frame}: {count} passes rendered, the budget, and "
-                  f"{'it has converged' if verdict.result() else 'it has not converged'}",
-                  flush=True)
+            figures = verdict.result()
+            print(f"frame {frame}: {count} passes rendered, the budget, and " + (
+                  "it has converged" if converged(figures)
+                  else f"it has not converged: {not_converged_because(figures)}"), flush=True)
     finally:
         if asking:
             asking.shutdown(wait=True, cancel_futures=True)
