@@ -256,6 +256,15 @@ impl CascadeLayout {
         }
     }
 
+    /// Whether [`CascadeLayout::check_sample`] accepts `rgb`, computed without a branch: for a
+    /// pass over many samples that finds out whether all are good before asking which is not.
+    #[inline]
+    pub fn accepts(&self, rgb: [f32; 3]) -> bool {
+        rgb.iter().fold(true, |ok, &c| {
+            ok & component_accepted(c, self.max_component)
+        })
+    }
+
     /// Brightness of an RGB value.
     #[inline]
     pub fn luminance(&self, rgb: [f64; 3]) -> f64 {
@@ -339,12 +348,54 @@ pub(crate) fn to_fixed(value: f64, units: f64) -> u64 {
     (value * units + 0.5) as u64
 }
 
+/// Whether a sample's component is one a layout of largest component `max` accepts: finite, not
+/// negative, at most `max`. `!(c >= 0 && c <= max)` is true for NaN, infinities, negatives and
+/// too-bright values, and false for -0.0, which is zero; `&`, not `&&`, so that a loop over
+/// samples has no branch.
+#[inline(always)]
+pub(crate) fn component_accepted(c: f32, max: f64) -> bool {
+    (c >= 0.0) & ((c as f64) <= max)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
 
     fn layout() -> CascadeLayout {
         CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap()
+    }
+
+    #[test]
+    fn accepts_is_check_sample_without_the_reason() {
+        let layout = layout();
+        let max = layout.max_component() as f32;
+        let edge = [
+            0.0,
+            -0.0,
+            1.0,
+            f32::MIN_POSITIVE,
+            max,
+            f32::from_bits(max.to_bits() + 1),
+            f32::MAX,
+            -f32::MIN_POSITIVE,
+            -1.0,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            -f32::NAN,
+        ];
+        for &r in &edge {
+            for &g in &edge {
+                for &b in &edge {
+                    let rgb = [r, g, b];
+                    assert_eq!(
+                        layout.accepts(rgb),
+                        layout.check_sample(rgb).is_ok(),
+                        "{rgb:?}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -16,7 +16,7 @@
 // The block loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
 
-use crate::layout::{CascadeLayout, COUNT_ONE, MAX_CASCADES};
+use crate::layout::{component_accepted, CascadeLayout, COUNT_ONE, MAX_CASCADES};
 
 /// Samples per block.
 pub(crate) const BLOCK: usize = 16;
@@ -98,11 +98,9 @@ impl Tables {
     /// negative, no component above the largest.
     pub(crate) fn all_valid(&self, rgb: &[[f32; 3]]) -> bool {
         let max = self.max_component;
-        // `!(c >= 0 && c <= max)` is true for NaN, infinities, negatives and too-bright values,
-        // and false for -0.0, which is zero.
         rgb.iter()
             .flatten()
-            .fold(true, |ok, &c| ok & (c >= 0.0 && (c as f64) <= max))
+            .fold(true, |ok, &c| ok & component_accepted(c, max))
     }
 }
 

@@ -59,44 +59,40 @@ impl ShardedFrame {
             });
         }
         let (w, h) = (self.spec.request.width, self.spec.request.height);
-        let mut runs: Vec<Runs> = vec![Runs::default(); self.bands.len()];
-        let single = self.bands.len() == 1;
-        // The pixels the batch touches, found in the pass that checks and sorts the records.
-        let mut bounds = Rect::new(u32::MAX, u32::MAX, 0, 0);
-        for (index, r) in batch.records.iter().enumerate() {
-            if r.x >= w || r.y >= h {
-                return Err(IngestError::Sample {
-                    index,
-                    record: *r,
-                    error: SampleError::OutOfFrame {
-                        x: r.x,
-                        y: r.y,
-                        width: w,
-                        height: h,
-                    },
-                });
-            }
-            self.spec
-                .layout
-                .check_sample(r.rgb)
-                .map_err(|error| IngestError::Sample {
-                    index,
-                    record: *r,
-                    error,
-                })?;
-            let band = if single {
-                0
-            } else {
-                self.band_of_row[r.y as usize] as usize
-            };
-            runs[band].add(index as u32);
-            bounds.x0 = bounds.x0.min(r.x);
-            bounds.y0 = bounds.y0.min(r.y);
-            bounds.x1 = bounds.x1.max(r.x + 1);
-            bounds.y1 = bounds.y1.max(r.y + 1);
+        let (layout, records) = (&self.spec.layout, &batch.records);
+        // One pass without a branch per record finds whether every record is good, and the
+        // pixels the batch touches; only a batch that is refused is looked at again, for the
+        // first record that is not.
+        let (mut good, mut x0, mut y0, mut x1, mut y1) = (true, u32::MAX, u32::MAX, 0, 0);
+        for r in records {
+            good &= (r.x < w) & (r.y < h) & layout.accepts(r.rgb);
+            (x0, y0) = (x0.min(r.x), y0.min(r.y));
+            (x1, y1) = (x1.max(r.x), y1.max(r.y));
         }
-        if batch.records.is_empty() {
-            bounds = Rect::new(0, 0, 0, 0);
+        if !good {
+            return Err(self.first_refused(records));
+        }
+        let bounds = if records.is_empty() {
+            Rect::new(0, 0, 0, 0)
+        } else {
+            Rect::new(x0, y0, x1 + 1, y1 + 1)
+        };
+        // The records sorted into runs per band: consecutive records in one band are one run.
+        let mut runs: Vec<Runs> = vec![Runs::default(); self.bands.len()];
+        if self.bands.len() == 1 {
+            runs[0].extend(0..records.len() as u32);
+        } else {
+            let band = |r: &Record| self.band_of_row[r.y as usize] as usize;
+            let mut start = 0;
+            for (i, pair) in records.windows(2).enumerate() {
+                if band(&pair[0]) != band(&pair[1]) {
+                    runs[band(&pair[0])].extend(start..i as u32 + 1);
+                    start = i as u32 + 1;
+                }
+            }
+            if let Some(last) = records.last() {
+                runs[band(last)].extend(start..records.len() as u32);
+            }
         }
 
         // Outside the gate: a pass over the records, as long as a copy of them.
@@ -107,6 +103,33 @@ impl ShardedFrame {
             bounds,
         };
         self.apply(batch.worker, batch.seq, digest, parts, aovs)
+    }
+
+    /// Why a batch is refused: its first record outside the frame or with a value the layout
+    /// does not accept. At least one record is one of those.
+    fn first_refused(&self, records: &[Record]) -> IngestError {
+        let (w, h) = (self.spec.request.width, self.spec.request.height);
+        records
+            .iter()
+            .enumerate()
+            .find_map(|(index, r)| {
+                let error = if r.x >= w || r.y >= h {
+                    SampleError::OutOfFrame {
+                        x: r.x,
+                        y: r.y,
+                        width: w,
+                        height: h,
+                    }
+                } else {
+                    self.spec.layout.check_sample(r.rgb).err()?
+                };
+                Some(IngestError::Sample {
+                    index,
+                    record: *r,
+                    error,
+                })
+            })
+            .expect("a refused batch has a record to refuse")
     }
 
     /// [`ShardedFrame::ingest_with_aovs`] of a whole pass: `rgb` holds one sample per pixel of
@@ -292,12 +315,12 @@ fn splat_bands(parts: &Parts<'_>, touched: &mut [(usize, &mut FrameState)]) {
 struct Runs(Vec<std::ops::Range<u32>>);
 
 impl Runs {
-    /// Adds record `index`, which comes after every record added before.
-    #[inline]
-    fn add(&mut self, index: u32) {
+    /// Adds records `run`, which come after every record added before.
+    fn extend(&mut self, run: std::ops::Range<u32>) {
         match self.0.last_mut() {
-            Some(run) if run.end == index => run.end += 1,
-            _ => self.0.push(index..index + 1),
+            Some(last) if last.end == run.start => last.end = run.end,
+            _ if run.is_empty() => {}
+            _ => self.0.push(run),
         }
     }
 
