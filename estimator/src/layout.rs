@@ -260,9 +260,23 @@ impl CascadeLayout {
     /// pass over many samples that finds out whether all are good before asking which is not.
     #[inline]
     pub fn accepts(&self, rgb: [f32; 3]) -> bool {
-        rgb.iter().fold(true, |ok, &c| {
-            ok & component_accepted(c, self.max_component)
+        let limit = self.component_limit_bits();
+        rgb.iter().fold(true, |ok, c| {
+            ok & component_bits_accepted(c.to_bits(), limit)
         })
+    }
+
+    /// The bits of the largest `f32` component [`CascadeLayout::check_sample`] accepts (the
+    /// largest at most [`CascadeLayout::max_component`]), for [`component_bits_accepted`].
+    pub fn component_limit_bits(&self) -> u32 {
+        let nearest = self.max_component as f32;
+        let largest = if nearest as f64 > self.max_component {
+            // Rounded up: the float below it (positive and finite, so one step of its bits).
+            f32::from_bits(nearest.to_bits() - 1)
+        } else {
+            nearest
+        };
+        largest.to_bits()
     }
 
     /// Brightness of an RGB value.
@@ -348,13 +362,16 @@ pub(crate) fn to_fixed(value: f64, units: f64) -> u64 {
     (value * units + 0.5) as u64
 }
 
-/// Whether a sample's component is one a layout of largest component `max` accepts: finite, not
-/// negative, at most `max`. `!(c >= 0 && c <= max)` is true for NaN, infinities, negatives and
-/// too-bright values, and false for -0.0, which is zero; `&`, not `&&`, so that a loop over
-/// samples has no branch.
+/// Whether a sample's component with these `f32` bits is one a layout accepts (finite, not
+/// negative, at most its largest), given the layout's
+/// [`CascadeLayout::component_limit_bits`]: the same rule as [`CascadeLayout::check_sample`]'s,
+/// on integers, without a branch (a loop over many samples becomes vector instructions). The
+/// bits of a finite non-negative `f32` grow with its value, and every other pattern (negative
+/// values, infinities, NaN) lies above the limit, except -0.0's, which is zero.
 #[inline(always)]
-pub(crate) fn component_accepted(c: f32, max: f64) -> bool {
-    (c >= 0.0) & ((c as f64) <= max)
+pub fn component_bits_accepted(bits: u32, limit: u32) -> bool {
+    const NEGATIVE_ZERO: u32 = 0x8000_0000;
+    (bits <= limit) | (bits == NEGATIVE_ZERO)
 }
 
 #[cfg(test)]
@@ -367,32 +384,40 @@ mod tests {
 
     #[test]
     fn accepts_is_check_sample_without_the_reason() {
-        let layout = layout();
-        let max = layout.max_component() as f32;
-        let edge = [
-            0.0,
-            -0.0,
-            1.0,
-            f32::MIN_POSITIVE,
-            max,
-            f32::from_bits(max.to_bits() + 1),
-            f32::MAX,
-            -f32::MIN_POSITIVE,
-            -1.0,
-            f32::INFINITY,
-            f32::NEG_INFINITY,
-            f32::NAN,
-            -f32::NAN,
-        ];
-        for &r in &edge {
-            for &g in &edge {
-                for &b in &edge {
-                    let rgb = [r, g, b];
-                    assert_eq!(
-                        layout.accepts(rgb),
-                        layout.check_sample(rgb).is_ok(),
-                        "{rgb:?}"
-                    );
+        // The defaults' largest component is a power of two, an `f32`; base 10's is not.
+        for layout in [
+            layout(),
+            CascadeLayout::new(10.0, 5, 0.1, REC709_LUMINANCE).unwrap(),
+        ] {
+            let max = layout.max_component() as f32;
+            let edge = [
+                0.0,
+                -0.0,
+                1.0,
+                f32::MIN_POSITIVE,
+                f32::from_bits(1),
+                max,
+                f32::from_bits(max.to_bits() - 1),
+                f32::from_bits(max.to_bits() + 1),
+                f32::MAX,
+                -f32::MIN_POSITIVE,
+                -1.0,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::NAN,
+                -f32::NAN,
+            ];
+            for &r in &edge {
+                for &g in &edge {
+                    for &b in &edge {
+                        let rgb = [r, g, b];
+                        assert_eq!(
+                            layout.accepts(rgb),
+                            layout.check_sample(rgb).is_ok(),
+                            "{rgb:?} with largest {}",
+                            layout.max_component()
+                        );
+                    }
                 }
             }
         }

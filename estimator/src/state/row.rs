@@ -16,7 +16,7 @@
 // The block loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
 
-use crate::layout::{component_accepted, CascadeLayout, COUNT_ONE, MAX_CASCADES};
+use crate::layout::{component_bits_accepted, CascadeLayout, COUNT_ONE, MAX_CASCADES};
 
 /// Samples per block.
 pub(crate) const BLOCK: usize = 16;
@@ -61,7 +61,8 @@ pub(crate) struct Tables {
     k: usize,
     base: f64,
     luminance: [f64; 3],
-    max_component: f64,
+    /// [`CascadeLayout::component_limit_bits`].
+    component_limit_bits: u32,
     scales: [f64; K_MAX],
     /// Per lower cascade `j`: `[c_{j+1}, 1 / c_j, units of j, units of j + 1]`, looked up by a
     /// lane's `j` (one load where a select over every `j` would take `K` compares and
@@ -76,7 +77,7 @@ impl Tables {
             k,
             base: layout.base(),
             luminance: layout.luminance_weights(),
-            max_component: layout.max_component(),
+            component_limit_bits: layout.component_limit_bits(),
             scales: [0.0; K_MAX],
             by_lo: [[0.0; 4]; K_MAX],
         };
@@ -97,10 +98,10 @@ impl Tables {
     /// Whether every sample is one [`CascadeLayout::check_sample`] accepts: finite, not
     /// negative, no component above the largest.
     pub(crate) fn all_valid(&self, rgb: &[[f32; 3]]) -> bool {
-        let max = self.max_component;
-        rgb.iter()
-            .flatten()
-            .fold(true, |ok, &c| ok & component_accepted(c, max))
+        let limit = self.component_limit_bits;
+        rgb.iter().flatten().fold(true, |ok, c| {
+            ok & component_bits_accepted(c.to_bits(), limit)
+        })
     }
 }
 

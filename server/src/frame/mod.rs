@@ -63,8 +63,8 @@ pub struct ShardedFrame {
     serial: u64,
     /// Shared with the cuts taken since the band last changed ([`ShardedFrame::cut`]).
     bands: Vec<Mutex<Arc<FrameState>>>,
-    /// Band index of each row.
-    band_of_row: Vec<u16>,
+    /// The first row of each band, top to bottom (the first is 0).
+    band_starts: Vec<u32>,
     /// Shared while a batch is applied, exclusive while a consistent cut is taken (a handful
     /// of reference counts and the applied set, never the cells).
     gate: RwLock<()>,
@@ -170,6 +170,17 @@ impl ShardedFrame {
         Self::new_with(spec, Some(pool.clone()))
     }
 
+    /// The band that holds row `y` (a row of the frame).
+    fn band_of_row(&self, y: u32) -> usize {
+        self.band_starts.partition_point(|&start| start <= y) - 1
+    }
+
+    /// The rows of `band`.
+    fn band_rows(&self, band: usize) -> std::ops::Range<u32> {
+        let end = self.band_starts.get(band + 1);
+        self.band_starts[band]..end.copied().unwrap_or(self.spec.request.height)
+    }
+
     /// The state of `band` to change: copied first if a cut still holds it (copy on write),
     /// into cells from the frame's pool where it has them, so that a frame written while
     /// snapshots or renders hold its bands does not fault in fresh memory for every copy.
@@ -273,19 +284,14 @@ impl ShardedFrame {
         seen: Seen,
         counters: CounterValues,
     ) -> ShardedFrame {
-        let mut band_of_row = vec![0u16; spec.request.height as usize];
-        for (i, band) in bands.iter().enumerate() {
-            for y in band.rows() {
-                band_of_row[y as usize] = i as u16;
-            }
-        }
+        let band_starts = bands.iter().map(|band| band.rows().start).collect();
         static NEXT_SERIAL: AtomicU64 = AtomicU64::new(1);
         let aovs = spec.empty_aovs().map(|a| Mutex::new(Arc::new(a)));
         let frame = ShardedFrame {
             spec,
             serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),
             bands: bands.into_iter().map(|b| Mutex::new(Arc::new(b))).collect(),
-            band_of_row,
+            band_starts,
             gate: RwLock::new(()),
             retired: AtomicBool::new(false),
             requests: Arc::new(tokio::sync::RwLock::new(())),
