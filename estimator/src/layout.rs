@@ -268,6 +268,7 @@ impl CascadeLayout {
 
     /// The bits of the largest `f32` component [`CascadeLayout::check_sample`] accepts (the
     /// largest at most [`CascadeLayout::max_component`]), for [`component_bits_accepted`].
+    #[inline]
     pub fn component_limit_bits(&self) -> u32 {
         let nearest = self.max_component as f32;
         let largest = if nearest as f64 > self.max_component {
