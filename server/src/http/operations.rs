@@ -1,12 +1,15 @@
 //! Running the server: the live page, health, metrics, and forcing a frame to disk.
 
 use axum::extract::State;
-use axum::http::{header, HeaderValue, StatusCode};
+use std::time::Duration;
+
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use splatd_proto::api::{Convergence, SyncAck};
 
 use crate::http::error::ApiError;
 use crate::http::extract::{Frame, Json};
+use crate::render::figures::SCRAPE_WAIT;
 use crate::AppState;
 
 /// `GET /`: the live page.
@@ -40,7 +43,10 @@ pub async fn healthz(State(app): State<AppState>) -> impl IntoResponse {
 
 /// `GET /metrics`: Prometheus text format; 404 `metrics_disabled` without a recorder. After
 /// the recorder's metrics come the convergence gauges of every frame there is now.
-pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> {
+pub async fn metrics(
+    State(app): State<AppState>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
     let Some(handle) = &app.metrics else {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
@@ -50,7 +56,7 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
     };
     let mut text = handle.render();
     // Every frame's figures at once, each waiting for a fresh render until one deadline.
-    let deadline = tokio::time::Instant::now() + crate::render::figures::SCRAPE_WAIT;
+    let deadline = tokio::time::Instant::now() + scrape_wait(&headers);
     let waits: Vec<_> = app
         .store
         .list()
@@ -80,6 +86,24 @@ pub async fn metrics(State(app): State<AppState>) -> Result<Response, ApiError> 
         text,
     )
         .into_response())
+}
+
+/// The header Prometheus sends with every scrape: how long it waits for the answer, in seconds.
+pub const SCRAPE_TIMEOUT_HEADER: &str = "x-prometheus-scrape-timeout-seconds";
+
+/// How long a scrape waits for fresh figures: half the timeout the scraper says it has
+/// ([`SCRAPE_TIMEOUT_HEADER`]), and at most [`SCRAPE_WAIT`]. A Prometheus that scrapes every 5 s
+/// gives each scrape 5 s (its timeout cannot exceed its interval), and a scrape that waited
+/// [`SCRAPE_WAIT`] for a busy frame's render would time out: the target would read as down and
+/// the dashboard lose its points. A header that is not a positive number of seconds is ignored.
+fn scrape_wait(headers: &HeaderMap) -> Duration {
+    headers
+        .get(SCRAPE_TIMEOUT_HEADER)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|&seconds| seconds > 0.0)
+        .and_then(|seconds| Duration::try_from_secs_f64(seconds / 2.0).ok())
+        .map_or(SCRAPE_WAIT, |half| half.min(SCRAPE_WAIT))
 }
 
 /// A frame's figures in a scrape.
@@ -134,8 +158,8 @@ pub fn convergence_metrics(frames: &[FrameFigures]) -> String {
         ),
         (
             crate::meters::FRAME_FIGURES_AGE,
-            "Seconds since the render these figures come from (a scrape waits 5 s at most for \
-             a frame that changed).",
+            "Seconds since the render these figures come from (a scrape waits for a frame that \
+             changed half its scrape timeout, 5 s at most).",
             |f| f.age,
         ),
     ];

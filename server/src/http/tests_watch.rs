@@ -214,6 +214,66 @@ async fn a_scrape_of_frames_that_keep_changing_waits_its_bound_once() {
     assert_eq!(app.renders.rendered(), 4, "one more render per frame");
 }
 
+/// A scrape waits half the timeout its scraper says it has (Prometheus sends it with every
+/// scrape), at most `SCRAPE_WAIT`; a header that is not a positive number of seconds is ignored.
+/// Two frames that keep changing, whose renders wait 400 s for their pace, on tokio's paused
+/// clock, so the waits are exact.
+#[tokio::test(start_paused = true)]
+async fn a_scrape_waits_half_the_timeout_its_scraper_gives_it() {
+    use super::operations::SCRAPE_TIMEOUT_HEADER;
+    use crate::render::figures::SCRAPE_WAIT;
+    use std::time::Duration;
+    let handle = metrics_exporter_prometheus::PrometheusBuilder::new()
+        .build_recorder()
+        .handle();
+    let mut app = AppState::new(Limits::default(), Some(handle), None);
+    for id in ["a", "b"] {
+        app = testing::with_frame(app, id, 8, 8);
+        post(&app, id, 0);
+    }
+    let scrape = |app: AppState, timeout: Option<&'static str>| async move {
+        let mut request = Request::get("/metrics");
+        if let Some(seconds) = timeout {
+            request = request.header(SCRAPE_TIMEOUT_HEADER, seconds);
+        }
+        let started = tokio::time::Instant::now();
+        let reply = testing::send(&app, request.body(Body::empty()).unwrap()).await;
+        assert_eq!(reply.status, StatusCode::OK);
+        let text = String::from_utf8(reply.body.to_vec()).unwrap();
+        assert!(
+            text.contains("splatd_frame_spp_max{frame=\"b\"} "),
+            "{text}"
+        );
+        started.elapsed()
+    };
+    scrape(app.clone(), None).await;
+    for frame in app.store.list() {
+        let paces = app.renders.paces();
+        paces.rendered(&frame, frame.version(), Duration::from_secs(100));
+    }
+    let writer = keep_writing(&app, &["a", "b"]);
+    let ms = Duration::from_millis(1);
+    for (header, waits) in [
+        (Some("5"), Duration::from_millis(2500)),
+        (Some("0.5"), Duration::from_millis(250)),
+        (Some(" 2.000 "), Duration::from_secs(1)),
+        (Some("60"), SCRAPE_WAIT),
+        (None, SCRAPE_WAIT),
+        (Some("soon"), SCRAPE_WAIT),
+        (Some("-3"), SCRAPE_WAIT),
+        (Some("0"), SCRAPE_WAIT),
+        (Some("NaN"), SCRAPE_WAIT),
+        (Some("1e300"), SCRAPE_WAIT),
+    ] {
+        let took = scrape(app.clone(), header).await;
+        assert!(
+            took >= waits && took <= waits + ms,
+            "{header:?}: waited {took:?}, not {waits:?}"
+        );
+    }
+    writer.abort();
+}
+
 /// The JSON answer to `GET path`, asserted to be 200 and to come at once (no time passes on
 /// tokio's paused clock: it waited for no render).
 async fn at_once(app: &AppState, path: &str) -> serde_json::Value {

@@ -11,11 +11,13 @@
 //! does the arithmetic ([`splatd_estimator::NeedMap`]); this module only schedules it and keeps
 //! the history.
 //!
-//! A `/metrics` scrape waits for the figures of frames that changed at most [`SCRAPE_WAIT`],
+//! A `/metrics` scrape waits for the figures of frames that changed at most half the timeout
+//! its scraper gives it (Prometheus says so in a header), and never more than [`SCRAPE_WAIT`],
 //! all frames at once: a frame that workers keep changing is rendered at its pace
 //! ([`crate::render::pace`]), which on a busy head can be longer than Prometheus waits for a
-//! scrape (10 s by default). A scrape that stops waiting reports the latest figures with their
-//! age and leaves the render running ([`Refreshes`]), so the next scrape finds them fresher.
+//! scrape (10 s by default, 5 s when it scrapes every 5 s). A scrape that stops waiting reports
+//! the latest figures with their age and leaves the render running ([`Refreshes`]), so the next
+//! scrape finds them fresher.
 
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -31,7 +33,8 @@ use crate::work::Busy;
 use crate::AppState;
 
 /// Most a `/metrics` scrape waits for figures of frames that changed since their last render,
-/// half of Prometheus' default scrape timeout.
+/// half of Prometheus' default scrape timeout (a scraper that says its timeout is shorter is
+/// answered within half of that).
 pub const SCRAPE_WAIT: Duration = Duration::from_secs(5);
 
 /// Why a need map or a frame's figures could not be computed.
