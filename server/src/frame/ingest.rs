@@ -530,7 +530,7 @@ mod tests {
     /// infinite), the rest in `[0, 1)`.
     fn records(rng: &mut SplitMix64, n: usize, (w, h): (u32, u32), max: f32) -> Vec<Record> {
         let values = [0.0, -0.0, 0.5, max, f32::MAX, -1.0, f32::NAN, f32::INFINITY];
-        let mut pick = |rng: &mut SplitMix64| {
+        let pick = |rng: &mut SplitMix64| {
             if rng.next_u64() % 8 == 0 {
                 values[(rng.next_u64() % values.len() as u64) as usize]
             } else {
