@@ -256,16 +256,6 @@ impl CascadeLayout {
         }
     }
 
-    /// Whether [`CascadeLayout::check_sample`] accepts `rgb`, computed without a branch: for a
-    /// pass over many samples that finds out whether all are good before asking which is not.
-    #[inline]
-    pub fn accepts(&self, rgb: [f32; 3]) -> bool {
-        let limit = self.component_limit_bits();
-        rgb.iter().fold(true, |ok, c| {
-            ok & component_bits_accepted(c.to_bits(), limit)
-        })
-    }
-
     /// The bits of the largest `f32` component [`CascadeLayout::check_sample`] accepts (the
     /// largest at most [`CascadeLayout::max_component`]), for [`component_bits_accepted`].
     #[inline]
@@ -384,7 +374,7 @@ mod tests {
     }
 
     #[test]
-    fn accepts_is_check_sample_without_the_reason() {
+    fn the_bits_rule_is_check_sample_without_the_reason() {
         // The defaults' largest component is a power of two, an `f32`; base 10's is not.
         for layout in [
             layout(),
@@ -412,8 +402,10 @@ mod tests {
                 for &g in &edge {
                     for &b in &edge {
                         let rgb = [r, g, b];
+                        let limit = layout.component_limit_bits();
                         assert_eq!(
-                            layout.accepts(rgb),
+                            rgb.iter()
+                                .all(|c| component_bits_accepted(c.to_bits(), limit)),
                             layout.check_sample(rgb).is_ok(),
                             "{rgb:?} with largest {}",
                             layout.max_component()

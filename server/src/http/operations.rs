@@ -1,8 +1,8 @@
 //! Running the server: the live page, health, metrics, and forcing a frame to disk.
 
-use axum::extract::State;
 use std::time::Duration;
 
+use axum::extract::State;
 use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use splatd_proto::api::{Convergence, SyncAck};
