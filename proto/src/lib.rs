@@ -69,7 +69,8 @@ pub use api::{
     FrameInfo, FrameList, ImageQuery, ImportAck, PutFrame, ResolveParams, SyncAck, Variant,
 };
 pub use batch::{
-    pass_digest, records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, WireError,
+    pass_digest, records_digest_of, validate_frame_id, Batch, DecodeLimits, Record, RecordsDigest,
+    WireError, DECODE_RUN,
 };
 #[cfg(feature = "client")]
 pub use client::{Client, ClientError, RetryPolicy};

@@ -3,7 +3,7 @@
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, MutexGuard};
 
-use splatd_proto::{pass_digest, Batch, Record};
+use splatd_proto::{pass_digest, Batch, Record, RecordsDigest};
 
 use splatd_estimator::{
     self as estimator, component_bits_accepted, FrameState, Rect, SampleError, MAX_PIXEL_SAMPLES,
@@ -42,16 +42,54 @@ impl ShardedFrame {
         batch: &Batch,
         aovs: Option<&[f32]>,
     ) -> Result<Ingested, IngestError> {
-        let result = self.ingest_inner(batch, aovs);
+        let mut check = self.record_check();
+        check.add(&batch.records);
+        self.ingest_checked_with_aovs(batch, check, aovs)
+    }
+
+    /// A check of records for this frame, to fill as a batch is decoded
+    /// ([`Batch::decode_visiting`]) and give to [`ShardedFrame::ingest_checked`].
+    pub fn record_check(&self) -> RecordCheck {
+        let (w, h) = (self.spec.request.width, self.spec.request.height);
+        RecordCheck::new((w, h), self.spec.layout.component_limit_bits())
+    }
+
+    /// [`ShardedFrame::ingest`] of a batch whose records `check` has seen, all of them and
+    /// only them, in order (as [`Batch::decode_visiting`] decoded them): the records are not
+    /// read again for the check and the digest.
+    ///
+    /// # Panics
+    /// If `check` saw another number of records than the batch has.
+    pub fn ingest_checked(
+        &self,
+        batch: &Batch,
+        check: RecordCheck,
+    ) -> Result<Ingested, IngestError> {
+        self.ingest_checked_with_aovs(batch, check, None)
+    }
+
+    fn ingest_checked_with_aovs(
+        &self,
+        batch: &Batch,
+        check: RecordCheck,
+        aovs: Option<&[f32]>,
+    ) -> Result<Ingested, IngestError> {
+        assert_eq!(
+            check.count,
+            batch.records.len(),
+            "a check of the batch's records"
+        );
+        let result = self.ingest_inner(batch, check, aovs);
         if result.is_err() {
             self.count_rejected(batch.records.len() as u64);
         }
         result
     }
 
-    pub(super) fn ingest_inner(
+    fn ingest_inner(
         &self,
         batch: &Batch,
+        check: RecordCheck,
         aovs: Option<&[f32]>,
     ) -> Result<Ingested, IngestError> {
         if batch.frame != self.id() {
@@ -60,16 +98,12 @@ impl ShardedFrame {
                 url: self.id().to_owned(),
             });
         }
-        let (w, h) = (self.spec.request.width, self.spec.request.height);
         let records = &batch.records;
-        let limit = self.spec.layout.component_limit_bits();
-        let Some(bounds) = check_records(records, (w, h), limit) else {
+        let (bounds, digest) = check.finish();
+        let Some(bounds) = bounds else {
             return Err(self.first_refused(records));
         };
         let runs = self.runs_by_band(records);
-
-        // Outside the gate: a pass over the records, as long as a copy of them.
-        let digest = batch.content_digest();
         let parts = Parts::Records {
             batch,
             runs,
@@ -302,52 +336,98 @@ fn splat_bands(parts: &Parts<'_>, touched: &mut [(usize, &mut FrameState)]) {
     });
 }
 
-/// Whether every record is inside a `w` x `h` frame with a value a layout of component limit
-/// `limit` accepts ([`CascadeLayout::component_limit_bits`]), and if so the box of their pixels
-/// (empty for no records).
+/// Records checked as they come, a slice at a time: whether every one is inside the frame
+/// with a value its layout accepts, the box of their pixels, and their content digest
+/// ([`Batch::content_digest`]). Filled while a batch is decoded
+/// ([`Batch::decode_visiting`]), it reads each record while the decoder's run of them is still in
+/// the cache (a batch of 65536 records, 1.3 MB, does not fit a 1 MiB L2).
 ///
 /// Records are `repr(C)` words (x, y and the bits of r, g, b), checked four at a time as 20
 /// words in loops over those words that become vector instructions: each word against its
-/// limit (x and y pass there) and each word's running least and greatest; x and y are then
-/// checked by their greatest. (A check per record that returned its reason, then appended the
-/// record to its band's runs, took 12.1 % of the server's CPU under `loadgen`'s record ingest;
-/// this pass takes 10.7 %, most of it the first read of the records after decoding.)
-///
-/// [`CascadeLayout::component_limit_bits`]: splatd_estimator::CascadeLayout::component_limit_bits
-fn check_records(records: &[Record], (w, h): (u32, u32), limit: u32) -> Option<Rect> {
-    const GROUP: usize = 4;
-    const WORDS: usize = GROUP * 5;
-    let limits: [u32; WORDS] = std::array::from_fn(|i| if i % 5 < 2 { u32::MAX } else { limit });
-    let (mut good, mut least, mut most) = ([true; WORDS], [u32::MAX; WORDS], [0u32; WORDS]);
-    let mut check = |words: &[u32; WORDS]| {
-        for i in 0..WORDS {
-            good[i] &= component_bits_accepted(words[i], limits[i]);
-            least[i] = least[i].min(words[i]);
-            most[i] = most[i].max(words[i]);
+/// limit (x and y pass there; [`component_bits_accepted`] for the colour) and each word's
+/// running least and greatest; x and y are then checked by their greatest. (A check per record
+/// that returned its reason, then appended the record to its band's runs, took 12.1 % of the
+/// server's CPU under `loadgen`'s record ingest; this check as a pass of its own after decoding,
+/// 10.7 %, most of it reading the records back from L3.)
+#[derive(Debug)]
+pub struct RecordCheck {
+    size: (u32, u32),
+    limits: [u32; CHECK_WORDS],
+    good: [bool; CHECK_WORDS],
+    least: [u32; CHECK_WORDS],
+    most: [u32; CHECK_WORDS],
+    count: usize,
+    digest: RecordsDigest,
+}
+
+/// Records checked at once by [`RecordCheck`], and their words.
+const CHECK_GROUP: usize = 4;
+const CHECK_WORDS: usize = CHECK_GROUP * 5;
+
+impl RecordCheck {
+    /// A check for a `w` x `h` frame whose layout accepts components up to the `f32` bits
+    /// `limit` ([`CascadeLayout::component_limit_bits`]).
+    ///
+    /// [`CascadeLayout::component_limit_bits`]: splatd_estimator::CascadeLayout::component_limit_bits
+    fn new(size: (u32, u32), limit: u32) -> RecordCheck {
+        RecordCheck {
+            size,
+            limits: std::array::from_fn(|i| if i % 5 < 2 { u32::MAX } else { limit }),
+            good: [true; CHECK_WORDS],
+            least: [u32::MAX; CHECK_WORDS],
+            most: [0; CHECK_WORDS],
+            count: 0,
+            digest: RecordsDigest::new(),
         }
-    };
-    let groups = records.chunks_exact(GROUP);
-    let rest = groups.remainder();
-    for group in groups {
-        check(bytemuck::cast_slice(group).try_into().expect("a group"));
     }
-    if let Some(&first) = rest.first() {
-        // The last records, and the first of them again in the lanes left over (which changes
-        // neither the verdict nor the box).
-        let mut group = [first; GROUP];
-        group[..rest.len()].copy_from_slice(rest);
-        check(bytemuck::cast_slice(&group).try_into().expect("a group"));
+
+    /// Checks `records`, which come after every record checked before.
+    pub fn add(&mut self, records: &[Record]) {
+        let groups = records.chunks_exact(CHECK_GROUP);
+        let rest = groups.remainder();
+        for group in groups {
+            self.group(bytemuck::cast_slice(group).try_into().expect("a group"));
+        }
+        if let Some(&first) = rest.first() {
+            // The last records, and the first of them again in the lanes left over (which
+            // changes neither the verdict nor the box).
+            let mut group = [first; CHECK_GROUP];
+            group[..rest.len()].copy_from_slice(rest);
+            self.group(bytemuck::cast_slice(&group).try_into().expect("a group"));
+        }
+        self.digest.update(records);
+        self.count += records.len();
     }
-    if records.is_empty() {
-        return Some(Rect::new(0, 0, 0, 0));
+
+    /// Checks 4 records' words, lane by lane (the loop indexes several arrays by lane, as the
+    /// vector code it becomes does).
+    #[inline(always)]
+    #[allow(clippy::needless_range_loop)]
+    fn group(&mut self, words: &[u32; CHECK_WORDS]) {
+        for i in 0..CHECK_WORDS {
+            self.good[i] &= component_bits_accepted(words[i], self.limits[i]);
+            self.least[i] = self.least[i].min(words[i]);
+            self.most[i] = self.most[i].max(words[i]);
+        }
     }
-    // Word `word` of each record of a group: x is word 0, y word 1.
-    let lanes = |word: usize| (word..WORDS).step_by(5);
-    let least_of = |word| lanes(word).map(|i| least[i]).fold(u32::MAX, u32::min);
-    let most_of = |word| lanes(word).map(|i| most[i]).fold(0, u32::max);
-    let (x1, y1) = (most_of(0), most_of(1));
-    (good.iter().all(|&g| g) && x1 < w && y1 < h)
-        .then(|| Rect::new(least_of(0), least_of(1), x1 + 1, y1 + 1))
+
+    /// The box of the records' pixels (empty for no records), or `None` if a record is outside
+    /// the frame or has a value the layout refuses; and their content digest.
+    fn finish(self) -> (Option<Rect>, u64) {
+        let digest = self.digest.finish();
+        if self.count == 0 {
+            return (Some(Rect::new(0, 0, 0, 0)), digest);
+        }
+        // Word `word` of each record of a group: x is word 0, y word 1.
+        let lanes = |word: usize| (word..CHECK_WORDS).step_by(5);
+        let least_of = |word| lanes(word).map(|i| self.least[i]).fold(u32::MAX, u32::min);
+        let most_of = |word| lanes(word).map(|i| self.most[i]).fold(0, u32::max);
+        let (w, h) = self.size;
+        let (x1, y1) = (most_of(0), most_of(1));
+        let good = self.good.iter().all(|&g| g) && x1 < w && y1 < h;
+        let bounds = good.then(|| Rect::new(least_of(0), least_of(1), x1 + 1, y1 + 1));
+        (bounds, digest)
+    }
 }
 
 /// The records of a batch that fall in one band: runs of consecutive records, in order (a
@@ -552,10 +632,9 @@ mod tests {
     }
 
     #[test]
-    fn records_are_checked_and_boxed_as_one_by_one() {
+    fn records_are_checked_boxed_and_hashed_as_one_by_one() {
         let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", 13, 70)).unwrap());
         let layout = &frame.spec.layout;
-        let limit = layout.component_limit_bits();
         let mut rng = SplitMix64::new(3);
         for n in (0..=9).chain([64, 65, 1000]) {
             for _ in 0..200 {
@@ -582,11 +661,16 @@ mod tests {
                         )
                     }
                 });
-                assert_eq!(
-                    check_records(&records, (13, 70), limit),
-                    expected,
-                    "{records:?}"
-                );
+                // In one slice, and a few records at a time as a decoder hands them over.
+                let mut whole = frame.record_check();
+                whole.add(&records);
+                let mut pieces = frame.record_check();
+                for piece in records.chunks(3) {
+                    pieces.add(piece);
+                }
+                let digest = splatd_proto::records_digest_of(records.iter().copied());
+                assert_eq!(whole.finish(), (expected, digest), "{records:?}");
+                assert_eq!(pieces.finish(), (expected, digest), "{records:?}");
             }
         }
     }

@@ -91,11 +91,14 @@ pub async fn post_samples(
     metrics::counter!(crate::meters::INGEST_BYTES).increment(bytes.len() as u64);
     let limits = app.decode_limits;
     ingest(&app, frame, reservation, move |frame| {
-        let batch = Batch::decode(&bytes, &limits).map_err(|e| {
-            reject(frame, 0, e.code());
-            ApiError::from(&e)
-        })?;
-        let ingested = applied(batch.records.len(), frame.ingest(&batch))?;
+        // The records are checked and hashed as they are decoded, while still in the cache.
+        let mut check = frame.record_check();
+        let batch =
+            Batch::decode_visiting(&bytes, &limits, |records| check.add(records)).map_err(|e| {
+                reject(frame, 0, e.code());
+                ApiError::from(&e)
+            })?;
+        let ingested = applied(batch.records.len(), frame.ingest_checked(&batch, check))?;
         Ok(((batch.worker, batch.seq), ingested))
     })
     .await
