@@ -140,6 +140,40 @@ fn keep_writing(app: &AppState, ids: &[&str]) -> tokio::task::JoinHandle<()> {
     })
 }
 
+/// A server with a metrics recorder and 8x8 frames `ids`, one batch in each.
+fn scraped_frames(ids: &[&str]) -> AppState {
+    let handle = metrics_exporter_prometheus::PrometheusBuilder::new()
+        .build_recorder()
+        .handle();
+    let mut app = AppState::new(Limits::default(), Some(handle), None);
+    for id in ids {
+        app = testing::with_frame(app, id, 8, 8);
+        post(&app, id, 0);
+    }
+    app
+}
+
+/// The text of a `/metrics` scrape, asserted to be 200, with Prometheus' timeout header if
+/// `timeout` is given.
+async fn scrape(app: &AppState, timeout: Option<&str>) -> String {
+    let mut request = Request::get("/metrics");
+    if let Some(seconds) = timeout {
+        request = request.header(super::operations::SCRAPE_TIMEOUT_HEADER, seconds);
+    }
+    let reply = testing::send(app, request.body(Body::empty()).unwrap()).await;
+    assert_eq!(reply.status, StatusCode::OK);
+    String::from_utf8(reply.body.to_vec()).unwrap()
+}
+
+/// As if every frame's last render had taken 100 s (a saturated head): at the default share of
+/// 0.2, their next renders wait 400 s while writers keep changing them.
+fn renders_took_100_s(app: &AppState) {
+    for frame in app.store.list() {
+        let paces = app.renders.paces();
+        paces.rendered(&frame, frame.version(), std::time::Duration::from_secs(100));
+    }
+}
+
 /// A frame that workers keep changing renders at its pace, which on a busy head can outlast
 /// Prometheus' scrape timeout: a scrape waits `SCRAPE_WAIT` at most, for all frames at once,
 /// then reports the latest figures; the render it started goes on, and the next scrape waits
@@ -148,38 +182,20 @@ fn keep_writing(app: &AppState, ids: &[&str]) -> tokio::task::JoinHandle<()> {
 async fn a_scrape_of_frames_that_keep_changing_waits_its_bound_once() {
     use crate::render::figures::{latest_convergence, SCRAPE_WAIT};
     use std::time::Duration;
-    let handle = metrics_exporter_prometheus::PrometheusBuilder::new()
-        .build_recorder()
-        .handle();
-    let mut app = AppState::new(Limits::default(), Some(handle), None);
-    for id in ["a", "b"] {
-        app = testing::with_frame(app, id, 8, 8);
-        post(&app, id, 0);
-    }
-    let scrape = |app: AppState| async move {
-        let request = Request::get("/metrics").body(Body::empty()).unwrap();
-        let reply = testing::send(&app, request).await;
-        assert_eq!(reply.status, StatusCode::OK);
-        String::from_utf8(reply.body.to_vec()).unwrap()
-    };
-    let text = scrape(app.clone()).await;
+    let app = scraped_frames(&["a", "b"]);
+    let text = scrape(&app, None).await;
     assert!(
         text.contains("splatd_frame_spp_max{frame=\"a\"} 1\n"),
         "{text}"
     );
     assert_eq!(app.renders.rendered(), 2, "one render per frame");
 
-    // Their last renders took 100 s each (as if on a saturated head): at the default share of
-    // 0.2, the next ones wait 400 s while the writer keeps changing both frames.
-    for frame in app.store.list() {
-        let paces = app.renders.paces();
-        paces.rendered(&frame, frame.version(), Duration::from_secs(100));
-    }
+    renders_took_100_s(&app);
     let writer = keep_writing(&app, &["a", "b"]);
     let ms = Duration::from_millis(1);
     for _ in 0..2 {
         let started = tokio::time::Instant::now();
-        let text = scrape(app.clone()).await;
+        let text = scrape(&app, None).await;
         let took = started.elapsed();
         assert!(
             took >= SCRAPE_WAIT && took <= SCRAPE_WAIT + ms,
@@ -220,37 +236,11 @@ async fn a_scrape_of_frames_that_keep_changing_waits_its_bound_once() {
 /// clock, so the waits are exact.
 #[tokio::test(start_paused = true)]
 async fn a_scrape_waits_half_the_timeout_its_scraper_gives_it() {
-    use super::operations::SCRAPE_TIMEOUT_HEADER;
     use crate::render::figures::SCRAPE_WAIT;
     use std::time::Duration;
-    let handle = metrics_exporter_prometheus::PrometheusBuilder::new()
-        .build_recorder()
-        .handle();
-    let mut app = AppState::new(Limits::default(), Some(handle), None);
-    for id in ["a", "b"] {
-        app = testing::with_frame(app, id, 8, 8);
-        post(&app, id, 0);
-    }
-    let scrape = |app: AppState, timeout: Option<&'static str>| async move {
-        let mut request = Request::get("/metrics");
-        if let Some(seconds) = timeout {
-            request = request.header(SCRAPE_TIMEOUT_HEADER, seconds);
-        }
-        let started = tokio::time::Instant::now();
-        let reply = testing::send(&app, request.body(Body::empty()).unwrap()).await;
-        assert_eq!(reply.status, StatusCode::OK);
-        let text = String::from_utf8(reply.body.to_vec()).unwrap();
-        assert!(
-            text.contains("splatd_frame_spp_max{frame=\"b\"} "),
-            "{text}"
-        );
-        started.elapsed()
-    };
-    scrape(app.clone(), None).await;
-    for frame in app.store.list() {
-        let paces = app.renders.paces();
-        paces.rendered(&frame, frame.version(), Duration::from_secs(100));
-    }
+    let app = scraped_frames(&["a", "b"]);
+    scrape(&app, None).await;
+    renders_took_100_s(&app);
     let writer = keep_writing(&app, &["a", "b"]);
     let ms = Duration::from_millis(1);
     for (header, waits) in [
@@ -265,7 +255,13 @@ async fn a_scrape_waits_half_the_timeout_its_scraper_gives_it() {
         (Some("NaN"), SCRAPE_WAIT),
         (Some("1e300"), SCRAPE_WAIT),
     ] {
-        let took = scrape(app.clone(), header).await;
+        let started = tokio::time::Instant::now();
+        let text = scrape(&app, header).await;
+        let took = started.elapsed();
+        assert!(
+            text.contains("splatd_frame_spp_max{frame=\"b\"} "),
+            "{text}"
+        );
         assert!(
             took >= waits && took <= waits + ms,
             "{header:?}: waited {took:?}, not {waits:?}"
