@@ -211,6 +211,19 @@ impl Session {
         }
     }
 
+    /// Clicks frame `id` in the page's frame list, once the list shows it (it is fetched again
+    /// every second).
+    async fn open_frame(&self, id: &str) {
+        let link = format!("nav a[data-frame=\"{id}\"]");
+        self.wait_for(
+            &format!("frame {id} in the frame list"),
+            &format!("return document.querySelector('{link}') !== null;"),
+            |v| v.as_bool().filter(|&b| b),
+        )
+        .await;
+        self.click(&link).await;
+    }
+
     async fn click(&self, css: &str) {
         let element = self.element(css).await;
         self.cmd(
@@ -459,15 +472,7 @@ fn live_page_zooms_pans_splits_exposes_and_plots_convergence() {
         let driver = Driver::start(&chromedriver);
         let session = Session::open(&driver, &chromium).await;
         session.goto(&format!("{}/", server.url)).await;
-        let link = format!("nav a[data-frame=\"{FRAME}\"]");
-        session
-            .wait_for(
-                "the frame in the frame list",
-                &format!("return document.querySelector('{link}') !== null;"),
-                |v| v.as_bool().filter(|&b| b),
-            )
-            .await;
-        session.click(&link).await;
+        session.open_frame(FRAME).await;
 
         // Fit to the window: both layers at the frame's size, scaled to fill the viewport.
         let at4 = session
@@ -749,15 +754,7 @@ fn live_page_reads_with_a_token_kept_in_the_session_only() {
             let batch = Batch::new("grey", 1, seq, records).expect("a batch");
             client.post_batch(&batch).await.expect("batch accepted");
         }
-        let link = "nav a[data-frame=\"grey\"]";
-        session
-            .wait_for(
-                "the grey frame in the frame list",
-                &format!("return document.querySelector('{link}') !== null;"),
-                |v| v.as_bool().filter(|&b| b),
-            )
-            .await;
-        session.click(link).await;
+        session.open_frame("grey").await;
         // `-` until the figures of the grey frame's first render are in.
         let probe = "return [document.getElementById('title').textContent, \
                      document.getElementById('converged').textContent];";
