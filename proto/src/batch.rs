@@ -157,12 +157,9 @@ impl Record {
 
 /// [`Batch::content_digest`] of a batch with these records.
 pub fn records_digest(records: &[Record]) -> u64 {
-    if WIRE_IS_MEMORY {
-        // The same bytes as the wire's, in one piece: the same XXH3 as fed in pieces.
-        xxhash_rust::xxh3::xxh3_64(bytemuck::cast_slice(records))
-    } else {
-        records_digest_of(records.iter().copied())
-    }
+    let mut digest = RecordsDigest::new();
+    digest.update(records);
+    digest.finish()
 }
 
 /// [`records_digest`] of records that come a slice at a time (say, as [`Batch::decode_visiting`]
