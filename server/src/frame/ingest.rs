@@ -125,12 +125,12 @@ impl ShardedFrame {
         for (i, r) in records.iter().enumerate() {
             // Two comparisons a record; the band is looked up only where it changes.
             if !rows.contains(&r.y) {
-                runs[band].extend(start..i as u32);
+                runs[band].push(start..i as u32);
                 (band, start) = (self.band_of_row(r.y), i as u32);
                 rows = self.band_rows(band);
             }
         }
-        runs[band].extend(start..records.len() as u32);
+        runs[band].push(start..records.len() as u32);
         runs
     }
 
@@ -478,13 +478,15 @@ impl RecordCheck {
 struct Runs(Vec<std::ops::Range<u32>>);
 
 impl Runs {
-    /// Adds records `run`, which come after every record added before.
-    fn extend(&mut self, run: std::ops::Range<u32>) {
-        match self.0.last_mut() {
-            Some(last) if last.end == run.start => last.end = run.end,
-            _ if run.is_empty() => {}
-            _ => self.0.push(run),
-        }
+    /// Adds records `run` (not empty), which come after every record added before and not
+    /// right after them: another band's run lies between.
+    fn push(&mut self, run: std::ops::Range<u32>) {
+        debug_assert!(!run.is_empty(), "a run holds records");
+        debug_assert!(
+            self.0.last().is_none_or(|last| last.end < run.start),
+            "runs of one band are apart"
+        );
+        self.0.push(run);
     }
 
     fn is_empty(&self) -> bool {
@@ -709,7 +711,6 @@ mod tests {
                         )
                     }
                 });
-                // In one slice, and a few records at a time as a decoder hands them over.
                 // On each kernel this CPU runs, in one slice, and a few records at a time as a
                 // decoder hands them over.
                 let digest = splatd_proto::records_digest_of(records.iter().copied());
