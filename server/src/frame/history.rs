@@ -95,6 +95,7 @@ impl History {
         threshold: f64,
     ) -> Option<api::Convergence> {
         let (_, c) = self.latest?;
+        let waiting_on = api::WaitingOn::of(c.verdict(threshold));
         Some(api::Convergence {
             samples: c.samples,
             spp_min: c.spp_min,
@@ -105,8 +106,8 @@ impl History {
             samples_per_second: self.rate(seconds, samples),
             converged_below: threshold,
             own_count_from: c.own_count_from,
-            converged: c.converged(threshold),
-            waiting_on: api::WaitingOn::of(c.verdict(threshold)),
+            converged: waiting_on.is_none(),
+            waiting_on,
             history: self.points.clone(),
         })
     }
