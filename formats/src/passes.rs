@@ -488,15 +488,14 @@ pub fn decode_pass_with_aovs(
     decode_pass_reusing(bytes, layer, max_pixels, aovs, &mut Scratch::default())
 }
 
-/// The buffers one decode fills: its planes, its write counts and the interleaved samples.
+/// The buffers one decode fills: its write counts and the interleaved samples.
 ///
-/// A 1080p pass needs about 25 bytes per pixel of them (52 MB); allocated fresh for every pass,
+/// A 1080p pass needs 13 bytes per pixel of them (27 MB); allocated fresh for every pass,
 /// they are large enough to be mapped and unmapped by the allocator each time, and the server's
 /// ingest threads spent a third of their time in the page faults of touching them. Decoding into
 /// a [`Scratch`] kept from an earlier pass reuses memory that is already mapped.
 #[derive(Debug, Default)]
 pub struct Scratch {
-    planes: Vec<Vec<f32>>,
     writes: Vec<Vec<u8>>,
     rgb: Vec<[f32; 3]>,
 }
@@ -511,19 +510,22 @@ impl Scratch {
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
-        let planes: usize = self.planes.iter().map(|p| p.capacity() * 4).sum();
         let writes: usize = self.writes.iter().map(Vec::capacity).sum();
-        planes + writes + self.rgb.capacity() * 12
+        writes + self.rgb.capacity() * 12
     }
 
-    /// A plane of `n` zeros, from a spare one when there is one.
-    fn plane(&mut self, n: usize) -> Vec<f32> {
-        let mut plane = self.planes.pop().unwrap_or_default();
-        plane.clear();
-        // Exactly: a pass a little larger than the last must not double the buffer.
-        plane.reserve_exact(n);
-        plane.resize(n, 0.0);
-        plane
+    /// Room for `n` samples, from the spare one when there is one. Its values are whatever a
+    /// pass before left there: the decode writes every pixel or fails (its write counts prove
+    /// which), so they are not cleared first.
+    fn rgb(&mut self, n: usize) -> Vec<[f32; 3]> {
+        let mut rgb = std::mem::take(&mut self.rgb);
+        if rgb.len() != n {
+            rgb.clear();
+            // Exactly: a pass a little larger than the last must not double the buffer.
+            rgb.reserve_exact(n);
+            rgb.resize(n, [0.0; 3]);
+        }
+        rgb
     }
 
     /// `n` write counts at zero, from spare ones when there are.
@@ -535,9 +537,11 @@ impl Scratch {
         counts
     }
 
-    /// Keeps a decode's planes and counts for the next one.
+    /// Keeps a decode's samples (unless the pass took them) and counts for the next one.
     fn keep(&mut self, planes: Planes) {
-        self.planes.extend(planes.planes);
+        if planes.rgb.capacity() > self.rgb.capacity() {
+            self.rgb = planes.rgb;
+        }
         self.writes
             .extend(planes.writes.into_iter().filter(|w| w.capacity() > 0));
     }
@@ -662,7 +666,8 @@ pub fn decode_pass_reusing(
 
     let mut wanted: Vec<(usize, usize)> = rgb_channels.iter().map(|&c| (part, c)).collect();
     wanted.extend(aov_channels.iter().flatten().copied());
-    let mut buffer = Planes::new(w, h, reader.headers().len(), &wanted, scratch);
+    let aov_count = aov_channels.as_ref().map_or(0, Vec::len);
+    let mut buffer = Planes::new(w, h, reader.headers().len(), &wanted, aov_count, scratch);
     // Only the parts read, full resolution: other parts are never decompressed.
     let parts: Vec<bool> = (0..reader.headers().len())
         .map(|p| wanted.iter().any(|&(q, _)| q == p))
@@ -684,19 +689,8 @@ pub fn decode_pass_reusing(
         scratch.keep(buffer);
         return Err(e);
     }
-    let (r, g, b) = (&buffer.planes[0], &buffer.planes[1], &buffer.planes[2]);
-    let mut rgb = std::mem::take(&mut scratch.rgb);
-    rgb.clear();
-    rgb.reserve_exact(w * h);
-    rgb.extend(r.iter().zip(g).zip(b).map(|((&r, &g), &b)| [r, g, b]));
-    let aovs = aov_channels.map(|_| {
-        let planes = &buffer.planes[3..];
-        let mut values = Vec::with_capacity(w * h * planes.len());
-        for i in 0..w * h {
-            values.extend(planes.iter().map(|p| p[i]));
-        }
-        values
-    });
+    let rgb = std::mem::take(&mut buffer.rgb);
+    let aovs = aov_channels.map(|_| std::mem::take(&mut buffer.aovs));
     scratch.keep(buffer);
     Ok(Pass {
         width,
@@ -724,30 +718,41 @@ fn check_sampling(header: &Header) -> Result<(), PassError> {
     }
 }
 
-/// Pixel storage while `exr` decodes: one plane per channel read.
+/// Pixel storage while `exr` decodes: each channel read goes straight to its place in the
+/// interleaved samples (the beauty's `R`, `G`, `B` in [`Pass::rgb`], the AOV channels in
+/// [`Pass::aovs`]). Decoding into one plane per channel and interleaving them afterwards
+/// wrote and read every value once more, and read them from the file through a reader per
+/// value: a tenth of the server's CPU under `loadgen`'s pass ingest.
 struct Planes {
     width: usize,
     height: usize,
-    /// Per part, the channels read from it: `(channel index in the part, plane)`.
+    /// Per part, the channels read from it: `(channel index in the part, wanted index)`, where
+    /// wanted channels `0..3` are the beauty's `R`, `G`, `B` and the rest the AOVs' in order.
     by_part: Vec<Vec<(usize, usize)>>,
-    planes: Vec<Vec<f32>>,
+    rgb: Vec<[f32; 3]>,
+    /// AOV values, pixel by pixel (`aov_count` per pixel).
+    aovs: Vec<f32>,
+    aov_count: usize,
     /// Per part read, how often each pixel was written. `exr` decodes whatever blocks the
     /// offset table points at, so a table that names one block twice leaves another block's
-    /// pixels at their initial zeros without an error; counting writes is what proves each
-    /// pixel came from its own data exactly once.
+    /// pixels unwritten without an error; counting writes is what proves each pixel came
+    /// from its own data exactly once.
     writes: Vec<Vec<u8>>,
 }
 
 impl Planes {
-    /// Planes for `wanted` channels `(part, channel index)` of a `width x height` pass.
-    /// The buffers are taken from `scratch` when it has them.
+    /// Storage for `wanted` channels `(part, channel index)` of a `width x height` pass: the
+    /// beauty's `R`, `G`, `B`, then `aov_count` AOV channels. The buffers are taken from
+    /// `scratch` when it has them.
     fn new(
         width: usize,
         height: usize,
         parts: usize,
         wanted: &[(usize, usize)],
+        aov_count: usize,
         scratch: &mut Scratch,
     ) -> Planes {
+        debug_assert_eq!(wanted.len(), 3 + aov_count);
         let mut by_part = vec![Vec::new(); parts];
         for (plane, &(part, channel)) in wanted.iter().enumerate() {
             by_part[part].push((channel, plane));
@@ -766,10 +771,25 @@ impl Planes {
             width,
             height,
             by_part,
-            planes: (0..wanted.len())
-                .map(|_| scratch.plane(width * height))
-                .collect(),
+            rgb: scratch.rgb(width * height),
+            // Given away with the pass: fresh (zeroed pages from the allocator) every time.
+            aovs: vec![0.0; width * height * aov_count],
+            aov_count,
             writes,
+        }
+    }
+
+    /// Wanted channel `plane`'s values from pixel `start` on, in `rgb` or `aovs` (`aov_count`
+    /// per pixel): a slice whose every `stride`-th value is one pixel's.
+    fn target<'b>(
+        (rgb, aovs, aov_count): (&'b mut [[f32; 3]], &'b mut [f32], usize),
+        plane: usize,
+        start: usize,
+    ) -> (&'b mut [f32], usize) {
+        if plane < 3 {
+            (&mut rgb.as_flattened_mut()[3 * start + plane..], 3)
+        } else {
+            (&mut aovs[aov_count * start + plane - 3..], aov_count)
         }
     }
 
@@ -810,28 +830,35 @@ impl Planes {
                 continue;
             };
             let (x, y) = (line.location.position.x(), line.location.position.y());
-            let start = y * self.width + x;
-            let row = &mut self.planes[plane][start..start + line.location.sample_count];
-            match header.channels.list[channel].sample_type {
+            let (start, n) = (y * self.width + x, line.location.sample_count);
+            let sample_type = header.channels.list[channel].sample_type;
+            if line.value.len() != n * sample_type.bytes_per_sample() {
+                return Err(exr::error::Error::Invalid("a line's size".into()));
+            }
+            // A decompressed block holds its samples in this machine's byte order.
+            let to = (&mut self.rgb[..], &mut self.aovs[..], self.aov_count);
+            let (values, stride) = Planes::target(to, plane, start);
+            let values = values.iter_mut().step_by(stride);
+            match sample_type {
                 SampleType::F16 => {
-                    for (px, v) in row.iter_mut().zip(line.read_samples::<f16>()) {
-                        *px = v?.to_f32();
+                    for (v, b) in values.zip(line.value.chunks_exact(2)) {
+                        *v = f16::from_ne_bytes([b[0], b[1]]).to_f32();
                     }
                 }
                 SampleType::F32 => {
-                    for (px, v) in row.iter_mut().zip(line.read_samples::<f32>()) {
-                        *px = v?;
+                    for (v, b) in values.zip(line.value.chunks_exact(4)) {
+                        *v = f32::from_ne_bytes([b[0], b[1], b[2], b[3]]);
                     }
                 }
                 SampleType::U32 => {
-                    for (px, v) in row.iter_mut().zip(line.read_samples::<u32>()) {
-                        *px = v? as f32;
+                    for (v, b) in values.zip(line.value.chunks_exact(4)) {
+                        *v = u32::from_ne_bytes([b[0], b[1], b[2], b[3]]) as f32;
                     }
                 }
             }
             if Some(channel) == counted {
                 let writes = &mut self.writes[index.layer];
-                for n in &mut writes[start..start + line.location.sample_count] {
+                for n in &mut writes[start..start + n] {
                     *n = n.saturating_add(1);
                 }
             }
@@ -1028,7 +1055,7 @@ pub(crate) mod tests {
         assert_eq!(pass, decode_pass(&big).unwrap());
         scratch.recycle(pass);
         let held = scratch.bytes();
-        assert!(held >= 9 * 7 * (3 * 4 + 1 + 12), "{held} bytes kept");
+        assert!(held >= 9 * 7 * (1 + 12), "{held} bytes kept");
 
         let good = uncompressed(5, 16);
         let table = offset_table(&good, 16);
@@ -1043,14 +1070,14 @@ pub(crate) mod tests {
             scratch.recycle(pass);
         }
         // The buffers grew to the largest pass and were reused since, not replaced.
-        assert_eq!(scratch.bytes(), held.max(5 * 16 * (3 * 4 + 1 + 12)));
+        assert_eq!(scratch.bytes(), held.max(5 * 16 * (1 + 12)));
 
         let pool = ScratchPool::new(1);
         pool.give(scratch);
         pool.give(Scratch::default());
         assert_eq!(
             pool.idle_bytes(),
-            held.max(5 * 16 * 25),
+            held.max(5 * 16 * 13),
             "one kept, the other dropped"
         );
         assert!(pool.take().bytes() > 0);

@@ -57,9 +57,9 @@ impl Upload for Pass {
             .saturating_add(1 << 20)
     }
 
-    /// The decoder's planes and write counts (13 bytes per pixel), the decoded pixels (12) and
-    /// the `exr` crate's own buffers, generously; and per AOV channel its plane and its values
-    /// (4 bytes each).
+    /// The decoder's write counts (1 byte per pixel), the decoded pixels (12) and the `exr`
+    /// crate's own buffers, generously; and per AOV channel its values (4 bytes, counted
+    /// twice).
     fn decoding_bytes(frame: &ShardedFrame, _: u64) -> u64 {
         pass_pixels(frame) * (48 + 8 * frame.spec().aov_channels() as u64)
     }
