@@ -830,7 +830,7 @@ impl FrameState {
         let mut pipe = Pipeline::new(kernel, &self.layout);
         let mut report = SplatReport::default();
         for chunk in records.chunks(BLOCK) {
-            self.splat_block(&mut pipe, chunk, &mut report);
+            self.splat_block::<true>(&mut pipe, chunk, &mut report);
         }
         pipe.flush(self);
         report
@@ -841,6 +841,30 @@ impl FrameState {
     /// fall in this band, say), without copying them into one first. They are taken a block
     /// at a time.
     pub fn splat_records_from<I>(&mut self, records: I) -> SplatReport
+    where
+        I: IntoIterator<Item = (u32, u32, [f32; 3])>,
+    {
+        self.splat_blocks_from::<true, _>(records)
+    }
+
+    /// [`FrameState::splat_records_from`] of records whose every sample is known to be one
+    /// this state's layout accepts ([`CascadeLayout::check_sample`], as [`splat_checked`]
+    /// requires): for a caller that checked them as they arrived (the server checks a batch as
+    /// it decodes it), each block's check of the samples is not made again (a debug build
+    /// still asserts it). Records outside the state and pixels without room are handled as by
+    /// [`FrameState::splat_records_from`]. An invalid sample given anyway corrupts the state
+    /// (never memory).
+    ///
+    /// [`splat_checked`]: FrameState::splat_checked
+    pub fn splat_valid_records_from<I>(&mut self, records: I) -> SplatReport
+    where
+        I: IntoIterator<Item = (u32, u32, [f32; 3])>,
+    {
+        self.splat_blocks_from::<false, _>(records)
+    }
+
+    /// [`FrameState::splat_records_from`], with each block's samples checked if `CHECK`.
+    fn splat_blocks_from<const CHECK: bool, I>(&mut self, records: I) -> SplatReport
     where
         I: IntoIterator<Item = (u32, u32, [f32; 3])>,
     {
@@ -857,17 +881,17 @@ impl FrameState {
             if len == 0 {
                 break;
             }
-            self.splat_block(&mut pipe, &chunk[..len], &mut report);
+            self.splat_block::<CHECK>(&mut pipe, &chunk[..len], &mut report);
         }
         pipe.flush(self);
         report
     }
 
     /// Splats a block of at most [`BLOCK`] records through `pipe`, adding to `report`: the
-    /// vectorized path if every record is inside the state, valid and has room, else one by
-    /// one (after what is in flight).
+    /// vectorized path if every record is inside the state, valid (checked if `CHECK`, else
+    /// known) and has room, else one by one (after what is in flight).
     #[inline(always)]
-    fn splat_block(
+    fn splat_block<const CHECK: bool>(
         &mut self,
         pipe: &mut Pipeline,
         chunk: &[(u32, u32, [f32; 3])],
@@ -887,7 +911,13 @@ impl FrameState {
                 .wrapping_add(x as usize);
             block[i] = rgb;
         }
-        if !(inside && pipe.tables.all_valid(&block[..len])) {
+        let valid = if CHECK {
+            pipe.tables.all_valid(&block[..len])
+        } else {
+            debug_assert!(pipe.tables.all_valid(&block[..len]), "samples said valid");
+            true
+        };
+        if !(inside && valid) {
             pipe.flush(self);
             report.add(&self.splat_all(chunk.iter().copied()));
             return;

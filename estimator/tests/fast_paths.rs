@@ -140,9 +140,17 @@ proptest! {
         let mut from = FrameState::new(W, H, layout.clone());
         prop_assert_eq!(from.splat_records_from(in_two_runs(&records)), expected);
         prop_assert!(from == simple, "splat_records_from: cells differ");
-        let mut all = FrameState::new(W, H, layout);
+        let mut all = FrameState::new(W, H, layout.clone());
         prop_assert_eq!(all.splat_all(records.iter().copied()), expected);
         prop_assert!(all == simple);
+        // The valid samples alone (records outside the frame kept), as a caller that checked
+        // them gives them.
+        let valid = valid_only(&layout, &records);
+        let mut simple = FrameState::new(W, H, layout.clone());
+        let expected = one_by_one(&mut simple, &valid);
+        let mut trusted = FrameState::new(W, H, layout);
+        prop_assert_eq!(trusted.splat_valid_records_from(in_two_runs(&valid)), expected);
+        prop_assert!(trusted == simple, "splat_valid_records_from: cells differ");
     }
 }
 
@@ -172,9 +180,15 @@ proptest! {
             prop_assert_eq!(report, expected, "{:?}", kernel);
             prop_assert!(fast == simple, "{:?}: cells differ", kernel);
         }
-        let mut from = FrameState::band(W, H, band, layout);
+        let mut from = FrameState::band(W, H, band.clone(), layout.clone());
         prop_assert_eq!(from.splat_records_from(in_two_runs(&records)), expected);
         prop_assert!(from == simple, "splat_records_from: cells differ");
+        let valid = valid_only(&layout, &records);
+        let mut simple = FrameState::band(W, H, band.clone(), layout.clone());
+        let expected = one_by_one(&mut simple, &valid);
+        let mut trusted = FrameState::band(W, H, band, layout);
+        prop_assert_eq!(trusted.splat_valid_records_from(in_two_runs(&valid)), expected);
+        prop_assert!(trusted == simple, "splat_valid_records_from: cells differ");
     }
 }
 
@@ -183,6 +197,15 @@ proptest! {
 fn in_two_runs(records: &[Rec]) -> impl Iterator<Item = Rec> + '_ {
     let (a, b) = records.split_at(records.len() / 3);
     a.iter().chain(b).copied()
+}
+
+/// The records whose samples `layout` accepts, in order.
+fn valid_only(layout: &CascadeLayout, records: &[Rec]) -> Vec<Rec> {
+    records
+        .iter()
+        .filter(|r| layout.check_sample(r.2).is_ok())
+        .copied()
+        .collect()
 }
 
 /// Every edge value in every channel position, as whole rows, on every kernel.
@@ -315,4 +338,10 @@ fn full_pixels_are_refused_as_one_by_one() {
     let mut from = state.clone();
     assert_eq!(from.splat_records_from(in_two_runs(&records)), expected);
     assert!(from == simple, "splat_records_from");
+    let mut trusted = state.clone();
+    assert_eq!(
+        trusted.splat_valid_records_from(in_two_runs(&records)),
+        expected
+    );
+    assert!(trusted == simple, "splat_valid_records_from");
 }

@@ -57,7 +57,8 @@ impl ShardedFrame {
 
     /// [`ShardedFrame::ingest`] of a batch whose records `check` has seen, all of them and
     /// only them, in order (as [`Batch::decode_visiting`] decoded them): the records are not
-    /// read again for the check and the digest.
+    /// read again for the check and the digest, and their samples are splatted without being
+    /// checked again.
     ///
     /// # Panics
     /// If `check` saw another number of records than the batch has.
@@ -580,7 +581,9 @@ impl Parts<'_> {
     /// Adds band `i`'s samples to `band`.
     fn splat(&self, i: usize, band: &mut FrameState) {
         let report = match self {
-            Parts::Records { batch, runs, .. } => band.splat_records_from(runs[i].samples(batch)),
+            Parts::Records { batch, runs, .. } => {
+                band.splat_valid_records_from(runs[i].samples(batch))
+            }
             Parts::Pass { rgb } => {
                 let w = band.width() as usize;
                 let mut report = estimator::SplatReport::default();
