@@ -805,7 +805,15 @@ impl FrameState {
         y: u32,
         rgb: &[[f32; 3]],
     ) -> SplatReport {
-        self.splat_run(kernel, x0, y, rgb.len(), |i| rgb[i])
+        self.splat_run::<true>(kernel, x0, y, rgb.len(), |i| rgb[i])
+    }
+
+    /// [`FrameState::splat_row`] of samples known to be valid for this state's layout, as
+    /// [`FrameState::splat_valid_records_from`] takes them: for a caller that checked a whole
+    /// pass before splatting it, each block's check of the samples is not made again (a debug
+    /// build still asserts it).
+    pub fn splat_valid_row(&mut self, x0: u32, y: u32, rgb: &[[f32; 3]]) -> SplatReport {
+        self.splat_run::<false>(Kernel::detect(), x0, y, rgb.len(), |i| rgb[i])
     }
 
     /// Accumulates `records` (pixel, RGB) like [`FrameState::splat_all`], with the same state and
@@ -942,8 +950,9 @@ impl FrameState {
     }
 
     /// Splats `rgb(i)` into pixel `(x0 + i, y)` for `i < n`, a block at a time, through a
-    /// [`Pipeline`] (the cells of the next block are fetched while this one is added).
-    fn splat_run(
+    /// [`Pipeline`] (the cells of the next block are fetched while this one is added); each
+    /// block's samples are checked if `CHECK`, else known to be valid.
+    fn splat_run<const CHECK: bool>(
         &mut self,
         kernel: Kernel,
         x0: u32,
@@ -972,7 +981,13 @@ impl FrameState {
             // others): each pixel needs room for one.
             let room = self.samples + pipe.in_flight() + len as u64 <= MAX_PIXEL_SAMPLES
                 || (x..x + len as u32).all(|x| self.has_room(x, y, 1));
-            if !(room && pipe.tables.all_valid(&block[..len])) {
+            let valid = if CHECK {
+                pipe.tables.all_valid(&block[..len])
+            } else {
+                debug_assert!(pipe.tables.all_valid(&block[..len]), "samples said valid");
+                true
+            };
+            if !(room && valid) {
                 pipe.flush(self);
                 report.add(&one_by_one(self, from, from + len));
                 continue;

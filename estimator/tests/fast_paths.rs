@@ -249,6 +249,27 @@ fn rows_of_edge_values_give_the_bits_of_one_by_one() {
             assert_eq!(report.accepted, valid.len() as u64);
             assert!(fast == simple, "{kernel:?} with {layout:?}, valid samples");
         }
+        // The same valid samples as a caller that checked them gives them (the detected
+        // kernel), also past the row's end, where they are refused one by one as outside.
+        let valid: Vec<[f32; 3]> = rgb
+            .iter()
+            .copied()
+            .filter(|&c| layout.check_sample(c).is_ok())
+            .collect();
+        let n = valid.len() as u32;
+        let mut simple = FrameState::new(n, 1, layout.clone());
+        let records: Vec<Rec> = (0..n).map(|x| (x + 5, 0, valid[x as usize])).collect();
+        let expected = one_by_one(&mut simple, &records);
+        assert_eq!(expected.out_of_frame, 5);
+        let mut trusted = FrameState::new(n, 1, layout.clone());
+        assert_eq!(trusted.splat_valid_row(5, 0, &valid), expected);
+        assert!(trusted == simple, "splat_valid_row with {layout:?}");
+        let mut trusted = FrameState::new(n, 1, layout.clone());
+        let report = trusted.splat_valid_row(0, 0, &valid);
+        assert_eq!(report.accepted, n as u64);
+        let mut fast = FrameState::new(n, 1, layout.clone());
+        fast.splat_row(0, 0, &valid);
+        assert!(trusted == fast, "splat_valid_row with {layout:?}, inside");
     }
 }
 

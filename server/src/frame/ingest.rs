@@ -593,7 +593,7 @@ impl Parts<'_> {
                 let mut report = estimator::SplatReport::default();
                 for y in band.rows() {
                     let row = &rgb[y as usize * w..(y as usize + 1) * w];
-                    let r = band.splat_row(0, y, row);
+                    let r = band.splat_valid_row(0, y, row);
                     report.accepted += r.accepted;
                     report.pixel_full += r.rejected();
                 }
