@@ -919,12 +919,7 @@ impl FrameState {
                 .wrapping_add(x as usize);
             block[i] = rgb;
         }
-        let valid = if CHECK {
-            pipe.tables.all_valid(&block[..len])
-        } else {
-            debug_assert!(pipe.tables.all_valid(&block[..len]), "samples said valid");
-            true
-        };
+        let valid = pipe.tables.valid::<CHECK>(&block[..len]);
         if !(inside && valid) {
             pipe.flush(self);
             report.add(&self.splat_all(chunk.iter().copied()));
@@ -981,12 +976,7 @@ impl FrameState {
             // others): each pixel needs room for one.
             let room = self.samples + pipe.in_flight() + len as u64 <= MAX_PIXEL_SAMPLES
                 || (x..x + len as u32).all(|x| self.has_room(x, y, 1));
-            let valid = if CHECK {
-                pipe.tables.all_valid(&block[..len])
-            } else {
-                debug_assert!(pipe.tables.all_valid(&block[..len]), "samples said valid");
-                true
-            };
+            let valid = pipe.tables.valid::<CHECK>(&block[..len]);
             if !(room && valid) {
                 pipe.flush(self);
                 report.add(&one_by_one(self, from, from + len));

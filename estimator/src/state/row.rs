@@ -103,6 +103,18 @@ impl Tables {
             ok & component_bits_accepted(c.to_bits(), limit)
         })
     }
+
+    /// [`Tables::all_valid`] if `CHECK`; else the caller knows the samples are valid (a debug
+    /// build still asserts it).
+    #[inline(always)]
+    pub(crate) fn valid<const CHECK: bool>(&self, rgb: &[[f32; 3]]) -> bool {
+        if CHECK {
+            self.all_valid(rgb)
+        } else {
+            debug_assert!(self.all_valid(rgb), "samples said valid");
+            true
+        }
+    }
 }
 
 /// What a block of samples adds: per sample its lower cascade and the `[r, g, b, count]` units
