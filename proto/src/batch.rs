@@ -447,11 +447,16 @@ struct Header {
     count: u64,
 }
 
-/// A checked header and the bytes of exactly `count` records.
-struct Parsed<'a> {
+/// A checked header, and where the body's records start: it holds exactly `count` of them
+/// from there to its end.
+struct Parsed {
     header: Header,
-    records: &'a [u8],
+    records_start: usize,
 }
+
+/// The most bytes a batch's header (preamble, frame id and the three counts) takes: a body's
+/// first `HEAD_MAX` bytes are all [`parse`] reads.
+const HEAD_MAX: usize = FIXED_OVERHEAD + MAX_FRAME_ID_LEN;
 
 impl Batch {
     /// A batch whose frame id has been checked with [`validate_frame_id`].
@@ -532,14 +537,92 @@ impl Batch {
     pub fn decode_visiting(
         bytes: &[u8],
         limits: &DecodeLimits,
+        visit: impl FnMut(&[Record]),
+    ) -> Result<Batch, WireError> {
+        Batch::decode_pieces_visiting(&[bytes], limits, visit)
+    }
+
+    /// [`Batch::decode_visiting`] of a body held in the pieces it arrived in (a request body's
+    /// frames, in order): the same batch, or the same error, as of the pieces joined, and the
+    /// same runs visited, with each record decoded straight from its piece (a record cut
+    /// between two pieces is put together first). Joining the pieces into one buffer before
+    /// decoding copied every byte of every batch once more.
+    pub fn decode_pieces_visiting<P: AsRef<[u8]>>(
+        pieces: &[P],
+        limits: &DecodeLimits,
         mut visit: impl FnMut(&[Record]),
     ) -> Result<Batch, WireError> {
-        let Parsed { header, records } = parse(bytes, limits)?;
-        let mut out = Vec::with_capacity(records.len() / RECORD_SIZE);
-        for run in records.chunks(DECODE_RUN * RECORD_SIZE) {
-            let at = out.len();
-            decode_records(run, &mut out);
-            visit(&out[at..]);
+        let total: usize = pieces.iter().map(|p| p.as_ref().len()).sum();
+        // The header is in the first piece but for a body cut up very finely.
+        let head_len = total.min(HEAD_MAX);
+        let first = pieces.first().map_or(&[][..], |p| p.as_ref());
+        let gathered: Vec<u8>;
+        let head = if first.len() >= head_len {
+            &first[..head_len]
+        } else {
+            gathered = pieces
+                .iter()
+                .flat_map(|p| p.as_ref())
+                .copied()
+                .take(head_len)
+                .collect();
+            &gathered
+        };
+        let Parsed {
+            header,
+            records_start,
+        } = parse(head, total, limits)?;
+        // `parse` checked that the body holds exactly `count` records after the header.
+        let count = header.count as usize;
+        let mut out = Vec::with_capacity(count);
+        let mut visited = 0;
+        // Visits the records decoded since the last visit once there are DECODE_RUN of them.
+        let mut visit_full = |out: &Vec<Record>, visited: &mut usize| {
+            if out.len() - *visited == DECODE_RUN {
+                visit(&out[*visited..]);
+                *visited = out.len();
+            }
+        };
+        let mut cut = [0u8; RECORD_SIZE];
+        let mut cut_len = 0;
+        let mut skip = records_start;
+        for piece in pieces {
+            let mut bytes = piece.as_ref();
+            if skip >= bytes.len() {
+                skip -= bytes.len();
+                continue;
+            }
+            bytes = &bytes[skip..];
+            skip = 0;
+            if cut_len > 0 {
+                // The rest of a record the piece before ended in.
+                let take = (RECORD_SIZE - cut_len).min(bytes.len());
+                cut[cut_len..cut_len + take].copy_from_slice(&bytes[..take]);
+                cut_len += take;
+                bytes = &bytes[take..];
+                if cut_len < RECORD_SIZE {
+                    continue;
+                }
+                out.push(Record::from_wire(&cut));
+                visit_full(&out, &mut visited);
+            }
+            while bytes.len() >= RECORD_SIZE {
+                let room = DECODE_RUN - (out.len() - visited);
+                let whole = (bytes.len() / RECORD_SIZE).min(room);
+                let (now, rest) = bytes.split_at(whole * RECORD_SIZE);
+                decode_records(now, &mut out);
+                bytes = rest;
+                visit_full(&out, &mut visited);
+            }
+            cut[..bytes.len()].copy_from_slice(bytes);
+            cut_len = bytes.len();
+        }
+        debug_assert!(
+            cut_len == 0 && out.len() == count,
+            "parse counted the records"
+        );
+        if visited < out.len() {
+            visit(&out[visited..]);
         }
         Ok(Batch {
             frame: header.frame,
@@ -557,7 +640,7 @@ impl Batch {
     pub fn decode_reference(bytes: &[u8], limits: &DecodeLimits) -> Result<Batch, WireError> {
         // Run every check of the fast path first, so both accept exactly the
         // same inputs and bincode never sees an unchecked length.
-        parse(bytes, limits)?;
+        parse(&bytes[..bytes.len().min(HEAD_MAX)], bytes.len(), limits)?;
         let (body, _): (BodyOwned, usize) =
             bincode::serde::decode_from_slice(&bytes[PREAMBLE_SIZE..], WIRE_CONFIG)
                 .map_err(|e| bincode_error(e, bytes.len()))?;
@@ -583,10 +666,12 @@ fn decode_records(mut bytes: &[u8], out: &mut Vec<Record>) {
     debug_assert!(bytes.is_empty(), "caller passes whole records only");
 }
 
-/// Every structural check of a batch body; allocates only the frame id,
+/// Every structural check of a batch body of `total` bytes, whose first
+/// `min(total, HEAD_MAX)` bytes are `bytes`; allocates only the frame id,
 /// after its length has been checked.
-fn parse<'a>(bytes: &'a [u8], limits: &DecodeLimits) -> Result<Parsed<'a>, WireError> {
-    let available = bytes.len() as u64;
+fn parse(bytes: &[u8], total: usize, limits: &DecodeLimits) -> Result<Parsed, WireError> {
+    debug_assert_eq!(bytes.len(), total.min(HEAD_MAX), "the body's head");
+    let available = total as u64;
     let truncated = |needed: u64| WireError::Truncated { needed, available };
 
     let magic_len = bytes.len().min(MAGIC.len());
@@ -619,16 +704,20 @@ fn parse<'a>(bytes: &'a [u8], limits: &DecodeLimits) -> Result<Parsed<'a>, WireE
         });
     }
 
+    // The header fits in the head (its frame id is at most MAX_FRAME_ID_LEN bytes, checked
+    // above), so bincode runs out of bytes here only where the whole body ends.
     let (header, header_len): (Header, usize) =
         bincode::serde::decode_from_slice(body, WIRE_CONFIG)
-            .map_err(|e| bincode_error(e, bytes.len()))?;
+            .map_err(|e| bincode_error(e, total))?;
     validate_frame_id(&header.frame)?;
 
-    let records = &body[header_len..];
-    let records_start = (PREAMBLE_SIZE + header_len) as u64;
+    let records_start = PREAMBLE_SIZE + header_len;
+    let records = total - records_start;
     let records_len = header.count.saturating_mul(RECORD_SIZE as u64);
-    if (records.len() as u64) < records_len {
-        return Err(truncated(records_start.saturating_add(records_len)));
+    if (records as u64) < records_len {
+        return Err(truncated(
+            (records_start as u64).saturating_add(records_len),
+        ));
     }
     let max = limits.effective_max_records();
     if header.count > max as u64 {
@@ -639,12 +728,15 @@ fn parse<'a>(bytes: &'a [u8], limits: &DecodeLimits) -> Result<Parsed<'a>, WireE
     }
     // count <= max, so this fits in usize and does not overflow.
     let records_len = header.count as usize * RECORD_SIZE;
-    if records.len() > records_len {
+    if records > records_len {
         return Err(WireError::TrailingBytes {
-            count: records.len() - records_len,
+            count: records - records_len,
         });
     }
-    Ok(Parsed { header, records })
+    Ok(Parsed {
+        header,
+        records_start,
+    })
 }
 
 /// Translates a bincode decode error into a [`WireError`].
@@ -996,6 +1088,96 @@ mod tests {
         let mut visited = false;
         assert!(Batch::decode_visiting(cut, &limits, |_| visited = true).is_err());
         assert!(!visited);
+    }
+
+    /// Decodes `bytes` cut into `pieces` at the given points, and whole; returns both results
+    /// and the runs each visited.
+    #[allow(clippy::type_complexity)]
+    fn whole_and_in_pieces(
+        bytes: &[u8],
+        cuts: &[usize],
+        limits: &DecodeLimits,
+    ) -> (
+        (Result<Batch, WireError>, Vec<Vec<Record>>),
+        (Result<Batch, WireError>, Vec<Vec<Record>>),
+    ) {
+        let mut at: Vec<usize> = cuts.iter().map(|&c| c.min(bytes.len())).collect();
+        at.sort_unstable();
+        let pieces: Vec<&[u8]> = std::iter::once(0)
+            .chain(at.iter().copied())
+            .zip(at.iter().copied().chain(std::iter::once(bytes.len())))
+            .map(|(a, b)| &bytes[a..b])
+            .collect();
+        let mut runs = Vec::new();
+        let whole = Batch::decode_visiting(bytes, limits, |r| runs.push(r.to_vec()));
+        let mut piece_runs = Vec::new();
+        let split = Batch::decode_pieces_visiting(&pieces, limits, |r| piece_runs.push(r.to_vec()));
+        ((whole, runs), (split, piece_runs))
+    }
+
+    #[test]
+    fn a_body_in_pieces_decodes_as_the_whole_body() {
+        let limits = DecodeLimits {
+            max_records: 3 * DECODE_RUN,
+            ..DecodeLimits::default()
+        };
+        let mut rng = SplitMix64::new(0x91EC);
+        for round in 0..400 {
+            let n = match round % 4 {
+                0 => (rng.next_u64() % 40) as usize,
+                1 => DECODE_RUN + (rng.next_u64() % 3) as usize - 1,
+                _ => (rng.next_u64() % (3 * DECODE_RUN as u64 + 2)) as usize,
+            };
+            let records: Vec<Record> = (0..n as u32)
+                .map(|i| Record::new(i, (round as u32) ^ i, [i as f32, 0.5, f32::from_bits(i)]))
+                .collect();
+            // Frame ids from 1 byte to the longest, so the header ends anywhere in a piece.
+            let id_len = if round % 8 == 5 {
+                MAX_FRAME_ID_LEN
+            } else {
+                1 + (rng.next_u64() % MAX_FRAME_ID_LEN as u64) as usize
+            };
+            let id = "f".repeat(id_len);
+            let mut bytes = Batch::new(id, 1, round, records).unwrap().encode();
+            // Whole, cut short, with bytes after the records, or with a byte of the header
+            // changed (magic, version, id length, id, counts).
+            match rng.next_u64() % 5 {
+                0 => {
+                    let cut = (rng.next_u64() as usize) % bytes.len();
+                    bytes.truncate(cut);
+                }
+                1 => bytes.extend_from_slice(&[7; 3]),
+                2 => {
+                    let at = (rng.next_u64() as usize) % (FIXED_OVERHEAD + id_len);
+                    bytes[at] ^= 1 << (rng.next_u64() % 8);
+                }
+                _ => {}
+            }
+            // Pieces as a request's frames come (a few large ones), or cut finely (1-byte
+            // pieces and empty ones among them).
+            let pieces = 1 + rng.next_u64() % 12;
+            let mut cuts: Vec<usize> = (0..pieces)
+                .map(|_| (rng.next_u64() as usize) % (bytes.len() + 1))
+                .collect();
+            if round % 3 == 0 {
+                cuts.extend((0..40).map(|i| i * 3 + (round as usize % 3)));
+                cuts.push(cuts[0]);
+            }
+            let ((whole, runs), (split, piece_runs)) = whole_and_in_pieces(&bytes, &cuts, &limits);
+            assert_eq!(split, whole, "round {round}, cut at {cuts:?}");
+            assert_eq!(
+                whole,
+                Batch::decode_reference(&bytes, &limits),
+                "round {round}"
+            );
+            assert_eq!(piece_runs, runs, "round {round}: the same runs visited");
+        }
+        // No pieces at all: the empty body.
+        let none: [&[u8]; 0] = [];
+        assert_eq!(
+            Batch::decode_pieces_visiting(&none, &limits, |_| panic!("no records")),
+            Batch::decode(&[], &limits)
+        );
     }
 
     #[test]
