@@ -103,10 +103,15 @@ pub trait Upload {
     fn refused(_frame: &ShardedFrame) {}
 
     /// The [`BodyPool`] a large body sent as it is, with a `Content-Length`, is read into
-    /// rather than a fresh buffer; `None`: a fresh one.
+    /// rather than a fresh buffer; `None`: a fresh one. (Not used for bodies kept in pieces.)
     fn pool(_app: &AppState) -> Option<&Arc<BodyPool>> {
         None
     }
+
+    /// Whether a body sent as it is stays in the pieces it arrived in ([`BodyBytes::pieces`]),
+    /// for a kind whose decoder reads them in order, rather than being copied into one buffer.
+    /// (A compressed body is inflated into one buffer, its one piece.)
+    const IN_PIECES: bool = false;
 }
 
 /// The body of a `POST` to a frame, of kind `K`.
@@ -158,6 +163,9 @@ impl<K: Upload> FromRequest<AppState> for FrameBody<K> {
             .map_err(|busy| ApiError::busy(&busy))?;
         let pool = K::pool(app).filter(|_| encoding == Encoding::Identity);
         let bytes = match (declared, pool) {
+            (Some(_), _) if K::IN_PIECES && encoding == Encoding::Identity => {
+                read_pieces(body, limit).await
+            }
             (Some(len), Some(pool)) if len >= POOLED_MIN => {
                 read_pooled(body, limit, pool.clone(), len as usize).await
             }
@@ -301,17 +309,37 @@ async fn read_sized(mut body: Body, limit: usize, len: u64) -> Result<Bytes, Api
 
 /// Appends the rest of `body` to `out`, refusing with 413 once `out` would pass `limit` bytes.
 async fn append_body(body: &mut Body, limit: usize, out: &mut Vec<u8>) -> Result<(), ApiError> {
+    each_piece(body, limit, |data| out.extend_from_slice(&data)).await
+}
+
+/// Hands each piece (data frame) of the rest of `body` to `take`, in order, refusing with 413
+/// once they would pass `limit` bytes in all.
+async fn each_piece(
+    body: &mut Body,
+    limit: usize,
+    mut take: impl FnMut(Bytes),
+) -> Result<(), ApiError> {
     use http_body_util::BodyExt;
+    let mut read = 0;
     while let Some(frame) = body.frame().await {
         let frame = frame.map_err(|e| body_error(e, limit))?;
         if let Ok(data) = frame.into_data() {
-            if out.len() + data.len() > limit {
+            read += data.len();
+            if read > limit {
                 return Err(too_large(limit));
             }
-            out.extend_from_slice(&data);
+            take(data);
         }
     }
     Ok(())
+}
+
+/// Reads a body as the pieces it arrives in (the bytes hyper read from the socket, not
+/// copied), refusing more than `limit` bytes with 413 like [`read_body`].
+async fn read_pieces(mut body: Body, limit: usize) -> Result<BodyBytes, ApiError> {
+    let mut pieces = Vec::new();
+    each_piece(&mut body, limit, |data| pieces.push(data)).await?;
+    Ok(BodyBytes::Pieces(pieces))
 }
 
 /// What a client is told when its body could not be read.
@@ -359,14 +387,44 @@ pub enum BodyBytes {
     Shared(Bytes),
     /// A pool's buffer and the pool it goes back to.
     Pooled(Vec<u8>, Arc<BodyPool>),
+    /// The pieces the body arrived in, in order (only for an [`Upload::IN_PIECES`] kind).
+    Pieces(Vec<Bytes>),
 }
 
-impl std::ops::Deref for BodyBytes {
-    type Target = [u8];
-    fn deref(&self) -> &[u8] {
+impl BodyBytes {
+    /// The body's bytes as slices, in order: one, or the pieces it arrived in.
+    pub fn pieces(&self) -> Vec<&[u8]> {
+        match self {
+            BodyBytes::Shared(bytes) => vec![bytes],
+            BodyBytes::Pooled(buffer, _) => vec![buffer],
+            BodyBytes::Pieces(pieces) => pieces.iter().map(|p| &p[..]).collect(),
+        }
+    }
+
+    /// Bytes in all.
+    pub fn len(&self) -> usize {
+        match self {
+            BodyBytes::Shared(bytes) => bytes.len(),
+            BodyBytes::Pooled(buffer, _) => buffer.len(),
+            BodyBytes::Pieces(pieces) => pieces.iter().map(Bytes::len).sum(),
+        }
+    }
+
+    /// Whether the body is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The body as one slice.
+    ///
+    /// # Panics
+    /// For a body kept in pieces: a kind that reads its body whole does not set
+    /// [`Upload::IN_PIECES`].
+    pub fn whole(&self) -> &[u8] {
         match self {
             BodyBytes::Shared(bytes) => bytes,
             BodyBytes::Pooled(buffer, _) => buffer,
+            BodyBytes::Pieces(_) => panic!("a body kept in pieces read as one slice"),
         }
     }
 }

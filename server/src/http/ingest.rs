@@ -41,6 +41,10 @@ impl Upload for Samples {
     fn refused(frame: &ShardedFrame) {
         reject(frame, 0, "body");
     }
+
+    /// The records are decoded straight from the pieces the body arrived in: copying a batch
+    /// into one buffer first was 3.4 % of the server's CPU under `loadgen`'s record ingest.
+    const IN_PIECES: bool = true;
 }
 
 /// One rendered pass as an OpenEXR file ([`EXR_CONTENT_TYPE`]).
@@ -93,11 +97,12 @@ pub async fn post_samples(
     ingest(&app, frame, reservation, move |frame| {
         // The records are checked and hashed as they are decoded, while still in the cache.
         let mut check = frame.record_check();
-        let batch =
-            Batch::decode_visiting(&bytes, &limits, |records| check.add(records)).map_err(|e| {
-                reject(frame, 0, e.code());
-                ApiError::from(&e)
-            })?;
+        let pieces = bytes.pieces();
+        let batch = Batch::decode_pieces_visiting(&pieces, &limits, |records| check.add(records))
+            .map_err(|e| {
+            reject(frame, 0, e.code());
+            ApiError::from(&e)
+        })?;
         let ingested = applied(batch.records.len(), frame.ingest_checked(&batch, check))?;
         Ok(((batch.worker, batch.seq), ingested))
     })
@@ -137,7 +142,7 @@ pub async fn post_pass(
         // Decoded into buffers kept from earlier passes (counted in this request's reservation
         // while in use), given back whatever the outcome.
         let mut scratch = pool.pass_scratch.take();
-        let result = apply_pass(frame, &query, &bytes, &mut scratch);
+        let result = apply_pass(frame, &query, bytes.whole(), &mut scratch);
         pool.pass_scratch.give(scratch);
         result
     })

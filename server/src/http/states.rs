@@ -292,7 +292,7 @@ pub async fn import(
     let target = frame.clone();
     let added = blocking("import", move || {
         let _reservation = reservation;
-        let (dump, runs, aov_runs) = StateDump::decode_runs(&bytes, cells)?;
+        let (dump, runs, aov_runs) = StateDump::decode_runs(bytes.whole(), cells)?;
         // Refused before its AOV words are expanded (at most the frame's, reserved above).
         target.check_state_header(&dump.frame, dump.width, dump.height, &dump.aovs)?;
         // Its cells are checked as they are added.

@@ -694,6 +694,80 @@ async fn aov_declarations_are_checked_compared_and_counted() {
     assert!(server.store.get("big").is_err());
 }
 
+/// A request body that arrives in the given pieces (as hyper hands a body over, frame by
+/// frame, as it reads it from the socket).
+struct InPieces(std::collections::VecDeque<Bytes>);
+
+impl http_body::Body for InPieces {
+    type Data = Bytes;
+    type Error = std::convert::Infallible;
+
+    fn poll_frame(
+        mut self: std::pin::Pin<&mut Self>,
+        _: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Result<http_body::Frame<Bytes>, Self::Error>>> {
+        std::task::Poll::Ready(self.0.pop_front().map(|b| Ok(http_body::Frame::data(b))))
+    }
+}
+
+/// A batch that arrives in many pieces (records cut between them, pieces of one byte) is
+/// applied exactly as the same batch in one piece; one cut short is refused whole, as it would
+/// be in one piece, and changes nothing.
+#[tokio::test]
+async fn a_batch_arriving_in_pieces_is_applied_as_in_one() {
+    use splatd_proto::{Batch, Record};
+    let (w, h) = (64, 48);
+    let records: Vec<Record> = (0..9000u32)
+        .map(|i| Record::new(i % w, (i / 7) % h, [(i % 13) as f32 * 0.5, 1.0, 250.0]))
+        .collect();
+    let body = |seq: u64| Batch::new("f", 3, seq, records.clone()).unwrap().encode();
+    let post = |server: &AppState, bytes: Vec<u8>, piece: usize| {
+        let server = server.clone();
+        async move {
+            let length = bytes.len().to_string();
+            let pieces = bytes
+                .chunks(piece)
+                .map(Bytes::copy_from_slice)
+                .collect::<std::collections::VecDeque<_>>();
+            let headers = [
+                (header::CONTENT_TYPE, splatd_proto::BATCH_CONTENT_TYPE),
+                (header::CONTENT_LENGTH, length.as_str()),
+            ];
+            let path = "/v1/frames/f/samples";
+            let body = Body::new(InPieces(pieces));
+            let (status, code, _, _) = exchange(&server, Method::POST, path, &headers, body).await;
+            (status, code)
+        }
+    };
+    let whole = testing::with_frame(AppState::new(Limits::default(), None, None), "f", w, h);
+    let cut = testing::with_frame(AppState::new(Limits::default(), None, None), "f", w, h);
+    for (seq, piece) in [(1, 1), (2, 7), (3, 4096)] {
+        let bytes = body(seq);
+        let n = bytes.len();
+        assert_eq!(
+            post(&whole, bytes.clone(), n).await,
+            (StatusCode::OK, String::new())
+        );
+        assert_eq!(
+            post(&cut, bytes, piece).await,
+            (StatusCode::OK, String::new()),
+            "pieces of {piece} bytes"
+        );
+    }
+    let (a, b) = (whole.store.get("f").unwrap(), cut.store.get("f").unwrap());
+    assert_eq!(a.samples(), 3 * 9000);
+    assert!(a.cut().whole() == b.cut().whole(), "the same cells");
+    // Cut short in the middle of a record: refused, nothing applied.
+    let mut short = body(4);
+    short.truncate(short.len() - 30);
+    let (status, code) = post(&cut, short, 7).await;
+    assert_eq!(
+        (status, code.as_str()),
+        (StatusCode::BAD_REQUEST, "truncated_batch")
+    );
+    assert_eq!(b.samples(), 3 * 9000);
+}
+
 /// An uncompressed RGB float EXR of `w x h` pixels, pixel `i` = `(i, 2i, 3i) / 1000`.
 fn rgb_exr(w: usize, h: usize) -> Vec<u8> {
     splatd_formats::testing::uncompressed_rgb(w, h, |i| {
