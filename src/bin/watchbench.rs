@@ -12,7 +12,9 @@
 //! phases, whose posts are not counted):
 //!
 //! * `none`: the writers alone;
-//! * `watch`: plus a dashboard polling `GET /v1/frames/{id}` and `GET /metrics` once a second, a
+//! * `watch`: plus a dashboard polling `GET /v1/frames/{id}` and `GET /metrics` once a second
+//!   (the scrape with Prometheus' `X-Prometheus-Scrape-Timeout-Seconds: 1`, as a Prometheus
+//!   scraping every second sends it: a scrape's timeout cannot exceed its interval), a
 //!   live page (the server's own, emulated: every second `GET /v1/frames` and
 //!   `GET /v1/frames/{id}?convergence=latest`, then both `preview.png` layers when the sample
 //!   count moved and none are loading, as `server/src/http/web/index.html` polls; like
@@ -138,10 +140,25 @@ impl Shared {
 
     /// GETs `path` and reads the whole body; its milliseconds, recorded under `what`.
     async fn get(&self, phase: usize, what: &'static str, path: &str) -> Result<Bytes> {
+        self.get_with(phase, what, path, &[]).await
+    }
+
+    /// [`Shared::get`] with extra request headers.
+    async fn get_with(
+        &self,
+        phase: usize,
+        what: &'static str,
+        path: &str,
+        headers: &[(&str, &str)],
+    ) -> Result<Bytes> {
         self.in_flight.fetch_add(1, Ordering::SeqCst);
         let t = Instant::now();
         let result = async {
-            let r = self.http.get(format!("{}{path}", self.url)).send().await?;
+            let mut request = self.http.get(format!("{}{path}", self.url));
+            for (name, value) in headers {
+                request = request.header(*name, *value);
+            }
+            let r = request.send().await?;
             if r.status() == reqwest::StatusCode::SERVICE_UNAVAILABLE {
                 self.busy.fetch_add(1, Ordering::SeqCst);
                 return Ok(Bytes::new());
@@ -305,7 +322,12 @@ async fn dashboard(shared: Arc<Shared>) -> Result<()> {
         shared
             .get(phase, "dashboard info", &format!("/v1/frames/{FRAME}"))
             .await?;
-        shared.get(phase, "dashboard /metrics", "/metrics").await?;
+        // Prometheus tells a target how long it will wait (its scrape timeout, at most its
+        // interval): the server waits for paced renders at most half of that.
+        let timeout = [("x-prometheus-scrape-timeout-seconds", "1")];
+        shared
+            .get_with(phase, "dashboard /metrics", "/metrics", &timeout)
+            .await?;
     }
     Ok(())
 }
