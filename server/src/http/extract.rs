@@ -334,13 +334,36 @@ async fn each_piece(
     Ok(())
 }
 
-/// Reads a body as the pieces it arrives in (the bytes hyper read from the socket, not
-/// copied), refusing more than `limit` bytes with 413 like [`read_body`].
-async fn read_pieces(mut body: Body, limit: usize) -> Result<BodyBytes, ApiError> {
-    let mut pieces = Vec::new();
-    each_piece(&mut body, limit, |data| pieces.push(data)).await?;
+/// Reads a body as the pieces it arrives in, refusing more than `limit` bytes with 413 like
+/// [`read_body`]: a piece of [`KEEP_PIECE`] bytes or more is kept as hyper read it from the
+/// socket (not copied), smaller ones are copied, together, into pieces of their own.
+///
+/// A piece hyper hands over shares the allocation of its read buffer (at most 408 KiB, hyper's
+/// default `max_buf_size`), which stays allocated while any piece of it is held. Over loopback
+/// a 1.3 MB batch comes as one small piece (what was read with the headers) and four of about
+/// 408 KiB, each the whole buffer; but a client sending a few bytes at a time would make every
+/// byte pin a buffer. Kept only from `KEEP_PIECE` up, a piece pins at most 1.6 times its size.
+pub(super) async fn read_pieces(mut body: Body, limit: usize) -> Result<BodyBytes, ApiError> {
+    let (mut pieces, mut small) = (Vec::new(), Vec::new());
+    each_piece(&mut body, limit, |data| {
+        if data.len() >= KEEP_PIECE {
+            if !small.is_empty() {
+                pieces.push(Bytes::from(std::mem::take(&mut small)));
+            }
+            pieces.push(data);
+        } else {
+            small.extend_from_slice(&data);
+        }
+    })
+    .await?;
+    if !small.is_empty() {
+        pieces.push(Bytes::from(small));
+    }
     Ok(BodyBytes::Pieces(pieces))
 }
+
+/// The smallest piece of a body that [`read_pieces`] keeps as it came.
+pub(super) const KEEP_PIECE: usize = 256 << 10;
 
 /// What a client is told when its body could not be read.
 fn body_error(e: axum::Error, limit: usize) -> ApiError {

@@ -32,8 +32,10 @@ impl Upload for Samples {
         app.decode_limits.max_body_len()
     }
 
-    /// The decoded records take as many bytes as their wire form (20 per record), and the frame's
-    /// ingest sorts a copy of them into its row bands: twice the body.
+    /// The decoded records take as many bytes as their wire form (20 per record); the body's
+    /// pieces may pin up to 0.6 of its length more in hyper's read buffers (see
+    /// `read_pieces`), and the frame's ingest notes the records' runs per band: twice the body
+    /// covers them.
     fn decoding_bytes(_: &ShardedFrame, len: u64) -> u64 {
         2 * len
     }

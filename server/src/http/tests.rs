@@ -710,6 +710,44 @@ impl http_body::Body for InPieces {
     }
 }
 
+/// Small pieces of a body are copied together, large ones kept as they came (the same bytes,
+/// not a copy), in order; past the limit, 413.
+#[tokio::test]
+async fn a_body_keeps_its_large_pieces_and_copies_its_small_ones() {
+    use super::extract::{read_pieces, BodyBytes, KEEP_PIECE};
+    let large = Bytes::from(vec![7u8; KEEP_PIECE]);
+    let pieces: std::collections::VecDeque<Bytes> = [
+        Bytes::from_static(b"ab"),
+        Bytes::from_static(b"c"),
+        large.clone(),
+        Bytes::from_static(b"de"),
+        large.clone(),
+    ]
+    .into();
+    let total = 5 + 2 * KEEP_PIECE;
+    let body = read_pieces(Body::new(InPieces(pieces.clone())), total)
+        .await
+        .unwrap();
+    let BodyBytes::Pieces(read) = &body else {
+        panic!("a body in pieces")
+    };
+    let lens: Vec<usize> = read.iter().map(Bytes::len).collect();
+    assert_eq!(lens, [3, KEEP_PIECE, 2, KEEP_PIECE]);
+    assert_eq!(read[0], &b"abc"[..]);
+    assert_eq!(read[2], &b"de"[..]);
+    assert!(read[1].as_ptr() == large.as_ptr() && read[3].as_ptr() == large.as_ptr());
+    let joined: Vec<u8> = body.pieces().concat();
+    assert_eq!(
+        joined,
+        pieces.iter().flatten().copied().collect::<Vec<u8>>()
+    );
+    let over = read_pieces(Body::new(InPieces(pieces)), total - 1).await;
+    assert_eq!(
+        over.err().map(|e| e.status),
+        Some(StatusCode::PAYLOAD_TOO_LARGE)
+    );
+}
+
 /// A batch that arrives in many pieces (records cut between them, pieces of one byte) is
 /// applied exactly as the same batch in one piece; one cut short is refused whole, as it would
 /// be in one piece, and changes nothing.
