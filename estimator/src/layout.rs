@@ -365,6 +365,15 @@ pub fn component_bits_accepted(bits: u32, limit: u32) -> bool {
     (bits <= limit) | (bits == NEGATIVE_ZERO)
 }
 
+/// Whether every component of every sample passes [`component_bits_accepted`] with `limit`:
+/// a whole pass or block checked in one loop without a branch per sample.
+#[inline]
+pub fn samples_accepted(rgb: &[[f32; 3]], limit: u32) -> bool {
+    rgb.iter().flatten().fold(true, |ok, c| {
+        ok & component_bits_accepted(c.to_bits(), limit)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -409,6 +418,11 @@ mod tests {
                             layout.check_sample(rgb).is_ok(),
                             "{rgb:?} with largest {}",
                             layout.max_component()
+                        );
+                        assert_eq!(
+                            samples_accepted(&[[0.5; 3], rgb], limit),
+                            layout.check_sample(rgb).is_ok(),
+                            "{rgb:?} after a good sample"
                         );
                     }
                 }

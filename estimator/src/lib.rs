@@ -30,9 +30,9 @@ pub use aov::{
     AOV_FRAC_BITS, AOV_MAX_ABS,
 };
 pub use layout::{
-    component_bits_accepted, rec709_luminance, CascadeLayout, ParamError, Split, COUNT_ONE,
-    DEFAULT_CASCADE_BASE, DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS, MAX_CASCADES,
-    MAX_PIXEL_SAMPLES, MIN_LUMINANCE_WEIGHT, REC709_LUMINANCE, TOP_HEADROOM_BITS,
+    component_bits_accepted, rec709_luminance, samples_accepted, CascadeLayout, ParamError, Split,
+    COUNT_ONE, DEFAULT_CASCADE_BASE, DEFAULT_CASCADE_COUNT, DEFAULT_LOWEST_SCALE, FRAC_BITS,
+    MAX_CASCADES, MAX_PIXEL_SAMPLES, MIN_LUMINANCE_WEIGHT, REC709_LUMINANCE, TOP_HEADROOM_BITS,
 };
 pub use need::{
     check_converged_below, check_tile, Convergence, NeedError, NeedMap, TileNeed, Verdict,

@@ -16,7 +16,7 @@
 // The block loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
 
-use crate::layout::{component_bits_accepted, CascadeLayout, COUNT_ONE, MAX_CASCADES};
+use crate::layout::{samples_accepted, CascadeLayout, COUNT_ONE, MAX_CASCADES};
 
 /// Samples per block.
 pub(crate) const BLOCK: usize = 16;
@@ -98,10 +98,7 @@ impl Tables {
     /// Whether every sample is one [`CascadeLayout::check_sample`] accepts: finite, not
     /// negative, no component above the largest.
     pub(crate) fn all_valid(&self, rgb: &[[f32; 3]]) -> bool {
-        let limit = self.component_limit_bits;
-        rgb.iter().flatten().fold(true, |ok, c| {
-            ok & component_bits_accepted(c.to_bits(), limit)
-        })
+        samples_accepted(rgb, self.component_limit_bits)
     }
 
     /// [`Tables::all_valid`] if `CHECK`; else the caller knows the samples are valid (a debug

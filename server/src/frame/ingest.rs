@@ -198,11 +198,7 @@ impl ShardedFrame {
             "a pass has one sample per pixel"
         );
         let record = |index: usize| Record::new((index % w) as u32, (index / w) as u32, rgb[index]);
-        let limit = self.spec.layout.component_limit_bits();
-        let valid = rgb.iter().flatten().fold(true, |ok, c| {
-            ok & component_bits_accepted(c.to_bits(), limit)
-        });
-        if !valid {
+        if !estimator::samples_accepted(rgb, self.spec.layout.component_limit_bits()) {
             let (index, error) = rgb
                 .iter()
                 .enumerate()
