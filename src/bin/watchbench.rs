@@ -324,7 +324,7 @@ async fn dashboard(shared: Arc<Shared>) -> Result<()> {
             .await?;
         // Prometheus tells a target how long it will wait (its scrape timeout, at most its
         // interval): the server waits for paced renders at most half of that.
-        let timeout = [("x-prometheus-scrape-timeout-seconds", "1")];
+        let timeout = [(splatd_server::http::operations::SCRAPE_TIMEOUT_HEADER, "1")];
         shared
             .get_with(phase, "dashboard /metrics", "/metrics", &timeout)
             .await?;
