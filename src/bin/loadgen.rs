@@ -162,9 +162,10 @@ type Splat = Box<dyn FnMut(&mut FrameState)>;
 /// Seconds of one in-process run of `splat` on a fresh state (untouched memory, as a new frame's).
 fn in_process(args: &Args, splat: &mut Splat) -> f64 {
     let mut state = FrameState::new(args.width, args.height, CascadeLayout::with_defaults());
-    // On huge pages, as the server's frames are: on 4 KiB pages the first touch of the fresh
-    // state alone made this reference 15-40 % slower (measured), flattering the server.
-    splatd_server::memory::advise_or_log(state.cells());
+    // Readied as the server readies a new frame's cells (huge pages, ends faulted in): on 4 KiB
+    // pages the first touch of the fresh state alone made this reference 15-40 % slower
+    // (measured), flattering the server.
+    splatd_server::memory::ready_cells(state.cells());
     let t = Instant::now();
     splat(&mut state);
     let seconds = t.elapsed().as_secs_f64();

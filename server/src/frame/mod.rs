@@ -213,10 +213,11 @@ impl ShardedFrame {
         let bands = FrameState::bands_in(w, h, n, &spec.layout, |len| {
             pool.as_ref().map_or_else(Vec::new, |p| p.take(len))
         });
-        // Fresh cells are not touched yet: ask for huge pages before the first sample does
-        // (cells from the pool were asked for when they were fresh; asking again is harmless).
+        // Fresh cells are not touched yet: ask for huge pages before the first sample does,
+        // and fault in the ends they cannot cover (cells from the pool were readied when they
+        // were fresh; readying them again is harmless).
         for band in &bands {
-            crate::memory::advise_or_log(band.cells());
+            crate::memory::ready_cells(band.cells());
         }
         let mut frame = Self::from_bands(spec, bands, Seen::default(), CounterValues::default());
         frame.pool = pool;
