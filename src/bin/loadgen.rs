@@ -4,7 +4,7 @@
 //!
 //! ```text
 //! cargo build --release && target/release/loadgen [--batch 65536] [--connections 4] \
-//!     [--width 3840 --height 2160] [--kind records --kind passes] [--rounds 2]
+//!     [--width 3840 --height 2160] [--kind records --kind passes] [--rounds 2] [--aovs]
 //! # per kind: the in-process rate, then HTTP ingest in memory and with --data-dir (durable)
 //! ```
 //!
@@ -16,7 +16,9 @@
 //! with a heavy-tailed brightness so every cascade is used; passes are the same samples, one
 //! uncompressed RGB float EXR per pass (`POST .../passes`). The in-process reference is what the
 //! server does with the decoded samples: `splat_records` of each batch, `splat_row` of each row
-//! of a pass, on one thread, into a fresh state on huge pages like a new frame's, run before
+//! of a pass (and with `--aovs`, which gives passes an albedo and a normal as the denoised-finals
+//! workflow sends them, `AovSums::add_pass` of their values), on one thread, into a fresh state
+//! on huge pages like a new frame's, run before
 //! each HTTP run (in-process and HTTP alternate, `--rounds` times, so that the machine's load
 //! weighs on both; the best of each is compared).
 
@@ -27,15 +29,15 @@ use std::time::Instant;
 use anyhow::{bail, Result};
 use bytes::Bytes;
 use clap::Parser;
-use splatd_estimator::{CascadeLayout, FrameState};
+use splatd_estimator::{AovSums, CascadeLayout, FrameState};
 use splatd_harness::{sibling_binary, Options, ServerProcess};
-use splatd_proto::api::CreateFrame;
+use splatd_proto::api::{AovSpec, CreateFrame};
 use splatd_proto::BATCH_CONTENT_TYPE;
 use splatd_scenes::synth::SplitMix64;
 
 #[path = "common/load.rs"]
 mod load;
-use load::{encode_pass, heavy_tailed};
+use load::{encode_pass_with_aovs, heavy_tailed};
 
 #[derive(Parser)]
 #[command(about = "HTTP ingest throughput against in-process splatting, in one run")]
@@ -70,6 +72,21 @@ struct Args {
     /// (more rounds take out more of a shared machine's noise).
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u32).range(1..))]
     rounds: u32,
+    /// Passes also carry the AOVs the denoised-finals workflow sends (an albedo's R, G, B and a
+    /// normal's X, Y, Z), which their frame declares (records carry none).
+    #[arg(long)]
+    aovs: bool,
+}
+
+/// The AOVs of `--aovs`: as a Blender worker sends them for OIDN.
+fn aov_specs(args: &Args) -> Vec<AovSpec> {
+    if !args.aovs {
+        return Vec::new();
+    }
+    vec![
+        AovSpec::new("albedo", &["R", "G", "B"]),
+        AovSpec::new("normal", &["X", "Y", "Z"]),
+    ]
 }
 
 /// The goal for every HTTP ingest ratio.
@@ -102,7 +119,7 @@ fn main() -> Result<()> {
             // In-process and HTTP runs alternate, so that the machine's load weighs on both.
             let (mut best, mut best_in) = (f64::MAX, f64::MAX);
             for round in 0..args.rounds as usize {
-                best_in = best_in.min(in_process(&args, &mut splat));
+                best_in = best_in.min(in_process(&args, &load, &mut splat));
                 let tmp =
                     std::env::temp_dir().join(format!("loadgen-{}-{round}", std::process::id()));
                 let extra: Vec<String> = config
@@ -118,13 +135,19 @@ fn main() -> Result<()> {
             }
             let in_rate = load.samples as f64 / best_in;
             println!(
-                "in-process splat (best of {}, alternating with the HTTP runs): {:.1} M \
+                "in-process splat{} (best of {}, alternating with the HTTP runs): {:.1} M \
                  samples/s ({best_in:.3} s)",
+                if load.aovs { " and AOV sums" } else { "" },
                 args.rounds,
                 in_rate / 1e6
             );
             let rate = load.samples as f64 / best;
             let ratio = rate / in_rate;
+            let kind = if load.aovs {
+                format!("{kind} with AOVs")
+            } else {
+                kind.clone()
+            };
             println!(
                 "HTTP ingest of {kind} [{config}]: {:.1} M samples/s ({best:.3} s, {:.0} MB/s), \
                  ratio to in-process {ratio:.2} (goal >= {GOAL})",
@@ -154,22 +177,32 @@ struct Load {
     samples: usize,
     /// Bytes of all bodies.
     bytes: usize,
+    /// Whether the bodies carry AOVs (passes of `--aovs`).
+    aovs: bool,
 }
 
-/// The in-process splat callback of a load: what the server does with the decoded samples.
-type Splat = Box<dyn FnMut(&mut FrameState)>;
+/// The in-process splat callback of a load: what the server does with the decoded samples
+/// (and AOV values, into the frame's AOV sums if it has AOVs).
+type Splat = Box<dyn FnMut(&mut FrameState, Option<&mut AovSums>)>;
 
-/// Seconds of one in-process run of `splat` on a fresh state (untouched memory, as a new frame's).
-fn in_process(args: &Args, splat: &mut Splat) -> f64 {
+/// Seconds of one in-process run of `splat` on a fresh state and fresh AOV sums (untouched
+/// memory, as a new frame's).
+fn in_process(args: &Args, load: &Load, splat: &mut Splat) -> f64 {
     let mut state = FrameState::new(args.width, args.height, CascadeLayout::with_defaults());
     // Readied as the server readies a new frame's cells (huge pages, ends faulted in): on 4 KiB
     // pages the first touch of the fresh state alone made this reference 15-40 % slower
     // (measured), flattering the server.
     splatd_server::memory::ready_cells(state.cells());
+    let channels: usize = aov_specs(args).iter().map(|a| a.channels.len()).sum();
+    let mut aovs =
+        (load.aovs && channels > 0).then(|| AovSums::new(args.width, 0..args.height, channels));
+    if let Some(sums) = &aovs {
+        splatd_server::memory::ready_cells(sums.words());
+    }
     let t = Instant::now();
-    splat(&mut state);
+    splat(&mut state, aovs.as_mut());
     let seconds = t.elapsed().as_secs_f64();
-    std::hint::black_box(&state);
+    std::hint::black_box((&state, &aovs));
     seconds
 }
 
@@ -201,7 +234,7 @@ fn records_load(args: &Args) -> (Load, Splat) {
         .iter()
         .map(|b| b.records.iter().map(|r| (r.x, r.y, r.rgb)).collect())
         .collect();
-    let splat: Splat = Box::new(move |state| {
+    let splat: Splat = Box::new(move |state, _| {
         for b in &decoded {
             state.splat_records(b);
         }
@@ -212,6 +245,7 @@ fn records_load(args: &Args) -> (Load, Splat) {
         bodies,
         samples,
         bytes,
+        aovs: false,
     };
     (load, splat)
 }
@@ -224,23 +258,63 @@ fn passes_load(args: &Args) -> Result<(Load, Splat)> {
     let passes: Vec<Vec<[f32; 3]>> = (0..n)
         .map(|_| (0..w * h).map(|_| heavy_tailed(&mut rng)).collect())
         .collect();
+    // Per pass, the AOV values pixel by pixel in the frame's channel order (as the server adds
+    // them), and the same as one EXR channel each: an albedo in [0, 1], a unit-ish normal.
+    let specs = aov_specs(args);
+    let channels: Vec<String> = specs
+        .iter()
+        .flat_map(|a| a.channels.iter().map(move |c| format!("{}.{c}", a.name)))
+        .collect();
+    let aov_values: Vec<Vec<f32>> = (0..n)
+        .map(|_| {
+            (0..w * h * channels.len())
+                .map(|i| {
+                    let v = rng.next_f64() as f32;
+                    if i % channels.len() < 3 {
+                        v
+                    } else {
+                        2.0 * v - 1.0
+                    }
+                })
+                .collect()
+        })
+        .collect();
     let bodies = passes
         .iter()
-        .map(|pass| {
-            encode_pass(w, h, pass, exr::compression::Compression::Uncompressed).map(Bytes::from)
+        .zip(&aov_values)
+        .map(|(pass, values)| {
+            let planes: Vec<(String, Vec<f32>)> = channels
+                .iter()
+                .enumerate()
+                .map(|(c, name)| {
+                    let plane = values.iter().skip(c).step_by(channels.len()).copied();
+                    (name.clone(), plane.collect())
+                })
+                .collect();
+            let compression = exr::compression::Compression::Uncompressed;
+            encode_pass_with_aovs(w, h, pass, &planes, compression).map(Bytes::from)
         })
         .collect::<Result<Vec<_>>>()?;
     let bytes: usize = bodies.iter().map(|b| b.len()).sum();
     let samples = n * w * h;
     println!(
-        "passes: {n} uncompressed RGB float EXRs of {w}x{h} ({:.0} MB on the wire), {} connections",
+        "passes: {n} uncompressed RGB float EXRs of {w}x{h}{} ({:.0} MB on the wire), {} \
+         connections",
+        if args.aovs {
+            format!(" with AOV channels {channels:?}")
+        } else {
+            String::new()
+        },
         bytes as f64 / 1e6,
         args.connections
     );
-    let splat: Splat = Box::new(move |state| {
-        for pass in &passes {
+    let splat: Splat = Box::new(move |state, mut aovs| {
+        for (pass, values) in passes.iter().zip(&aov_values) {
             for (y, row) in pass.chunks_exact(w).enumerate() {
                 state.splat_row(0, y as u32, row);
+            }
+            if let Some(sums) = aovs.as_deref_mut() {
+                sums.add_pass(values);
             }
         }
     });
@@ -250,6 +324,7 @@ fn passes_load(args: &Args) -> Result<(Load, Splat)> {
         bodies,
         samples,
         bytes,
+        aovs: args.aovs,
     };
     Ok((load, splat))
 }
@@ -258,7 +333,14 @@ fn passes_load(args: &Args) -> Result<(Load, Splat)> {
 async fn post_all(url: &str, args: &Args, load: &Load, round: usize) -> Result<f64> {
     let client = splatd_proto::Client::new(url)?;
     client
-        .create_frame(&CreateFrame::new("bench", args.width, args.height))
+        .create_frame(&CreateFrame {
+            aovs: if load.aovs {
+                aov_specs(args)
+            } else {
+                Vec::new()
+            },
+            ..CreateFrame::new("bench", args.width, args.height)
+        })
         .await?;
     let http = reqwest::Client::new();
     let next = Arc::new(AtomicUsize::new(0));

@@ -57,6 +57,18 @@ pub fn encode_pass(
     pass: &[[f32; 3]],
     compression: exr::compression::Compression,
 ) -> Result<Vec<u8>> {
+    encode_pass_with_aovs(w, h, pass, &[], compression)
+}
+
+/// [`encode_pass`] with AOV channels beside the beauty: each a full name (`albedo.R`) and its
+/// values, one per pixel, row-major.
+pub fn encode_pass_with_aovs(
+    w: usize,
+    h: usize,
+    pass: &[[f32; 3]],
+    aovs: &[(String, Vec<f32>)],
+    compression: exr::compression::Compression,
+) -> Result<Vec<u8>> {
     use exr::prelude::*;
     let channel = |name: &str, c: usize| {
         AnyChannel::new(
@@ -68,15 +80,16 @@ pub fn encode_pass(
         compression,
         ..Encoding::UNCOMPRESSED
     };
+    let mut channels = vec![channel("R", 0), channel("G", 1), channel("B", 2)];
+    channels
+        .extend(aovs.iter().map(|(name, values)| {
+            AnyChannel::new(name.as_str(), FlatSamples::F32(values.clone()))
+        }));
     let layer = Layer::new(
         (w, h),
         LayerAttributes::default(),
         encoding,
-        AnyChannels::sort(SmallVec::from_vec(vec![
-            channel("R", 0),
-            channel("G", 1),
-            channel("B", 2),
-        ])),
+        AnyChannels::sort(SmallVec::from_vec(channels)),
     );
     let mut bytes = Vec::new();
     Image::from_layer(layer)
