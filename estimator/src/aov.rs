@@ -59,8 +59,23 @@ pub fn aov_units(v: f32) -> Result<i128, AovValueError> {
     if f64::from(v).abs() > AOV_MAX_ABS {
         return Err(AovValueError::TooLarge(v));
     }
-    // Exact: f32 -> f64 and a power-of-two scale lose nothing; round() is deterministic.
-    Ok((f64::from(v) * (1u64 << AOV_FRAC_BITS) as f64).round() as i128)
+    Ok(i128::from(units_within_bounds(v)))
+}
+
+/// `round(v * 2^AOV_FRAC_BITS)`, half away from zero, for a finite `v` with `|v| <= 2^40` (so
+/// `|v * 2^20| <= 2^60` fits an `i64`).
+///
+/// Exact: `f32` to `f64` and a power-of-two scale lose nothing; the `as i64` truncation is exact
+/// in that range, and so is the fraction it leaves (`x - trunc(x)`: 0 from `2^52` up, where
+/// every `f64` is an integer). The same integer as `f64::round` and `as i128`, which cost a
+/// library call each (`round` without SSE4.1, and the 128-bit conversion): 60 ms of the 88 ms
+/// that adding a 1080p pass of 6 AOV channels took, five times the pass's splat.
+#[inline(always)]
+fn units_within_bounds(v: f32) -> i64 {
+    let x = f64::from(v) * (1u64 << AOV_FRAC_BITS) as f64;
+    let t = x as i64;
+    let fraction = x - t as f64;
+    t + i64::from(fraction >= 0.5) - i64::from(fraction <= -0.5)
 }
 
 /// AOV words that no checked values could have made.
@@ -392,6 +407,44 @@ impl AovSums {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The units are `f64::round` of the scaled value, as first written: at every halfway
+    /// point and its neighbours, at the bounds, and over random values of every magnitude.
+    #[test]
+    fn units_are_the_rounded_scaled_value() {
+        let scale = (1u64 << AOV_FRAC_BITS) as f64;
+        let rounded = |v: f32| (f64::from(v) * scale).round() as i128;
+        let mut values = vec![0.0f32, -0.0, f32::MIN_POSITIVE, -f32::MIN_POSITIVE, 1e-45];
+        for k in -4..=4i64 {
+            // k + 1/2 units, and the floats on each side of it.
+            let half = ((k as f64 + 0.5) / scale) as f32;
+            values.extend([half, f32::from_bits(half.to_bits() + 1)]);
+            values.extend([f32::from_bits(half.to_bits() - 1), -half]);
+        }
+        let top = AOV_MAX_ABS as f32;
+        values.extend([
+            top,
+            -top,
+            f32::from_bits(top.to_bits() - 1),
+            2f32.powi(32) + 0.5,
+        ]);
+        let mut bits = 0x9E37_79B9u32;
+        for _ in 0..200_000 {
+            bits = bits.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let v = f32::from_bits(bits);
+            if v.is_finite() && f64::from(v).abs() <= AOV_MAX_ABS {
+                values.push(v);
+            }
+        }
+        for v in values {
+            assert_eq!(
+                aov_units(v).unwrap(),
+                rounded(v),
+                "{v:e} ({:#x})",
+                v.to_bits()
+            );
+        }
+    }
 
     #[test]
     fn values_are_rounded_once_and_bounded() {
