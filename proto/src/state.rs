@@ -363,7 +363,19 @@ impl StateDump {
         parts: &[&[u64]],
         out: &mut impl std::io::Write,
     ) -> std::io::Result<()> {
-        self.write_version(STATE_VERSION, parts, &mut Copying(out))
+        self.write_with_parts(parts, &[&self.aov_cells], out)
+    }
+
+    /// Like [`StateDump::write_with_cell_parts`], with the AOV words given as consecutive parts
+    /// too (each of whole pixels), in place of `self.aov_cells`: a server's AOV sums are written
+    /// from where they lie, not copied into a `StateDump` first.
+    pub fn write_with_parts(
+        &self,
+        parts: &[&[u64]],
+        aov_parts: &[&[u64]],
+        out: &mut impl std::io::Write,
+    ) -> std::io::Result<()> {
+        self.write_version(STATE_VERSION, parts, aov_parts, &mut Copying(out))
     }
 
     /// [`StateDump::write_with_cell_parts`] to a [`StateWrite`], which is handed the long
@@ -374,7 +386,19 @@ impl StateDump {
         parts: &[&[u64]],
         out: &mut impl StateWrite,
     ) -> std::io::Result<()> {
-        self.write_version(STATE_VERSION, parts, out)
+        self.write_with_parts_to(parts, &[&self.aov_cells], out)
+    }
+
+    /// [`StateDump::write_with_parts`] to a [`StateWrite`] (see
+    /// [`StateDump::write_with_cell_parts_to`]; the AOV words are written through
+    /// [`std::io::Write`]).
+    pub fn write_with_parts_to(
+        &self,
+        parts: &[&[u64]],
+        aov_parts: &[&[u64]],
+        out: &mut impl StateWrite,
+    ) -> std::io::Result<()> {
+        self.write_version(STATE_VERSION, parts, aov_parts, out)
     }
 
     /// Encodes the state in version 2's layout (no AOV section; `aovs` must be empty), for
@@ -383,7 +407,7 @@ impl StateDump {
     pub fn encode_v2(&self) -> Vec<u8> {
         assert!(self.aovs.is_empty(), "version 2 has no AOVs");
         let mut out = Vec::new();
-        self.write_version(STATE_VERSION_2, &[&self.cells], &mut Copying(&mut out))
+        self.write_version(STATE_VERSION_2, &[&self.cells], &[], &mut Copying(&mut out))
             .expect("writing into a Vec<u8> is infallible");
         out
     }
@@ -392,6 +416,7 @@ impl StateDump {
         &self,
         version: u16,
         parts: &[&[u64]],
+        aov_parts: &[&[u64]],
         out: &mut impl StateWrite,
     ) -> std::io::Result<()> {
         out.write_all(&STATE_MAGIC)?;
@@ -419,10 +444,30 @@ impl StateDump {
         block.put(&[pixels.count() as u32, 0], out)?;
         block.flush(out)?;
         out.write_all(&self.batches_bytes())?;
-        if version >= 3 {
-            out.write_all(&self.aov_bytes())?;
+        if version < 3 {
+            return Ok(());
         }
-        Ok(())
+        out.write_all(&self.aov_names_bytes())?;
+        let channels = self.aov_channels();
+        if channels == 0 {
+            return Ok(());
+        }
+        // Laid out like the cells' runs; the words go through `Write` (a `StateWrite`'s parts
+        // are the cells').
+        let pixels = Pixels::new(aov_parts, 1 + 2 * channels);
+        for run in pixels.runs() {
+            block.put(&[run.start as u32, (run.end - run.start) as u32], out)?;
+            for (_, _, words) in pixels.cells(run) {
+                if words.len() >= PIECE_CELLS {
+                    block.flush(out)?;
+                    write_le_cells(words, out)?;
+                } else {
+                    block.put_cells(words, out)?;
+                }
+            }
+        }
+        block.put(&[pixels.count() as u32, 0], out)?;
+        block.flush(out)
     }
 
     /// Channels of all AOVs together.
@@ -472,40 +517,20 @@ impl StateDump {
         out
     }
 
-    /// The AOV section (version 3): the AOVs' names and channels, then, when they have any
-    /// channel, the runs of pixels with AOV samples, laid out like the cells' runs.
-    fn aov_bytes(&self) -> Vec<u8> {
-        let mut out = self.aov_names_bytes();
-        let channels = self.aov_channels();
-        if channels == 0 {
-            return out;
-        }
-        let parts = [self.aov_cells.as_slice()];
-        let pixels = Pixels::new(&parts, 1 + 2 * channels);
-        for run in pixels.runs() {
-            out.extend_from_slice(&(run.start as u32).to_le_bytes());
-            out.extend_from_slice(&((run.end - run.start) as u32).to_le_bytes());
-            for (_, _, words) in pixels.cells(run) {
-                out.extend(words.iter().flat_map(|w| w.to_le_bytes()));
-            }
-        }
-        out.extend_from_slice(&(pixels.count() as u32).to_le_bytes());
-        out.extend_from_slice(&0u32.to_le_bytes());
-        out
-    }
-
     /// The length of [`StateDump::write_with_cell_parts`]'s output, without writing it.
     pub fn encoded_len_with_cell_parts(&self, parts: &[&[u64]]) -> u64 {
-        let pixels = Pixels::new(parts, self.cell_len());
-        // Counted, not collected: one pass over the occupancy (a pixel's first word that is not
-        // 0 settles it), no list as long as the runs.
-        let (runs, held) = pixels
-            .runs()
-            .fold((0usize, 0usize), |(n, held), r| (n + 1, held + r.len()));
-        let cells = held * self.cell_len();
-        (6 + self.header_bytes().len() + 8 * (runs + 1) + 8 * cells) as u64
-            + self.batches_bytes().len() as u64
-            + self.aov_bytes().len() as u64
+        self.encoded_len_with_parts(parts, &[&self.aov_cells])
+    }
+
+    /// The length of [`StateDump::write_with_parts`]'s output, without writing it.
+    pub fn encoded_len_with_parts(&self, parts: &[&[u64]], aov_parts: &[&[u64]]) -> u64 {
+        let mut len = 6 + self.header_bytes().len() as u64 + runs_len(parts, self.cell_len());
+        len += self.batches_bytes().len() as u64 + self.aov_names_bytes().len() as u64;
+        let channels = self.aov_channels();
+        if channels > 0 {
+            len += runs_len(aov_parts, 1 + 2 * channels);
+        }
+        len
     }
 
     fn cell_len(&self) -> usize {
@@ -1169,6 +1194,17 @@ impl Block {
     }
 }
 
+/// Bytes of the runs of `parts`' pixels (of `stride` words) that hold something, with their
+/// headers and the closing one. Counted, not collected: one pass over the occupancy (a pixel's
+/// first word that is not 0 settles it), no list as long as the runs.
+fn runs_len(parts: &[&[u64]], stride: usize) -> u64 {
+    let pixels = Pixels::new(parts, stride);
+    let (runs, held) = pixels
+        .runs()
+        .fold((0usize, 0usize), |(n, held), r| (n + 1, held + r.len()));
+    (8 * (runs + 1) + 8 * held * stride) as u64
+}
+
 /// A state's pixels, held in consecutive parts of whole pixels.
 struct Pixels<'a> {
     parts: &'a [&'a [u64]],
@@ -1324,6 +1360,79 @@ mod tests {
             Err(StateError::TooLarge { count: 108, .. })
         ));
         assert!(StateDump::decode(&bytes, 108).is_ok());
+    }
+
+    /// AOV words given in parts, wherever the parts are cut, encode to the bytes and the length
+    /// of the same words held by the dump; long runs of them too, which go through `Write`,
+    /// never as a stretch of the cells' parts.
+    #[test]
+    fn aov_words_in_parts_are_the_held_words() {
+        /// Writes everything; counts the stretches handed over as cells.
+        #[derive(Default)]
+        struct Counting {
+            bytes: Vec<u8>,
+            stretches: usize,
+        }
+        impl std::io::Write for Counting {
+            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+                self.bytes.write(buf)
+            }
+            fn flush(&mut self) -> std::io::Result<()> {
+                Ok(())
+            }
+        }
+        impl StateWrite for Counting {
+            fn write_cells(
+                &mut self,
+                _part: usize,
+                _words: Range<usize>,
+                cells: &[u64],
+            ) -> std::io::Result<()> {
+                self.stretches += 1;
+                self.bytes
+                    .extend(cells.iter().flat_map(|c| c.to_le_bytes()));
+                Ok(())
+            }
+        }
+        // The small state of `with_aovs`, and one whose AOV runs are longer than a block (9
+        // words a pixel, 3 x 2000 pixels, one empty pixel in the middle).
+        let small = with_aovs();
+        let (width, height) = (3u32, 2000u32);
+        let mut large = StateDump {
+            width,
+            height,
+            rows_end: height,
+            cells: vec![0; (width * height) as usize * 9],
+            aov_cells: (1..=(width * height) as u64 * 9).collect(),
+            ..with_aovs()
+        };
+        large.aov_cells[3000 * 9..3001 * 9].fill(0);
+        for d in [small, large] {
+            let bytes = d.encode();
+            let words = d.aov_cells.as_slice();
+            let held = StateDump {
+                aov_cells: vec![],
+                ..d.clone()
+            };
+            let pixel = 9;
+            for cut in [0, pixel, words.len() / 2 / pixel * pixel, words.len()] {
+                let (a, b) = words.split_at(cut);
+                let mut out = Vec::new();
+                held.write_with_parts(&[&d.cells], &[a, &[], b], &mut out)
+                    .unwrap();
+                assert_eq!(out, bytes, "cut at word {cut}");
+                let len = held.encoded_len_with_parts(&[&d.cells], &[a, b]);
+                assert_eq!(len, bytes.len() as u64, "cut at word {cut}");
+                let mut counting = Counting::default();
+                held.write_with_parts_to(&[&d.cells], &[a, b], &mut counting)
+                    .unwrap();
+                assert_eq!(counting.bytes, bytes);
+                assert_eq!(
+                    counting.stretches, 0,
+                    "cells are empty, AOV words are not cells"
+                );
+            }
+        }
     }
 
     /// A version 2 state (no AOV section) is still read, as a state without AOVs.
