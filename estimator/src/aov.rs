@@ -372,15 +372,45 @@ impl AovSums {
         Ok(delta)
     }
 
-    /// The sums of rows `rows` (inside the rows held), for a band of a snapshot.
-    pub fn rows_copy(&self, rows: Range<u32>) -> AovSums {
+    /// The sums' words, whose memory [`AovSums::clone_in`] can reuse.
+    pub fn into_words(self) -> Vec<u64> {
+        self.words
+    }
+
+    /// A copy of these sums in the memory of `words` (the words of earlier sums; grown if they
+    /// are too small), like [`clone`](Clone::clone) into memory already mapped.
+    pub fn clone_in(&self, mut words: Vec<u64>) -> AovSums {
+        words.clear();
+        words.extend_from_slice(&self.words);
+        AovSums {
+            rows: self.rows.clone(),
+            words,
+            ..*self
+        }
+    }
+
+    /// The words of the rows `rows` (which these sums hold), without a copy.
+    ///
+    /// # Panics
+    /// If `rows` are not all held.
+    pub fn rows_words(&self, rows: Range<u32>) -> &[u64] {
+        assert!(
+            self.rows.start <= rows.start && rows.start <= rows.end && rows.end <= self.rows.end,
+            "rows {rows:?} of AOV sums holding {:?}",
+            self.rows
+        );
         let n = aov_words(self.channels);
         let (a, b) = (self.index(0, rows.start), self.index(0, rows.end));
+        &self.words[a * n..b * n]
+    }
+
+    /// The sums of rows `rows` (inside the rows held), as sums of their own.
+    pub fn rows_copy(&self, rows: Range<u32>) -> AovSums {
         AovSums {
             width: self.width,
-            rows,
             channels: self.channels,
-            words: self.words[a * n..b * n].to_vec(),
+            words: self.rows_words(rows.clone()).to_vec(),
+            rows,
         }
     }
 
@@ -532,6 +562,28 @@ mod tests {
         assert!(AovSums::from_words(2, 4..5, 1, words).is_err());
         let err = AovSums::new(2, 0..1, 2).merge_overlap(&sums).unwrap_err();
         assert!(matches!(err, AovCellsError::Mismatch(_)), "{err}");
+    }
+
+    /// A copy into given memory is a clone that keeps that memory; a band's rows are the
+    /// words of its own sums, whole or copied out.
+    #[test]
+    fn copies_go_into_given_memory_and_rows_are_views() {
+        let mut sums = AovSums::new(3, 0..4, 2);
+        let values: Vec<f32> = (0..24).map(|i| i as f32 * 0.5 - 3.0).collect();
+        sums.add_pass(&values);
+        let memory = vec![7u64; 100];
+        let at = memory.as_ptr();
+        let copy = sums.clone_in(memory);
+        assert_eq!(copy, sums);
+        let words = copy.into_words();
+        assert_eq!(words.as_ptr(), at, "the given memory");
+        let band = sums.rows_copy(1..3);
+        assert_eq!(sums.rows_words(1..3), band.words());
+        assert_eq!(band.rows_words(1..3), band.words());
+        assert_eq!(sums.rows_words(0..4), sums.words());
+        assert!(sums.rows_words(2..2).is_empty());
+        let outside = std::panic::catch_unwind(|| band.rows_words(0..2).len());
+        assert!(outside.is_err(), "rows the sums do not hold");
     }
 
     #[test]

@@ -63,13 +63,13 @@ impl<S: Reusable> Pool<S> {
         .unwrap_or_default()
     }
 
-    /// The smallest free scratch holding at least `bytes`, or a new empty one: for scratches
-    /// that must have room for a size (a frame's cells), so a large one is left for a large
-    /// request.
-    pub fn take_fitting(&self, bytes: usize) -> S {
+    /// The smallest free scratch holding at least `bytes` and at most `most`, or a new empty
+    /// one: for scratches that must have room for a size (a frame's cells), so a large one is
+    /// left for a large request.
+    pub fn take_fitting(&self, bytes: usize, most: usize) -> S {
         self.change(|free| {
             let fit = (0..free.len())
-                .filter(|&i| free[i].1.bytes() >= bytes)
+                .filter(|&i| (bytes..=most).contains(&free[i].1.bytes()))
                 .min_by_key(|&i| free[i].1.bytes());
             fit.map(|i| free.swap_remove(i).1)
         })
@@ -172,8 +172,9 @@ mod tests {
         assert_eq!(pool.idle_bytes(), 0);
     }
 
-    /// `take_fitting` takes the smallest idle scratch with room for the size asked, leaving
-    /// larger ones for larger requests; the watcher hears every change of the idle bytes.
+    /// `take_fitting` takes the smallest idle scratch with room for the size asked and no larger
+    /// than the most asked, leaving larger ones for larger requests; the watcher hears every
+    /// change of the idle bytes.
     #[test]
     fn the_smallest_fitting_scratch_is_taken_and_watched() {
         static IDLE: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
@@ -185,14 +186,19 @@ mod tests {
             pool.give(Vec::with_capacity(n));
         }
         assert_eq!(idle(), 60 * 8);
-        assert_eq!(pool.take_fitting(12 * 8).capacity(), 20);
+        assert_eq!(pool.take_fitting(12 * 8, usize::MAX).capacity(), 20);
         assert_eq!(idle(), 40 * 8);
         assert_eq!(
-            pool.take_fitting(31 * 8).capacity(),
+            pool.take_fitting(31 * 8, usize::MAX).capacity(),
             0,
             "none has room: a new one"
         );
-        assert_eq!(pool.take_fitting(1).capacity(), 10);
+        assert_eq!(
+            pool.take_fitting(2 * 8, 9 * 8).capacity(),
+            0,
+            "none is small enough: a new one"
+        );
+        assert_eq!(pool.take_fitting(1, usize::MAX).capacity(), 10);
         assert_eq!(idle(), 30 * 8);
         let later = Instant::now() + Duration::from_secs(60);
         assert_eq!(pool.release_idle(later, Duration::from_secs(1)), 30 * 8);

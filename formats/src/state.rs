@@ -105,7 +105,9 @@ impl Importable for FrameState {
     }
 }
 
-/// A frame's AOVs as a state carries them: the declarations and the sums of the rows held.
+/// A frame's AOVs as a state carries them: the declarations and the sums of the rows held
+/// (when writing, sums of any rows that include them: a band is written with its rows of the
+/// frame's sums, which are not copied).
 pub type Aovs<'a> = Option<(&'a [AovSpec], &'a AovSums)>;
 
 /// A state's AOVs, owned: `None` for a state without AOVs.
@@ -154,14 +156,30 @@ pub fn dump(
 
 /// `dump` with the AOVs (declarations and words) set.
 fn with_aovs(dump: StateDump, aovs: Aovs<'_>) -> StateDump {
+    let aov_cells = aov_words_of_rows(&dump, aovs).to_vec();
+    StateDump {
+        aov_cells,
+        ..with_aov_specs(dump, aovs)
+    }
+}
+
+/// `dump` with the AOV declarations set, not their words (which are written from where they
+/// lie: [`aov_words_of_rows`]).
+fn with_aov_specs(dump: StateDump, aovs: Aovs<'_>) -> StateDump {
     match aovs {
         None => dump,
-        Some((specs, sums)) => StateDump {
+        Some((specs, _)) => StateDump {
             aovs: specs.to_vec(),
-            aov_cells: sums.words().to_vec(),
             ..dump
         },
     }
+}
+
+/// The AOV words of `dump`'s rows in `aovs`' sums (none without AOVs).
+fn aov_words_of_rows<'a>(dump: &StateDump, aovs: Aovs<'a>) -> &'a [u64] {
+    aovs.map_or(&[], |(_, sums)| {
+        sums.rows_words(dump.rows_start..dump.rows_end)
+    })
 }
 
 /// Takes the AOVs out of a decoded state: `None` for a state without AOVs (version 2, or a
@@ -196,13 +214,14 @@ pub fn write(
     origin: Option<Origin>,
     out: &mut impl std::io::Write,
 ) -> std::io::Result<()> {
-    with_aovs(header(state, state.rows(), frame, origin), aovs).write_with_cells(state.cells(), out)
+    let dump = with_aov_specs(header(state, state.rows(), frame, origin), aovs);
+    dump.write_with_parts(&[state.cells()], &[aov_words_of_rows(&dump, aovs)], out)
 }
 
 /// The length of what [`write`] writes, without encoding it.
 pub fn encoded_len(state: &FrameState, aovs: Aovs<'_>, frame: &str) -> u64 {
-    with_aovs(header(state, state.rows(), frame, None), aovs)
-        .encoded_len_with_cell_parts(&[state.cells()])
+    let dump = with_aov_specs(header(state, state.rows(), frame, None), aovs);
+    dump.encoded_len_with_parts(&[state.cells()], &[aov_words_of_rows(&dump, aovs)])
 }
 
 /// Streams the wire form of a whole frame held as row bands (top to bottom, tiling the frame) and
@@ -230,14 +249,14 @@ pub fn write_bands(
     );
     let rows = first.rows().start..bands[bands.len() - 1].rows().end;
     let parts: Vec<&[u64]> = bands.iter().map(|b| b.cells()).collect();
-    with_aovs(
+    let dump = with_aov_specs(
         StateDump {
             batches,
             ..header(first, rows, frame, origin)
         },
         aovs,
-    )
-    .write_with_cell_parts_to(&parts, out)
+    );
+    dump.write_with_parts_to(&parts, &[aov_words_of_rows(&dump, aovs)], out)
 }
 
 /// A dump without cells describing `state`'s frame and layout for `rows`.

@@ -204,11 +204,13 @@ impl Default for CellPool {
 }
 
 impl CellPool {
-    /// Idle cells with room for `len` words (the smallest that has), or a new buffer that
-    /// [`FrameState::band_in`](splatd_estimator::FrameState::band_in) replaces with zeroed
-    /// memory. Either way the contents are garbage until the band zeroes them.
+    /// Idle cells with room for `len` words (the smallest that has) and at most twice that, or
+    /// a new buffer that [`FrameState::band_in`](splatd_estimator::FrameState::band_in)
+    /// replaces with zeroed memory. Either way the contents are garbage until the band zeroes
+    /// them. A far larger buffer (a frame's AOV sums, a larger frame's band) is left for a
+    /// request of its size, not held by a band that would use a fraction of it.
     pub fn take(&self, len: usize) -> Vec<u64> {
-        self.free.take_fitting(len * 8)
+        self.free.take_fitting(len * 8, len * 16)
     }
 
     /// Idle cells with room for `len` words, or new memory with that room, on huge pages
@@ -236,6 +238,14 @@ impl CellPool {
     pub fn give_band(&self, band: std::sync::Arc<splatd_estimator::FrameState>) {
         if let Ok(state) = std::sync::Arc::try_unwrap(band) {
             self.give(state.into_cells());
+        }
+    }
+
+    /// Keeps the words of AOV sums nothing else holds, as [`CellPool::give_band`] keeps a
+    /// band's cells: a frame's AOV sums are copied on write like its bands.
+    pub fn give_aovs(&self, sums: std::sync::Arc<splatd_estimator::AovSums>) {
+        if let Ok(sums) = std::sync::Arc::try_unwrap(sums) {
+            self.give(sums.into_words());
         }
     }
 

@@ -392,6 +392,66 @@ mod tests {
         assert_eq!(pool.idle_bytes(), before);
     }
 
+    /// A frame's AOV sums are copied on write like its bands: a pass that changes sums a cut
+    /// holds copies them into memory the pool has, and the sums a cut is done with go back to
+    /// the pool, so a frame snapshotted or rendered while it takes passes stops asking the
+    /// kernel for memory; the frame holds exactly what it was sent all along.
+    #[test]
+    fn aov_sums_are_copied_on_write_into_the_memory_cuts_gave_back() {
+        let store = FrameStore::new(Limits::default());
+        let (w, h) = (64, 48);
+        let request = CreateFrame {
+            aovs: vec![
+                splatd_proto::api::AovSpec::new("albedo", &["R", "G", "B"]),
+                splatd_proto::api::AovSpec::new("depth", &["Z"]),
+            ],
+            ..CreateFrame::new("a", w, h)
+        };
+        let Created::New(frame) = store.create(FrameSpec::new(request).unwrap()).unwrap() else {
+            panic!("a new frame")
+        };
+        let pool = store.cell_pool().clone();
+        let pixels = (w * h) as usize;
+        let mut oracle = splatd_estimator::AovSums::new(w, 0..h, 4);
+        let mut send = |seq: u64| {
+            let rgb = vec![[seq as f32 + 0.5, 1.0, 9.0]; pixels];
+            let values: Vec<f32> = (0..4 * pixels)
+                .map(|i| (i % 7) as f32 * 0.25 - seq as f32)
+                .collect();
+            frame.ingest_pass(1, seq, &rgb, Some(&values)).unwrap();
+            oracle.add_pass(&values);
+        };
+        send(0);
+        let first = frame.cut();
+        send(1); // copies every band and the sums: the pool has nothing yet
+        assert_eq!(pool.idle_bytes(), 0);
+        drop(first);
+        let bytes = frame.spec().memory_bytes();
+        assert_eq!(
+            pool.idle_bytes(),
+            bytes,
+            "the cut's bands and sums, given back"
+        );
+        let second = frame.cut();
+        let held = second.aovs.as_deref().map(|sums| sums.words().as_ptr());
+        send(2); // copies them again, into the memory given back
+        assert_eq!(pool.idle_bytes(), 0, "the copies took it");
+        let snapshot = second.clone();
+        drop(second);
+        assert_eq!(pool.idle_bytes(), 0, "another cut still holds them");
+        let aovs = snapshot.aovs.clone().expect("a frame with AOVs");
+        frame.recycle_aovs(aovs); // as a snapshot does once it has written them
+        drop(snapshot);
+        assert_eq!(pool.idle_bytes(), bytes);
+        let now = frame.cut().aovs.clone().expect("a frame with AOVs");
+        assert_eq!(*now, oracle, "the frame holds the three passes' AOV values");
+        assert_ne!(
+            held,
+            Some(now.words().as_ptr()),
+            "the cut's sums were not changed"
+        );
+    }
+
     /// A frame still held by a cut when it is deleted keeps those bands out of the pool (the
     /// cut frees them); a new frame that cannot fit in the budget beside the pool frees it.
     #[test]

@@ -109,7 +109,7 @@ impl<'a> Snapshot<'a> {
         let Snapshot {
             frame,
             bands,
-            mut aovs,
+            aovs,
             meta,
         } = self;
         let mut w = CrcWriter::new(w);
@@ -118,21 +118,21 @@ impl<'a> Snapshot<'a> {
         w.write_all(&(meta.len() as u64).to_le_bytes())?;
         w.write_all(&meta)?;
         w.write_all(&(bands.len() as u32).to_le_bytes())?;
-        let last = bands.len().saturating_sub(1);
-        for (i, band) in bands.into_iter().enumerate() {
-            let aov_rows = aovs.as_ref().map(|a| a.rows_copy(band.rows()));
-            if i == last {
-                aovs = None;
-            }
-            let aovs = aov_rows
-                .as_ref()
+        for band in bands {
+            // The band's rows of the frame's sums, written from where they lie.
+            let band_aovs = aovs
+                .as_deref()
                 .map(|sums| (frame.spec().request.aovs.as_slice(), sums));
             // Length-prefixed, so a reader can bound each band before decoding it.
-            w.write_all(&encoded_len(&band, aovs, frame.id())?.to_le_bytes())?;
-            splatd_formats::state::write(&band, aovs, frame.id(), None, &mut w)?;
+            w.write_all(&encoded_len(&band, band_aovs, frame.id())?.to_le_bytes())?;
+            splatd_formats::state::write(&band, band_aovs, frame.id(), None, &mut w)?;
             // The frame's writers no longer copy it; if they made a copy meanwhile, its
             // cells serve their next copy.
             frame.recycle(band);
+        }
+        // Likewise the AOV sums, once every band's rows of them are written.
+        if let Some(sums) = aovs {
+            frame.recycle_aovs(sums);
         }
         let crc = w.crc.clone().finalize();
         w.inner.write_all(&crc.to_le_bytes())

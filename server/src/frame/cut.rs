@@ -67,6 +67,9 @@ impl Drop for FrameCut {
         for band in self.bands.drain(..) {
             pool.give_band(band);
         }
+        if let Some(sums) = self.aovs.take() {
+            pool.give_aovs(sums);
+        }
     }
 }
 

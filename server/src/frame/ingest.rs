@@ -299,7 +299,7 @@ impl ShardedFrame {
         drop(touched);
         drop(guards);
         if let (Some(sums), Some(values)) = (aov_sums.as_mut(), aovs) {
-            Arc::make_mut(sums).add_pass(values);
+            self.own_aovs(sums).add_pass(values);
         }
         drop(aov_sums);
         self.counters.samples.fetch_add(n, Ordering::Relaxed);

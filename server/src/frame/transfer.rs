@@ -168,7 +168,7 @@ impl ShardedFrame {
         seen.insert_applied(batches);
         drop(seen);
         if let Some((mine, theirs)) = aov_sums.as_mut() {
-            Arc::make_mut(mine)
+            self.own_aovs(mine)
                 .merge_overlap(theirs)
                 .expect("AOV sums were checked for room above");
         }
