@@ -170,12 +170,24 @@ pub fn add_aov_pixel(dst: &mut [u64], src: &[u64]) {
 impl AovSums {
     /// Empty sums of `channels` channels for rows `rows` of a frame `width` wide.
     pub fn new(width: u32, rows: Range<u32>, channels: usize) -> AovSums {
-        let pixels = width as usize * rows.len();
+        Self::new_in(width, rows, channels, Vec::new())
+    }
+
+    /// [`AovSums::new`] in the memory of `words` (the words of earlier sums) if it has room,
+    /// zeroed; else in new memory, zeroed by the allocator and untouched until the first pass.
+    pub fn new_in(width: u32, rows: Range<u32>, channels: usize, mut words: Vec<u64>) -> AovSums {
+        let len = width as usize * rows.len() * aov_words(channels);
+        if words.capacity() >= len {
+            words.clear();
+            words.resize(len, 0);
+        } else {
+            words = vec![0; len];
+        }
         AovSums {
             width,
             rows,
             channels,
-            words: vec![0; pixels * aov_words(channels)],
+            words,
         }
     }
 
@@ -577,6 +589,11 @@ mod tests {
         assert_eq!(copy, sums);
         let words = copy.into_words();
         assert_eq!(words.as_ptr(), at, "the given memory");
+        let empty = AovSums::new_in(3, 0..4, 2, words);
+        assert_eq!(empty, AovSums::new(3, 0..4, 2), "zeroed");
+        assert_eq!(empty.words().as_ptr(), at, "in the given memory");
+        let small = AovSums::new_in(3, 0..4, 2, vec![7; 3]);
+        assert_eq!(small, AovSums::new(3, 0..4, 2), "too small: new memory");
         let band = sums.rows_copy(1..3);
         assert_eq!(sums.rows_words(1..3), band.words());
         assert_eq!(band.rows_words(1..3), band.words());

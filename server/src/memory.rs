@@ -163,8 +163,8 @@ fn set_idle_gauge(bytes: usize) {
     metrics::gauge!(crate::meters::IDLE_CELL_BYTES).set(bytes as f64);
 }
 
-/// The cells of deleted frames (and of band copies no longer needed), kept for the frames
-/// created after them.
+/// The cells and AOV sums of deleted frames (and of copies of bands and sums no longer
+/// needed), kept for the frames created after them.
 ///
 /// A farm fetches a frame's final, deletes the frame and creates the next one, usually of the
 /// same size. Freed, a frame's hundreds of megabytes go back to the kernel, and the next frame

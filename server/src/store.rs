@@ -407,7 +407,10 @@ mod tests {
             ],
             ..CreateFrame::new("a", w, h)
         };
-        let Created::New(frame) = store.create(FrameSpec::new(request).unwrap()).unwrap() else {
+        let Created::New(frame) = store
+            .create(FrameSpec::new(request.clone()).unwrap())
+            .unwrap()
+        else {
             panic!("a new frame")
         };
         let pool = store.cell_pool().clone();
@@ -450,6 +453,30 @@ mod tests {
             Some(now.words().as_ptr()),
             "the cut's sums were not changed"
         );
+        drop(now);
+
+        // A deleted frame's sums serve the next frame's, which start empty.
+        drop(store.remove("a").unwrap());
+        drop(frame);
+        assert_eq!(
+            pool.idle_bytes(),
+            2 * bytes,
+            "its memory and the cuts' copies"
+        );
+        let next = CreateFrame {
+            id: "b".into(),
+            ..request
+        };
+        let Created::New(frame) = store.create(FrameSpec::new(next).unwrap()).unwrap() else {
+            panic!("a new frame")
+        };
+        assert_eq!(
+            pool.idle_bytes(),
+            bytes,
+            "the new frame took one frame's worth"
+        );
+        let sums = frame.cut().aovs.clone().expect("a frame with AOVs");
+        assert_eq!(*sums, splatd_estimator::AovSums::new(w, 0..h, 4), "empty");
     }
 
     /// A frame still held by a cut when it is deleted keeps those bands out of the pool (the

@@ -237,13 +237,20 @@ impl ShardedFrame {
         let bands = FrameState::bands_in(w, h, n, &spec.layout, |len| {
             pool.as_ref().map_or_else(Vec::new, |p| p.take(len))
         });
-        // Fresh cells are not touched yet: ask for huge pages before the first sample does,
-        // and fault in the ends they cannot cover (cells from the pool were readied when they
-        // were fresh; readying them again is harmless).
-        for band in &bands {
-            crate::memory::ready_cells(band.cells());
+        // The AOV sums from the pool too (a deleted frame's go there with its cells).
+        let aovs = spec.empty_aovs_in(|len| pool.as_ref().map_or_else(Vec::new, |p| p.take(len)));
+        // Fresh cells and sums are not touched yet: ask for huge pages before the first sample
+        // does, and fault in the ends they cannot cover (memory from the pool was readied when
+        // it was fresh; readying it again is harmless).
+        for cells in bands
+            .iter()
+            .map(|b| b.cells())
+            .chain(aovs.iter().map(|a| a.words()))
+        {
+            crate::memory::ready_cells(cells);
         }
-        let mut frame = Self::from_bands(spec, bands, Seen::default(), CounterValues::default());
+        let mut frame =
+            Self::from_bands(spec, bands, aovs, Seen::default(), CounterValues::default());
         frame.pool = pool;
         frame
     }
@@ -306,16 +313,13 @@ impl ShardedFrame {
     fn from_bands(
         spec: FrameSpec,
         bands: Vec<FrameState>,
+        aovs: Option<AovSums>,
         seen: Seen,
         counters: CounterValues,
     ) -> ShardedFrame {
         let band_starts = bands.iter().map(|band| band.rows().start).collect();
         static NEXT_SERIAL: AtomicU64 = AtomicU64::new(1);
-        // Fresh and untouched, like the bands' cells (the first pass reads them before writing).
-        let aovs = spec.empty_aovs().map(|a| {
-            crate::memory::ready_cells(a.words());
-            Mutex::new(Arc::new(a))
-        });
+        let aovs = aovs.map(|a| Mutex::new(Arc::new(a)));
         let frame = ShardedFrame {
             spec,
             serial: NEXT_SERIAL.fetch_add(1, Ordering::Relaxed),

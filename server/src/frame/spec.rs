@@ -69,8 +69,16 @@ impl FrameSpec {
 
     /// Empty AOV sums for the whole frame, if it has AOVs.
     pub fn empty_aovs(&self) -> Option<AovSums> {
+        self.empty_aovs_in(|_| Vec::new())
+    }
+
+    /// [`FrameSpec::empty_aovs`] in the memory `words(len)` gives for their `len` words
+    /// ([`AovSums::new_in`]).
+    pub fn empty_aovs_in(&self, words: impl FnOnce(usize) -> Vec<u64>) -> Option<AovSums> {
         let c = self.aov_channels();
-        (c > 0).then(|| AovSums::new(self.request.width, 0..self.request.height, c))
+        let (w, h) = (self.request.width, self.request.height);
+        let len = w as usize * h as usize * splatd_estimator::aov_words(c);
+        (c > 0).then(|| AovSums::new_in(w, 0..h, c, words(len)))
     }
 }
 
