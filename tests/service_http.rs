@@ -575,6 +575,95 @@ fn flate2_like_gzip(data: &[u8]) -> Vec<u8> {
     out
 }
 
+/// A frame being created holds up no other request: while its memory is taken and zeroed
+/// (paused there by a failpoint), batches to another frame are acknowledged, frames are listed
+/// and `/healthz` answers; a retry of the same create is answered once the frame exists, and
+/// the frame is created once.
+#[test]
+fn a_frame_being_created_holds_up_no_other_request() {
+    let dir = tempfile::tempdir().unwrap();
+    let points = dir.path().to_str().unwrap();
+    let server = Server::start_with_env(
+        &[],
+        &[
+            ("SPLATD_FAILPOINTS", "frame:building=pause@2"),
+            ("SPLATD_FAILPOINT_DIR", points),
+        ],
+    );
+    let rt = runtime();
+    let client = Client::new(&server.url).unwrap();
+    rt.block_on(client.create_frame(&CreateFrame::new("a", 64, 48)))
+        .unwrap();
+    let url = server.url.clone();
+    let create = move || {
+        reqwest::blocking::Client::builder()
+            .timeout(std::time::Duration::from_secs(120))
+            .build()
+            .unwrap()
+            .post(format!("{url}/v1/frames"))
+            .json(&CreateFrame::new("b", 1920, 1080))
+            .send()
+            .map(|r| r.status().as_u16())
+    };
+    let first = std::thread::spawn(create.clone());
+    let reached = dir.path().join("frame:building.reached");
+    for waited in 0.. {
+        if reached.exists() {
+            break;
+        }
+        assert!(waited < 6000, "the create never reached its building");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+    for seq in 0..3 {
+        let records = (0..48).map(|y| Record::new(y, y, [1.0; 3])).collect();
+        let ack = rt
+            .block_on(client.post_batch(&Batch::new("a", 1, seq, records).unwrap()))
+            .unwrap();
+        assert_eq!(ack.accepted, 48);
+    }
+    let http = reqwest::blocking::Client::builder()
+        .timeout(std::time::Duration::from_secs(20))
+        .build()
+        .unwrap();
+    for path in ["healthz", "v1/frames"] {
+        let response = http.get(format!("{}/{path}", server.url)).send().unwrap();
+        assert_eq!(response.status(), 200, "{path} while a frame is built");
+    }
+    let listed: serde_json::Value = http
+        .get(format!("{}/v1/frames", server.url))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(
+        listed["frames"].as_array().map(Vec::len),
+        Some(1),
+        "{listed}"
+    );
+    // The same create again, while the first is built: both end with the one frame.
+    let retry = std::thread::spawn(create);
+    std::fs::write(dir.path().join("frame:building.release"), b"").unwrap();
+    let mut statuses = [
+        first.join().unwrap().unwrap(),
+        retry.join().unwrap().unwrap(),
+    ];
+    statuses.sort();
+    assert_eq!(statuses, [200, 201], "one created, one answered with it");
+    let info = rt.block_on(client.frame_counts("a")).unwrap();
+    assert_eq!(info.samples, 3 * 48);
+    let listed: serde_json::Value = http
+        .get(format!("{}/v1/frames", server.url))
+        .send()
+        .unwrap()
+        .json()
+        .unwrap();
+    assert_eq!(
+        listed["frames"].as_array().map(Vec::len),
+        Some(2),
+        "{listed}"
+    );
+}
+
 /// SIGTERM stops the server cleanly (exit code 0).
 #[test]
 fn sigterm_shuts_down_cleanly() {

@@ -20,7 +20,8 @@
 //! `frame.json`; `direct_write` (a write around the page cache, which falls back to an ordinary
 //! one when refused); `batch:before_apply` (a batch or pass is about to be applied; only `abort`
 //! has an effect there: the server dies between two acknowledgements); `denoise:before_oidn`
-//! (a denoise's input is made and OIDN is about to run; for `pause`). Unset (in production), a hit costs one check of an initialized `OnceLock`.
+//! (a denoise's input is made and OIDN is about to run; for `pause`); `frame:building` (a
+//! create is settled and its frame's memory is about to be taken and zeroed; for `pause`). Unset (in production), a hit costs one check of an initialized `OnceLock`.
 
 use std::collections::HashMap;
 use std::io;

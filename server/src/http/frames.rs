@@ -46,7 +46,9 @@ async fn create_or_get(
     request: CreateFrame,
 ) -> Result<(StatusCode, Json<FrameInfo>), ApiError> {
     let spec = app.store.check(request)?;
-    let (status, frame) = match app.store.create(spec)? {
+    let shared = app.clone();
+    let created = blocking("create frame", move || Ok(shared.store.create(spec)?)).await?;
+    let (status, frame) = match created {
         Created::New(frame) => {
             if let Err(e) = app.on_created(&frame).await {
                 // Not durable: take it back, so the client's retry creates it properly.
