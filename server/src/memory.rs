@@ -50,7 +50,7 @@ fn whole_pages<T>(buf: &[T]) -> Option<std::ops::Range<usize>> {
     (first < end).then_some(first..end)
 }
 
-/// Readies a frame's fresh cells for their first samples: asks for huge pages
+/// Readies a frame's fresh cells (or AOV sums) for their first samples: asks for huge pages
 /// ([`advise_huge_pages`]), and faults in now, writable, the pages at the ends of `cells` that
 /// huge pages cannot cover (before its first 2 MiB boundary and after its last; all of a
 /// buffer smaller than a huge page). Contents never change.
