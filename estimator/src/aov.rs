@@ -147,6 +147,21 @@ fn get(words: &[u64], at: usize) -> i128 {
     (((words[at + 1] as u128) << 64) | words[at] as u128) as i128
 }
 
+/// `get(words, at) as f64`: the same rounding of the same integer, through `i64` where the sum
+/// fits one (any sum below `2^63` units), which is one instruction where the `i128` conversion
+/// is a library call (`__floattidf`). The means of a 1080p frame's 6 AOV channels, which every
+/// `image.exr` with AOV layers and every denoise computes, took 63-70 ms with it, 33-45 ms
+/// without.
+#[inline(always)]
+fn sum_as_f64(words: &[u64], at: usize) -> f64 {
+    let (lo, hi) = (words[at], words[at + 1]);
+    if hi == ((lo as i64) >> 63) as u64 {
+        lo as i64 as f64
+    } else {
+        get(words, at) as f64
+    }
+}
+
 fn set(words: &mut [u64], at: usize, v: i128) {
     words[at] = v as u64;
     words[at + 1] = ((v as u128) >> 64) as u64;
@@ -477,7 +492,7 @@ impl AovSums {
                 plane.push(if count == 0 {
                     0.0
                 } else {
-                    (get(px, 1 + 2 * c) as f64 / count as f64 / scale) as f32
+                    (sum_as_f64(px, 1 + 2 * c) / count as f64 / scale) as f32
                 });
             }
         }
@@ -523,6 +538,41 @@ mod tests {
                 rounded(v),
                 "{v:e} ({:#x})",
                 v.to_bits()
+            );
+        }
+    }
+
+    /// A sum's `f64` through `i64` is the `i128` conversion's, on both sides of `i64`'s range
+    /// and at the roundings in between.
+    #[test]
+    fn sums_convert_as_i128_does() {
+        let mut sums: Vec<i128> = vec![0, 1, -1, i64::MAX as i128, i64::MIN as i128];
+        sums.extend([
+            i64::MAX as i128 + 1,
+            i64::MIN as i128 - 1,
+            1 << 91,
+            -(1 << 91),
+        ]);
+        for shift in [52, 53, 54, 62] {
+            for d in -3..=3i128 {
+                sums.extend([(1i128 << shift) + d, -(1i128 << shift) + d]);
+            }
+        }
+        let mut x = 0x9E37_79B9_7F4A_7C15u64;
+        for _ in 0..100_000 {
+            x ^= x << 13;
+            x ^= x >> 7;
+            x ^= x << 17;
+            sums.push((x as i64 >> (x % 40)) as i128);
+            sums.push(((x as i128) << 28) >> (x % 30));
+        }
+        for sum in sums {
+            let mut words = [0u64; 3];
+            set(&mut words, 1, sum);
+            assert_eq!(
+                sum_as_f64(&words, 1).to_bits(),
+                (sum as f64).to_bits(),
+                "{sum}"
             );
         }
     }

@@ -18,9 +18,8 @@
 //! server does with the decoded samples: `splat_records` of each batch, `splat_row` of each row
 //! of a pass (and with `--aovs`, which gives passes an albedo and a normal as the denoised-finals
 //! workflow sends them, `AovSums::add_pass` of their values), on one thread, into a fresh state
-//! on huge pages like a new frame's, run before
-//! each HTTP run (in-process and HTTP alternate, `--rounds` times, so that the machine's load
-//! weighs on both; the best of each is compared).
+//! on huge pages like a new frame's, run before each HTTP run (in-process and HTTP alternate,
+//! `--rounds` times, so that the machine's load weighs on both; the best of each is compared).
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
