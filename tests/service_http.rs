@@ -625,20 +625,21 @@ fn a_frame_being_created_holds_up_no_other_request() {
         .timeout(std::time::Duration::from_secs(20))
         .build()
         .unwrap();
-    for path in ["healthz", "v1/frames"] {
-        let response = http.get(format!("{}/{path}", server.url)).send().unwrap();
-        assert_eq!(response.status(), 200, "{path} while a frame is built");
-    }
-    let listed: serde_json::Value = http
-        .get(format!("{}/v1/frames", server.url))
-        .send()
-        .unwrap()
-        .json()
-        .unwrap();
+    let healthz = http.get(format!("{}/healthz", server.url)).send().unwrap();
+    assert_eq!(healthz.status(), 200, "/healthz while a frame is built");
+    let listed = || -> serde_json::Value {
+        let response = http
+            .get(format!("{}/v1/frames", server.url))
+            .send()
+            .unwrap();
+        assert_eq!(response.status(), 200);
+        response.json().unwrap()
+    };
+    let frames = listed();
     assert_eq!(
-        listed["frames"].as_array().map(Vec::len),
+        frames["frames"].as_array().map(Vec::len),
         Some(1),
-        "{listed}"
+        "{frames}"
     );
     // The same create again, while the first is built: both end with the one frame.
     let retry = std::thread::spawn(create);
@@ -651,16 +652,11 @@ fn a_frame_being_created_holds_up_no_other_request() {
     assert_eq!(statuses, [200, 201], "one created, one answered with it");
     let info = rt.block_on(client.frame_counts("a")).unwrap();
     assert_eq!(info.samples, 3 * 48);
-    let listed: serde_json::Value = http
-        .get(format!("{}/v1/frames", server.url))
-        .send()
-        .unwrap()
-        .json()
-        .unwrap();
+    let frames = listed();
     assert_eq!(
-        listed["frames"].as_array().map(Vec::len),
+        frames["frames"].as_array().map(Vec::len),
         Some(2),
-        "{listed}"
+        "{frames}"
     );
 }
 

@@ -1362,38 +1362,41 @@ mod tests {
         assert!(StateDump::decode(&bytes, 108).is_ok());
     }
 
+    /// Writes what it is given, and notes each stretch handed over by where it lies.
+    #[derive(Default)]
+    struct Noting {
+        bytes: Vec<u8>,
+        stretches: Vec<(usize, Range<usize>, *const u64)>,
+    }
+
+    impl std::io::Write for Noting {
+        fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+            self.bytes.write(buf)
+        }
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    impl StateWrite for Noting {
+        fn write_cells(
+            &mut self,
+            part: usize,
+            words: Range<usize>,
+            cells: &[u64],
+        ) -> std::io::Result<()> {
+            self.stretches.push((part, words, cells.as_ptr()));
+            self.bytes
+                .extend(cells.iter().flat_map(|c| c.to_le_bytes()));
+            Ok(())
+        }
+    }
+
     /// AOV words given in parts, wherever the parts are cut, encode to the bytes and the length
     /// of the same words held by the dump; long runs of them too, which go through `Write`,
     /// never as a stretch of the cells' parts.
     #[test]
     fn aov_words_in_parts_are_the_held_words() {
-        /// Writes everything; counts the stretches handed over as cells.
-        #[derive(Default)]
-        struct Counting {
-            bytes: Vec<u8>,
-            stretches: usize,
-        }
-        impl std::io::Write for Counting {
-            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-                self.bytes.write(buf)
-            }
-            fn flush(&mut self) -> std::io::Result<()> {
-                Ok(())
-            }
-        }
-        impl StateWrite for Counting {
-            fn write_cells(
-                &mut self,
-                _part: usize,
-                _words: Range<usize>,
-                cells: &[u64],
-            ) -> std::io::Result<()> {
-                self.stretches += 1;
-                self.bytes
-                    .extend(cells.iter().flat_map(|c| c.to_le_bytes()));
-                Ok(())
-            }
-        }
         // The small state of `with_aovs`, and one whose AOV runs are longer than a block (9
         // words a pixel, 3 x 2000 pixels, one empty pixel in the middle).
         let small = with_aovs();
@@ -1423,13 +1426,13 @@ mod tests {
                 assert_eq!(out, bytes, "cut at word {cut}");
                 let len = held.encoded_len_with_parts(&[&d.cells], &[a, b]);
                 assert_eq!(len, bytes.len() as u64, "cut at word {cut}");
-                let mut counting = Counting::default();
-                held.write_with_parts_to(&[&d.cells], &[a, b], &mut counting)
+                let mut noting = Noting::default();
+                held.write_with_parts_to(&[&d.cells], &[a, b], &mut noting)
                     .unwrap();
-                assert_eq!(counting.bytes, bytes);
-                assert_eq!(
-                    counting.stretches, 0,
-                    "cells are empty, AOV words are not cells"
+                assert_eq!(noting.bytes, bytes);
+                assert!(
+                    noting.stretches.is_empty(),
+                    "AOV words are not cells' stretches"
                 );
             }
         }
@@ -1557,33 +1560,6 @@ mod tests {
     /// the bytes of the encoding.
     #[test]
     fn long_stretches_of_cells_are_handed_over_where_they_lie() {
-        /// Writes what it is given, and notes each stretch handed over by where it lies.
-        #[derive(Default)]
-        struct Noting {
-            bytes: Vec<u8>,
-            stretches: Vec<(usize, Range<usize>, *const u64)>,
-        }
-        impl std::io::Write for Noting {
-            fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
-                self.bytes.write(buf)
-            }
-            fn flush(&mut self) -> std::io::Result<()> {
-                Ok(())
-            }
-        }
-        impl StateWrite for Noting {
-            fn write_cells(
-                &mut self,
-                part: usize,
-                words: Range<usize>,
-                cells: &[u64],
-            ) -> std::io::Result<()> {
-                self.stretches.push((part, words, cells.as_ptr()));
-                self.bytes
-                    .extend(cells.iter().flat_map(|c| c.to_le_bytes()));
-                Ok(())
-            }
-        }
         let cell = 4 * 2 + 1;
         let (width, height) = (1000, 40);
         let mut state = StateDump {

@@ -21,25 +21,27 @@ pub fn advise_huge_pages<T>(buf: &[T]) -> std::io::Result<()> {
     }
     #[cfg(target_os = "linux")]
     if let Some(pages) = whole_pages(buf) {
-        // SAFETY: madvise(MADV_HUGEPAGE) only changes how the kernel backs the pages of the
-        // range, never their contents; the range is page-aligned and lies inside `buf`, memory
-        // this process owns for as long as the call lasts.
-        let rc = unsafe {
-            libc::madvise(
-                pages.start as *mut libc::c_void,
-                pages.len(),
-                libc::MADV_HUGEPAGE,
-            )
-        };
-        if rc != 0 {
-            return Err(std::io::Error::last_os_error());
-        }
+        // MADV_HUGEPAGE only changes how the kernel backs the pages.
+        advise(pages, libc::MADV_HUGEPAGE)?;
     }
     Ok(())
 }
 
 /// A huge page: 2 MiB.
 const HUGE: usize = 2 << 20;
+
+/// `madvise(advice)` on `pages` (page-aligned addresses inside a buffer this process owns),
+/// for advice that never changes the pages' contents (`MADV_HUGEPAGE`, `MADV_POPULATE_WRITE`).
+#[cfg(target_os = "linux")]
+fn advise(pages: std::ops::Range<usize>, advice: libc::c_int) -> std::io::Result<()> {
+    // SAFETY: the callers give page-aligned ranges inside buffers they hold for as long as the
+    // call lasts, and advice that changes how the kernel backs the pages, never what they hold.
+    let rc = unsafe { libc::madvise(pages.start as *mut libc::c_void, pages.len(), advice) };
+    if rc != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    Ok(())
+}
 
 /// The addresses of the whole 4 KiB pages inside `buf`, if any.
 fn whole_pages<T>(buf: &[T]) -> Option<std::ops::Range<usize>> {
@@ -71,19 +73,11 @@ pub fn ready_cells(cells: &[u64]) {
         let head = pages.start..pages.start.next_multiple_of(HUGE).min(pages.end);
         let tail = (pages.end / HUGE * HUGE).max(head.end)..pages.end;
         for ends in [head, tail].into_iter().filter(|r| !r.is_empty()) {
-            // SAFETY: MADV_POPULATE_WRITE faults the pages of the range in as if they were
-            // written, without changing their contents; the range is page-aligned and lies
-            // inside `cells`, memory this process owns for as long as the call lasts.
-            let rc = unsafe {
-                libc::madvise(
-                    ends.start as *mut libc::c_void,
-                    ends.len(),
-                    libc::MADV_POPULATE_WRITE,
-                )
-            };
-            if rc != 0 {
-                let e = std::io::Error::last_os_error();
-                tracing::debug!(bytes = ends.len(), "cells not faulted in ahead: {e}");
+            // MADV_POPULATE_WRITE faults the pages in as if they were written, and leaves
+            // their contents as they are.
+            let bytes = ends.len();
+            if let Err(e) = advise(ends, libc::MADV_POPULATE_WRITE) {
+                tracing::debug!(bytes, "cells not faulted in ahead: {e}");
                 return;
             }
         }
