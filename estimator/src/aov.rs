@@ -62,6 +62,22 @@ pub fn aov_units(v: f32) -> Result<i128, AovValueError> {
     Ok(i128::from(units_within_bounds(v)))
 }
 
+/// Checks every value of a pass (`channels` values per pixel): the first value [`aov_units`]
+/// refuses, as its pixel number, channel and error.
+pub fn check_aov_values(
+    values: &[f32],
+    channels: usize,
+) -> Result<(), (usize, usize, AovValueError)> {
+    if aov_values_accepted(values) {
+        return Ok(());
+    }
+    let channels = channels.max(1);
+    for (i, &v) in values.iter().enumerate() {
+        aov_units(v).map_err(|e| (i / channels, i % channels, e))?;
+    }
+    Ok(())
+}
+
 /// Whether [`aov_units`] accepts every value: a test of each value's bits without a branch (a
 /// loop that becomes vector instructions; a pass's AOV values checked one by one with their
 /// reasons took 3 % of the server's CPU under `loadgen --kind passes --aovs`). Without its sign
@@ -201,13 +217,20 @@ pub fn add_aov_pixel(dst: &mut [u64], src: &[u64]) {
 impl AovSums {
     /// Empty sums of `channels` channels for rows `rows` of a frame `width` wide.
     pub fn new(width: u32, rows: Range<u32>, channels: usize) -> AovSums {
-        Self::new_in(width, rows, channels, Vec::new())
+        Self::new_in(width, rows, channels, |_| Vec::new())
     }
 
-    /// [`AovSums::new`] in the memory of `words` (the words of earlier sums) if it has room,
-    /// zeroed; else in new memory, zeroed by the allocator and untouched until the first pass.
-    pub fn new_in(width: u32, rows: Range<u32>, channels: usize, mut words: Vec<u64>) -> AovSums {
+    /// [`AovSums::new`] in the memory `words(len)` gives for its `len` words (the words of
+    /// earlier sums) if it has room, zeroed; else in new memory, zeroed by the allocator and
+    /// untouched until the first pass.
+    pub fn new_in(
+        width: u32,
+        rows: Range<u32>,
+        channels: usize,
+        words: impl FnOnce(usize) -> Vec<u64>,
+    ) -> AovSums {
         let len = width as usize * rows.len() * aov_words(channels);
+        let mut words = words(len);
         if words.capacity() >= len {
             words.clear();
             words.resize(len, 0);
@@ -295,13 +318,7 @@ impl AovSums {
     /// Checks every value of a pass: `values` holds the rows held, pixel by pixel, `channels`
     /// values per pixel. Returns the first bad value's pixel number, channel and error.
     pub fn check_values(&self, values: &[f32]) -> Result<(), (usize, usize, AovValueError)> {
-        if aov_values_accepted(values) {
-            return Ok(());
-        }
-        for (i, &v) in values.iter().enumerate() {
-            aov_units(v).map_err(|e| (i / self.channels.max(1), i % self.channels.max(1), e))?;
-        }
-        Ok(())
+        check_aov_values(values, self.channels)
     }
 
     /// Whether every pixel can take one more AOV sample.
@@ -467,19 +484,6 @@ impl AovSums {
         &self.words[a * n..b * n]
     }
 
-    /// The sums of rows `rows` (inside the rows held), as sums of their own.
-    pub fn rows_copy(&self, rows: Range<u32>) -> AovSums {
-        let mut copy = AovSums {
-            width: self.width,
-            channels: self.channels,
-            words: self.rows_words(rows.clone()).to_vec(),
-            rows,
-            most: 0,
-        };
-        copy.most = copy.count_most();
-        copy
-    }
-
     /// The means, one plane per channel (pixels of the rows held, row-major); 0 where a pixel
     /// has no AOV sample.
     pub fn means(&self) -> Vec<Vec<f32>> {
@@ -503,6 +507,12 @@ impl AovSums {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The sums of rows `rows` of `sums`, as sums of their own (a band of a frame).
+    fn band_of(sums: &AovSums, rows: Range<u32>) -> AovSums {
+        let words = sums.rows_words(rows.clone()).to_vec();
+        AovSums::from_words(sums.width, rows, sums.channels, words).unwrap()
+    }
 
     /// The units are `f64::round` of the scaled value, as first written: at every halfway
     /// point and its neighbours, at the bounds, and over random values of every magnitude.
@@ -657,7 +667,7 @@ mod tests {
             }
         }
         // A band of the lower row adds only to that row.
-        let band = one.rows_copy(1..2);
+        let band = band_of(&one, 1..2);
         let mut twice = one.clone();
         twice.merge_overlap(&band).unwrap();
         assert_eq!(twice.count(0, 0), 7);
@@ -728,7 +738,7 @@ mod tests {
         let since = whole.delta_since(&whole.clone()).unwrap();
         assert_eq!(kept(&since), 0);
         assert_eq!(
-            kept(&whole.rows_copy(0..1)),
+            kept(&band_of(&whole, 0..1)),
             3,
             "row 0 holds the passes only"
         );
@@ -758,12 +768,15 @@ mod tests {
         assert_eq!(copy, sums);
         let words = copy.into_words();
         assert_eq!(words.as_ptr(), at, "the given memory");
-        let empty = AovSums::new_in(3, 0..4, 2, words);
+        let empty = AovSums::new_in(3, 0..4, 2, |len| {
+            assert_eq!(len, 12 * 5, "4 x 3 pixels of 5 words");
+            words
+        });
         assert_eq!(empty, AovSums::new(3, 0..4, 2), "zeroed");
         assert_eq!(empty.words().as_ptr(), at, "in the given memory");
-        let small = AovSums::new_in(3, 0..4, 2, vec![7; 3]);
+        let small = AovSums::new_in(3, 0..4, 2, |_| vec![7; 3]);
         assert_eq!(small, AovSums::new(3, 0..4, 2), "too small: new memory");
-        let band = sums.rows_copy(1..3);
+        let band = band_of(&sums, 1..3);
         assert_eq!(sums.rows_words(1..3), band.words());
         assert_eq!(band.rows_words(1..3), band.words());
         assert_eq!(sums.rows_words(0..4), sums.words());

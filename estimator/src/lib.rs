@@ -26,8 +26,8 @@ mod resolve_spread;
 mod state;
 
 pub use aov::{
-    add_aov_pixel, aov_units, aov_values_accepted, aov_words, check_aov_pixel, AovCellsError,
-    AovSums, AovValueError, AOV_FRAC_BITS, AOV_MAX_ABS,
+    add_aov_pixel, aov_units, aov_values_accepted, aov_words, check_aov_pixel, check_aov_values,
+    AovCellsError, AovSums, AovValueError, AOV_FRAC_BITS, AOV_MAX_ABS,
 };
 pub use layout::{
     component_bits_accepted, rec709_luminance, samples_accepted, CascadeLayout, ParamError, Split,

@@ -77,8 +77,7 @@ impl FrameSpec {
     pub fn empty_aovs_in(&self, words: impl FnOnce(usize) -> Vec<u64>) -> Option<AovSums> {
         let c = self.aov_channels();
         let (w, h) = (self.request.width, self.request.height);
-        let len = w as usize * h as usize * splatd_estimator::aov_words(c);
-        (c > 0).then(|| AovSums::new_in(w, 0..h, c, words(len)))
+        (c > 0).then(|| AovSums::new_in(w, 0..h, c, words))
     }
 }
 

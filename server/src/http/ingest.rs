@@ -245,19 +245,12 @@ async fn ingest(
 /// Refuses a pass whose AOV values are outside the AOV bounds (see
 /// [`splatd_estimator::AovSums`]): 422 `invalid_aov` naming the layer, channel and pixel.
 fn check_aovs(frame: &ShardedFrame, values: &[f32]) -> Result<(), ApiError> {
-    if splatd_estimator::aov_values_accepted(values) {
-        return Ok(());
-    }
     let spec = frame.spec();
-    let channels = spec.aov_channels();
-    let Some((i, error)) = values
-        .iter()
-        .enumerate()
-        .find_map(|(i, &v)| splatd_estimator::aov_units(v).err().map(|e| (i, e)))
+    let Err((pixel, channel, error)) =
+        splatd_estimator::check_aov_values(values, spec.aov_channels())
     else {
         return Ok(());
     };
-    let (pixel, channel) = (i / channels, i % channels);
     let name = spec
         .request
         .aovs
