@@ -774,7 +774,7 @@ impl FrameState {
                     len -= 1;
                 }
                 let p = self.prepare(x, y, rgb);
-                prefetch(&self.cells, p.at);
+                prefetch(&self.cells, p.at, 8);
                 ring[(head + len) % AHEAD] = p;
                 len += 1;
             }
@@ -1424,7 +1424,7 @@ impl Pipeline {
         row::shares(self.kernel, &self.tables, rgb, &mut b.shares);
         for i in 0..rgb.len() {
             b.at[i] = pixel(i) * stride + 4 * b.shares.lo[i] as usize;
-            prefetch(&state.cells, b.at[i]);
+            prefetch(&state.cells, b.at[i], 8);
         }
         b.len = rgb.len();
         self.flush(state);
@@ -1465,24 +1465,25 @@ impl Default for Pending {
     }
 }
 
-/// Asks the CPU to start loading the two cascades at `cells[at..at + 8]`. Only a hint: it never
-/// faults and does not change the result.
+/// Asks the CPU to start loading the words `at .. at + words` of `cells` (those inside it) into
+/// its caches, every cache line they touch. Only a hint: it never faults and changes no result.
 #[inline(always)]
-fn prefetch(cells: &[u64], at: usize) {
+pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-        let first = cells[at..].as_ptr();
-        let last = cells[at + 7..].as_ptr();
-        // SAFETY: prefetch is a hint that never dereferences in a way that can fault; both
-        // pointers are in bounds of `cells` anyway.
-        unsafe {
-            _mm_prefetch::<_MM_HINT_T0>(first.cast());
-            _mm_prefetch::<_MM_HINT_T0>(last.cast());
+        let ahead = cells.get(at..).unwrap_or_default();
+        let ahead = &ahead[..words.min(ahead.len())];
+        // A line's worth of words from each start, and the last word: every line, however the
+        // words are aligned.
+        let starts = ahead.chunks(8).map(|line| line.as_ptr());
+        for p in starts.chain(ahead.last().map(|w| w as *const u64)) {
+            // SAFETY: a prefetch never faults, and the address is inside `cells` anyway.
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) }
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
-    let _ = (cells, at);
+    let _ = (cells, at, words);
 }
 
 /// Adds a share to a cascade below the top: cannot overflow within the bounds (debug-asserted).
