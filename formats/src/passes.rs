@@ -494,38 +494,53 @@ pub fn decode_pass_with_aovs(
 /// they are large enough to be mapped and unmapped by the allocator each time, and the server's
 /// ingest threads spent a third of their time in the page faults of touching them. Decoding into
 /// a [`Scratch`] kept from an earlier pass reuses memory that is already mapped.
+///
+/// A pass's AOV values (50 MB for a 1080p pass with an albedo and a normal) are kept the same
+/// way: given away with each pass and freed after it, they were a fresh mapping for every pass.
 #[derive(Debug, Default)]
 pub struct Scratch {
     writes: Vec<Vec<u8>>,
     rgb: Vec<[f32; 3]>,
+    aovs: Vec<f32>,
 }
 
 impl Scratch {
-    /// Takes back the samples of a pass decoded into this scratch (or any pass), to reuse them.
+    /// Takes back the samples and AOV values of a pass decoded into this scratch (or any pass),
+    /// to reuse them.
     pub fn recycle(&mut self, pass: Pass) {
         if pass.rgb.capacity() > self.rgb.capacity() {
             self.rgb = pass.rgb;
+        }
+        if let Some(aovs) = pass.aovs {
+            self.recycle_aovs(aovs);
+        }
+    }
+
+    /// Takes back a pass's AOV values (taken out of it), to reuse them.
+    pub fn recycle_aovs(&mut self, aovs: Vec<f32>) {
+        if aovs.capacity() > self.aovs.capacity() {
+            self.aovs = aovs;
         }
     }
 
     /// Bytes held.
     pub fn bytes(&self) -> usize {
         let writes: usize = self.writes.iter().map(Vec::capacity).sum();
-        writes + self.rgb.capacity() * 12
+        writes + self.rgb.capacity() * 12 + self.aovs.capacity() * 4
     }
 
     /// Room for `n` samples, from the spare one when there is one. Its values are whatever a
     /// pass before left there: the decode writes every pixel or fails (its write counts prove
     /// which), so they are not cleared first.
     fn rgb(&mut self, n: usize) -> Vec<[f32; 3]> {
-        let mut rgb = std::mem::take(&mut self.rgb);
-        if rgb.len() != n {
-            rgb.clear();
-            // Exactly: a pass a little larger than the last must not double the buffer.
-            rgb.reserve_exact(n);
-            rgb.resize(n, [0.0; 3]);
-        }
-        rgb
+        reuse(&mut self.rgb, n, [0.0; 3])
+    }
+
+    /// Room for `n` AOV values, as [`Scratch::rgb`] (a block holds every channel of its
+    /// pixels, so the blocks that write a pixel's beauty write its AOVs of the same part, and
+    /// each other part's writes are counted on their own).
+    fn aovs(&mut self, n: usize) -> Vec<f32> {
+        reuse(&mut self.aovs, n, 0.0)
     }
 
     /// `n` write counts at zero, from spare ones when there are.
@@ -542,9 +557,22 @@ impl Scratch {
         if planes.rgb.capacity() > self.rgb.capacity() {
             self.rgb = planes.rgb;
         }
+        self.recycle_aovs(planes.aovs);
         self.writes
             .extend(planes.writes.into_iter().filter(|w| w.capacity() > 0));
     }
+}
+
+/// `spare` as a buffer of `n` values: the values it holds, or where its length differs, `fill`.
+fn reuse<T: Copy>(spare: &mut Vec<T>, n: usize, fill: T) -> Vec<T> {
+    let mut buf = std::mem::take(spare);
+    if buf.len() != n {
+        buf.clear();
+        // Exactly: a pass a little larger than the last must not double the buffer.
+        buf.reserve_exact(n);
+        buf.resize(n, fill);
+    }
+    buf
 }
 
 /// A few [`Scratch`]es kept between requests, so that passes decode into memory that is
@@ -772,8 +800,7 @@ impl Planes {
             height,
             by_part,
             rgb: scratch.rgb(width * height),
-            // Given away with the pass: fresh (zeroed pages from the allocator) every time.
-            aovs: vec![0.0; width * height * aov_count],
+            aovs: scratch.aovs(width * height * aov_count),
             aov_count,
             writes,
         }
@@ -1082,6 +1109,40 @@ pub(crate) mod tests {
         );
         assert!(pool.take().bytes() > 0);
         assert_eq!(pool.take().bytes(), 0, "none left: a new, empty one");
+    }
+
+    #[test]
+    fn a_reused_scratch_decodes_aovs_as_a_fresh_one_does_in_the_same_memory() {
+        let aovs = [AovSpec::new("albedo", &["R", "G", "B"])];
+        let mut scratch = Scratch::default();
+        let decode = |bytes: &[u8], scratch: &mut Scratch| {
+            decode_pass_reusing(bytes, None, MAX_PASS_PIXELS, &aovs, scratch).unwrap()
+        };
+        let fresh =
+            |bytes: &[u8]| decode_pass_with_aovs(bytes, None, MAX_PASS_PIXELS, &aovs).unwrap();
+        let first = exr_with(6, 4, &["albedo.B", "albedo.G", "albedo.R", "B", "G", "R"]);
+        let pass = decode(&first, &mut scratch);
+        assert_eq!(pass, fresh(&first));
+        let values = pass.aovs.as_ref().expect("AOVs").as_ptr();
+        scratch.recycle(pass);
+        assert!(
+            scratch.bytes() >= 6 * 4 * (1 + 12 + 12),
+            "the AOV values are kept"
+        );
+
+        // A pass without the AOVs in between keeps their buffer for the next that has them.
+        let plain = exr_with(6, 4, &["B", "G", "R"]);
+        let pass = decode(&plain, &mut scratch);
+        assert_eq!((&pass, pass.aovs.is_none()), (&fresh(&plain), true));
+        scratch.recycle(pass);
+
+        // Other values (the channels given in another order): the pass's own, in the memory
+        // the first pass's AOVs had.
+        let other = exr_with(6, 4, &["B", "G", "R", "albedo.B", "albedo.G", "albedo.R"]);
+        let pass = decode(&other, &mut scratch);
+        assert_eq!(pass, fresh(&other));
+        assert_ne!(pass.aovs, fresh(&first).aovs);
+        assert_eq!(pass.aovs.as_ref().expect("AOVs").as_ptr(), values);
     }
 
     #[test]

@@ -164,7 +164,7 @@ fn apply_pass(
     };
     let spec = &frame.spec().request;
     let layer = query.layer.as_deref();
-    let mut pass = splatd_formats::passes::decode_pass_reusing(
+    let pass = splatd_formats::passes::decode_pass_reusing(
         bytes,
         layer,
         pass_pixels(frame),
@@ -174,16 +174,17 @@ fn apply_pass(
     .map_err(refuse)?;
     let result = (|| {
         pass.check(spec.width, spec.height).map_err(refuse)?;
-        let aovs = pass.aovs.take();
-        if let Some(values) = &aovs {
+        let aovs = pass.aovs.as_deref();
+        if let Some(values) = aovs {
             check_aovs(frame, values)?;
         }
         // Splatted row by row straight from the decoded pixels (no records made).
         let (worker, seq) = (query.worker, query.seq);
-        let result = frame.ingest_pass(worker, seq, &pass.rgb, aovs.as_deref());
+        let result = frame.ingest_pass(worker, seq, &pass.rgb, aovs);
         let ingested = applied(pass.rgb.len(), result)?;
         Ok(((worker, seq), ingested))
     })();
+    // The samples and AOV values go back to the scratch for the next pass.
     scratch.recycle(pass);
     result
 }
