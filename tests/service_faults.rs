@@ -669,3 +669,127 @@ fn snapshots_are_the_same_whether_direct_writes_are_taken_or_refused() {
         );
     }
 }
+
+/// Waits for a paused failpoint's `POINT.reached` file in `points`.
+fn wait_reached(points: &Path, point: &str) {
+    let reached = points.join(format!("{point}.reached"));
+    for waited in 0.. {
+        if reached.exists() {
+            return;
+        }
+        assert!(waited < 6000, "{point} was never reached");
+        std::thread::sleep(std::time::Duration::from_millis(10));
+    }
+}
+
+/// The cell pool's idle bytes, from `/metrics` (as a scraper that waits for no render).
+fn idle_cell_bytes(server: &ServerProcess) -> f64 {
+    let text = http()
+        .get(format!("{}/metrics", server.url))
+        .header("x-prometheus-scrape-timeout-seconds", "0.001")
+        .send()
+        .unwrap()
+        .text()
+        .unwrap();
+    common::parse_metrics(&text)["splatd_idle_cell_bytes"]
+}
+
+/// What a pass copies while a snapshot holds it goes to the cell pool even when the snapshot
+/// lets go of it before the copy is done: the copy is paused at `point` until the snapshot is
+/// on disk. Returns the pool's idle bytes then and once the pass is answered.
+fn copied_while_a_snapshot_ends(point: &str, w: usize, h: usize) -> (f64, f64) {
+    let data = tempfile::tempdir().unwrap();
+    let points = tempfile::tempdir().unwrap();
+    let args = common::durable_args(data.path());
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let failpoints = format!("snapshot.bin:before_write=pause@2;{point}=pause@1");
+    let server = Server::start_with_env(
+        &args,
+        &[
+            ("SPLATD_FAILPOINTS", &failpoints),
+            ("SPLATD_FAILPOINT_DIR", points.path().to_str().unwrap()),
+        ],
+    );
+    let create = CreateFrame {
+        aovs: vec![splatd_proto::api::AovSpec::new("albedo", &["R", "G", "B"])],
+        ..CreateFrame::new("c", w as u32, h as u32)
+    };
+    let r = http()
+        .post(format!("{}/v1/frames", server.url))
+        .json(&create)
+        .send()
+        .unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().unwrap());
+    let url = server.url.clone();
+    let pass = move |seq: u64| {
+        let albedo = |c: usize| (0..w * h).map(|i| (i * 3 + c) as f32 / 64.0).collect();
+        let exr = splatd_formats::testing::uncompressed_with_aovs(
+            w,
+            h,
+            |i| [(i + seq as usize) as f32 / 8.0; 3],
+            &[
+                ("albedo.R", albedo(0)),
+                ("albedo.G", albedo(1)),
+                ("albedo.B", albedo(2)),
+            ],
+        );
+        let r = http()
+            .post(format!("{url}/v1/frames/c/passes?worker=1&seq={seq}"))
+            .header("content-type", "image/x-exr")
+            .body(exr)
+            .send()
+            .unwrap();
+        assert_eq!(r.status(), 200, "pass {seq}: {}", r.text().unwrap());
+    };
+    let url = server.url.clone();
+    let sync = move || {
+        let r = http()
+            .post(format!("{url}/v1/frames/c/sync"))
+            .send()
+            .unwrap();
+        assert_eq!(r.status(), 200, "{}", r.text().unwrap());
+    };
+    // The first snapshot as usual; then one that holds its cut on the way to disk.
+    pass(0);
+    sync();
+    pass(1);
+    let held = std::thread::spawn(sync.clone());
+    wait_reached(points.path(), "snapshot.bin:before_write");
+    // A pass while the snapshot holds the frame: it copies the band and the sums, paused.
+    let copying = std::thread::spawn(move || pass(2));
+    wait_reached(points.path(), point);
+    std::fs::write(points.path().join("snapshot.bin:before_write.release"), b"").unwrap();
+    held.join().unwrap();
+    let before = idle_cell_bytes(&server);
+    std::fs::write(points.path().join(format!("{point}.release")), b"").unwrap();
+    copying.join().unwrap();
+    (before, idle_cell_bytes(&server))
+}
+
+/// A band and AOV sums that a pass copies while a snapshot holds them go to the cell pool when
+/// the snapshot lets go of them before the copy is done (a one-band frame: the band is copied
+/// first, then the sums). Before, the snapshot found them still held by the frame, the frame
+/// dropped them after its copy, and they were freed: under passes with AOVs the sums' copy
+/// took long enough for that at every snapshot, and every next copy (216 MB at 1080p with an
+/// albedo and a normal) faulted in fresh memory.
+#[test]
+fn a_copy_made_while_a_snapshot_ends_goes_to_the_cell_pool() {
+    const W: usize = 16;
+    const H: usize = 8;
+    // The default 6 cascades: 25 words a pixel.
+    let band = (W * H * 25 * 8) as f64;
+    let (before, after) = copied_while_a_snapshot_ends("frame:copying_band", W, H);
+    assert_eq!(
+        (before, after),
+        (0.0, band),
+        "the band the copy replaced went to the pool"
+    );
+    // A pixel's AOV sums: its count, and each channel's sum in two words.
+    let sums = (W * H * (1 + 2 * 3) * 8) as f64;
+    let (before, after) = copied_while_a_snapshot_ends("frame:copying_aovs", W, H);
+    assert_eq!(
+        (before, after),
+        (band, band + sums),
+        "the sums the copy replaced went to the pool (the band came back with the snapshot)"
+    );
+}

@@ -21,7 +21,10 @@
 //! one when refused); `batch:before_apply` (a batch or pass is about to be applied; only `abort`
 //! has an effect there: the server dies between two acknowledgements); `denoise:before_oidn`
 //! (a denoise's input is made and OIDN is about to run; for `pause`); `frame:building` (a
-//! create is settled and its frame's memory is about to be taken and zeroed; for `pause`). Unset (in production), a hit costs one check of an initialized `OnceLock`.
+//! create is settled and its frame's memory is about to be taken and zeroed; for `pause`);
+//! `frame:copying_band` and `frame:copying_aovs` (a writer is about to copy a band or AOV sums
+//! that a cut holds; for `pause`).
+//! Unset (in production), a hit costs one check of an initialized `OnceLock`.
 
 use std::collections::HashMap;
 use std::io;

@@ -227,10 +227,16 @@ impl CellPool {
         }
     }
 
-    /// Keeps the cells of `band` if nothing else holds it (a frame that has moved on to a copy,
-    /// a cut that ended); a band still shared is left to its other holders.
+    /// Keeps the cells of `band` if nothing else holds it; a band still shared is left to its
+    /// other holders. Its last two holders are a cut that ended and the frame that moved on to
+    /// a copy of it, each giving it here, in either order (a snapshot may finish while the
+    /// frame's writer is still copying the band): with [`Arc::into_inner`] exactly one of them
+    /// gets the cells, even when both let go at the same moment. (Given only by the cut, as
+    /// first written, they were freed whenever the copy took longer than the rest of the
+    /// snapshot, and the next copy faulted in fresh memory: with a 216 MB copy of AOV sums,
+    /// every snapshot's under `loadgen --kind passes --aovs`.)
     pub fn give_band(&self, band: std::sync::Arc<splatd_estimator::FrameState>) {
-        if let Ok(state) = std::sync::Arc::try_unwrap(band) {
+        if let Some(state) = std::sync::Arc::into_inner(band) {
             self.give(state.into_cells());
         }
     }
@@ -238,7 +244,7 @@ impl CellPool {
     /// Keeps the words of AOV sums nothing else holds, as [`CellPool::give_band`] keeps a
     /// band's cells: a frame's AOV sums are copied on write like its bands.
     pub fn give_aovs(&self, sums: std::sync::Arc<splatd_estimator::AovSums>) {
-        if let Ok(sums) = std::sync::Arc::try_unwrap(sums) {
+        if let Some(sums) = std::sync::Arc::into_inner(sums) {
             self.give(sums.into_words());
         }
     }

@@ -187,11 +187,16 @@ impl ShardedFrame {
     /// The state of `band` to change: copied first if a cut still holds it (copy on write),
     /// into cells from the frame's pool where it has them, so that a frame written while
     /// snapshots or renders hold its bands does not fault in fresh memory for every copy.
+    ///
+    /// The band it leaves goes to the pool as well, if the cut let go of it while the copy was
+    /// made (see [`CellPool::give_band`]).
     fn own<'a>(&self, band: &'a mut Arc<FrameState>) -> &'a mut FrameState {
         if Arc::get_mut(band).is_none() {
+            // Tests hold the copy here while the cut that holds the band ends (`pause`).
+            let _ = crate::failpoint::hit("frame:copying_band");
             if let Some(pool) = &self.pool {
                 let copy = band.clone_in(pool.take_for_copy(band.cells().len()));
-                *band = Arc::new(copy);
+                pool.give_band(std::mem::replace(band, Arc::new(copy)));
             }
         }
         Arc::make_mut(band)
@@ -203,9 +208,11 @@ impl ShardedFrame {
     /// them took 75 ms of page faults.
     fn own_aovs<'a>(&self, sums: &'a mut Arc<AovSums>) -> &'a mut AovSums {
         if Arc::get_mut(sums).is_none() {
+            // Tests hold the copy here while the cut that holds the sums ends (`pause`).
+            let _ = crate::failpoint::hit("frame:copying_aovs");
             if let Some(pool) = &self.pool {
                 let copy = sums.clone_in(pool.take_for_copy(sums.words().len()));
-                *sums = Arc::new(copy);
+                pool.give_aovs(std::mem::replace(sums, Arc::new(copy)));
             }
         }
         Arc::make_mut(sums)
