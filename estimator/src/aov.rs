@@ -25,6 +25,7 @@
 use std::ops::Range;
 
 use crate::layout::MAX_PIXEL_SAMPLES;
+use crate::state::zeroed_in;
 
 /// Fractional bits of the AOV fixed point: values are stored in units of `2^-20`.
 pub const AOV_FRAC_BITS: u32 = 20;
@@ -230,13 +231,7 @@ impl AovSums {
         words: impl FnOnce(usize) -> Vec<u64>,
     ) -> AovSums {
         let len = width as usize * rows.len() * aov_words(channels);
-        let mut words = words(len);
-        if words.capacity() >= len {
-            words.clear();
-            words.resize(len, 0);
-        } else {
-            words = vec![0; len];
-        }
+        let words = zeroed_in(words(len), len);
         AovSums {
             width,
             rows,

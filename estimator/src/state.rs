@@ -480,20 +480,14 @@ impl FrameState {
         height: u32,
         rows: std::ops::Range<u32>,
         layout: CascadeLayout,
-        mut cells: Vec<u64>,
+        cells: Vec<u64>,
     ) -> Self {
         assert!(
             rows.start <= rows.end && rows.end <= height,
             "band {rows:?} outside a frame of height {height}"
         );
         let len = width as usize * rows.len() * cell_len(layout.cascades());
-        if cells.capacity() >= len {
-            cells.clear();
-            cells.resize(len, 0);
-        } else {
-            // Zeroed by the allocator, untouched until the first sample lands.
-            cells = vec![0; len];
-        }
+        let cells = zeroed_in(cells, len);
         Self {
             width,
             height,
@@ -1462,6 +1456,19 @@ impl Default for Pending {
             },
             s: [0.0; 3],
         }
+    }
+}
+
+/// `len` zeroed words in the memory of `words` (the words of an earlier state or sums) if it
+/// has room, else in new memory, zeroed by the allocator and untouched until the first sample
+/// lands.
+pub(crate) fn zeroed_in(mut words: Vec<u64>, len: usize) -> Vec<u64> {
+    if words.capacity() >= len {
+        words.clear();
+        words.resize(len, 0);
+        words
+    } else {
+        vec![0; len]
     }
 }
 
