@@ -8,7 +8,7 @@
 use proptest::prelude::*;
 use splatd_scenes::synth::SplitMix64;
 
-use super::{reference, resolve_bands_with, ResolveParams, Resolved, Variant};
+use super::{reference, resolve_bands, resolve_bands_with, ResolveParams, Resolved, Variant};
 use crate::layout::{CascadeLayout, COUNT_ONE, MAX_PIXEL_SAMPLES, REC709_LUMINANCE};
 use crate::state::{cell_len, FrameState, Kernel, HI_BITS, LOW_SHARE_MAX, TOP_SHARE_MAX};
 
@@ -274,6 +274,37 @@ fn a_frame_wider_than_a_column_resolves_to_the_reference_bits() {
     let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
     check(&splatted_state(7, 1061, 3, &layout), 2).expect("same bits");
     check(&random_state(8, 1030, 2, &layout), 1).expect("same bits");
+}
+
+/// A cascade empty in every pixel of a strip but one, where only one channel holds a value, is
+/// weighed: only cascades empty in the whole strip are skipped.
+#[test]
+fn a_cascade_with_one_value_in_a_strip_resolves_to_the_reference_bits() {
+    let layout = CascadeLayout::new(8.0, 8, 0.125, REC709_LUMINANCE).unwrap();
+    let k = layout.cascades();
+    let len = cell_len(k);
+    let (w, h) = (70u32, 3u32);
+    for (j, channel) in [(5, 2), (3, 1), (k - 1, 0), (k - 1, 2)] {
+        let mut cells = vec![0u64; (w * h) as usize * len];
+        for (i, cell) in cells.chunks_exact_mut(len).enumerate() {
+            // Two samples in cascade 0 everywhere, dim and even.
+            cell[0..4].copy_from_slice(&[3 << 20, 3 << 20, 3 << 20, 2 * COUNT_ONE]);
+            if i == w as usize + 37 {
+                // A third sample, in cascade `j` alone and one channel of it: a firefly.
+                cell[4 * j + channel] = 1 << 30;
+                cell[4 * j + 3] = COUNT_ONE;
+            }
+        }
+        let state = FrameState::from_cells(w, h, 0..h, layout.clone(), cells).expect("valid");
+        check(&state, 1).expect("same bits");
+        let out = resolve_bands(&[&state], &ResolveParams::with_defaults(), 1).expect("frame");
+        let firefly = (w + 37) as usize;
+        assert!(
+            out.mean[firefly][channel] > 2.0 * out.mean[0][channel],
+            "the firefly is in the mean: {:?}",
+            out.mean[firefly]
+        );
+    }
 }
 
 /// The spread stage merges each band's sources from every part's columns into row-major
