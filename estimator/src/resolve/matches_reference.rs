@@ -267,7 +267,7 @@ fn a_frame_of_extreme_pixels_resolves_to_the_reference_bits() {
     check(&state, 1).expect("same bits");
 }
 
-/// A frame wider than a column of strips (`COLUMN_STRIPS * STRIP` = 1024 pixels), with a ragged
+/// A frame wider than a column of strips (`COLUMN_STRIPS * STRIP` = 512 pixels), with a ragged
 /// last strip: the columns' edges and rings.
 #[test]
 fn a_frame_wider_than_a_column_resolves_to_the_reference_bits() {

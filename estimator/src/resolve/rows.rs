@@ -48,12 +48,13 @@ pub(super) const LANES: usize = 8;
 const STRIP: usize = 64;
 
 /// Strips per column: a frame wider than `COLUMN_STRIPS * STRIP` pixels is resolved a column at
-/// a time (each column top to bottom), so that a column's ring of support and the cells read
-/// twice stay in a core's L2 cache. Measured with `bench speed`'s 8-cascade state (the reuse
-/// distance of a 4K row overflows a 1 MiB L2): at 3840x2160 columns of 12-20 strips took
-/// 4.4x one read of the state against 5.0x for whole rows; narrower columns were slower (the
-/// state is then read in short runs: 2 strips, 5.8x at 1920x1080).
-const COLUMN_STRIPS: usize = 16;
+/// a time (each column top to bottom), so that a column's ring of support, the cells read
+/// twice and the spread stage's rows stay in a core's L2 cache. Measured with `bench speed`'s
+/// 8-cascade state, one thread, alternated runs: 8 strips against 16 took the default resolve
+/// from 105-108 ms to 95-100 ms at 1920x1080 and from 483-531 ms to 425-449 ms at 3840x2160
+/// (the `paper` stage alone the same); 4, 6, 10 and 12 strips were no better than 8, and 2
+/// slower (the state is then read in short runs).
+const COLUMN_STRIPS: usize = 8;
 
 /// Groups ahead of the one being read whose cells the support step asks the CPU to load: the
 /// support step is the first to read each cell of a resolve, and its loads waited on memory
