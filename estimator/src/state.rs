@@ -1481,12 +1481,16 @@ pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
         let ahead = cells.get(at..).unwrap_or_default();
         let ahead = &ahead[..words.min(ahead.len())];
-        // A line's worth of words from each start, and the last word: every line, however the
-        // words are aligned.
-        let starts = ahead.chunks(8).map(|line| line.as_ptr());
-        for p in starts.chain(ahead.last().map(|w| w as *const u64)) {
-            // SAFETY: a prefetch never faults, and the address is inside `cells` anyway.
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(p.cast()) }
+        // Each line's start, from the line of the first word to the line of the last byte: a
+        // counted loop (an iterator over the words' chunks was a fifth of the resolve's
+        // support step).
+        let first = ahead.as_ptr().cast::<i8>();
+        let end = size_of_val(ahead) as isize;
+        let mut line = -((first as usize & 63) as isize);
+        while line < end {
+            // SAFETY: a prefetch never faults (the address is a line the words touch anyway).
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(first.wrapping_offset(line)) }
+            line += 64;
         }
     }
     #[cfg(not(target_arch = "x86_64"))]
