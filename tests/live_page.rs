@@ -431,6 +431,7 @@ const heat = document.getElementById("heat");
 return { mean, reweighted, image: box("reweighted"), viewport: box("viewport"),
          divider: box("divider"), clip: document.getElementById("reweighted").style.clipPath,
          spp: document.getElementById("spp").textContent,
+         nav: document.querySelector("#frames a small")?.textContent,
          converged: document.getElementById("converged").textContent,
          points, heat_tiles: Number(heat.dataset.tiles || 0),
          heat_samples: Number(heat.dataset.samples || 0), heat_hidden: heat.hidden };
@@ -609,6 +610,7 @@ fn live_page_zooms_pans_splits_exposes_and_plots_convergence() {
                     let points = v["points"].as_array()?;
                     let last = points.last()?.as_array()?;
                     (v["spp"] == "16 / 16.0 / 16"
+                        && v["nav"] == format!("{WIDTH}x{HEIGHT}, 16.0 spp")
                         && last[0].as_f64()? == 16.0
                         && v["reweighted"]["src"].as_str()?.contains("samples=480000"))
                     .then(|| v.clone())

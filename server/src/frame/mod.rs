@@ -533,17 +533,29 @@ impl ShardedFrame {
         })
     }
 
-    /// [`info`](Self::info) for the frame list: the samples per pixel of the latest render if it
-    /// read the frame as it is now, else counted.
+    /// [`info`](Self::info) for the frame list: the newest samples per pixel the frame has,
+    /// those of its latest render or of its latest count, whichever read the later version
+    /// (counted only if it has neither). A list never counts the cells of a frame again while
+    /// workers change it: the live page lists the frames every second, and each count read a
+    /// busy 1080p frame's whole state (35 ms, writers waiting on each band's lock in turn) for
+    /// every open page. A frame's counts (`samples`) are always its own now.
     pub fn listed(&self) -> FrameInfo {
-        let filed = self.history().latest();
-        match filed {
-            Some((version, c)) if version == self.version() => self.info_with(SppFigures {
+        let rendered = self.history().latest().map(|(version, c)| {
+            let spp = SppFigures {
                 min: c.spp_min,
                 mean: c.spp_mean,
                 max: c.spp_max,
-            }),
-            _ => self.info(),
+            };
+            (version, spp)
+        });
+        let counted = *lock(&self.spp_figures);
+        let newest = match (rendered, counted) {
+            (Some(r), Some(c)) => Some(if r.0 >= c.0 { r } else { c }),
+            (r, c) => r.or(c),
+        };
+        match newest {
+            Some((_, spp)) => self.info_with(spp),
+            None => self.info(),
         }
     }
 

@@ -121,6 +121,35 @@ async fn figures_after_an_image_reuse_its_resolve() {
     assert_eq!(want, (0.into(), 0.5.into(), 2.into()));
 }
 
+/// The frame list (the live page asks for it every second) gives each frame's newest samples
+/// per pixel without counting its cells again while workers change it; a frame with none yet
+/// is counted.
+#[tokio::test]
+async fn listing_frames_never_counts_a_changed_frame_again() {
+    let app = testing::with_frame(AppState::new(Limits::default(), None, None), "l", 8, 8);
+    let listed = |list: &serde_json::Value, id: &str| {
+        let frames = list["frames"].as_array().expect("frames");
+        let f = frames.iter().find(|f| f["id"] == id).expect("listed");
+        (f["samples"].clone(), f["spp_mean"].clone())
+    };
+    // Never counted nor rendered: counted for the list.
+    post(&app, "l", 0);
+    assert_eq!(listed(&list(&app).await, "l"), (16.into(), 0.25.into()));
+    // Changed: the list keeps the count it has, beside the frame's samples now.
+    post(&app, "l", 1);
+    assert_eq!(listed(&list(&app).await, "l"), (32.into(), 0.25.into()));
+    // A render of its figures (`GET /v1/frames/l`) read the frame as it is: the list takes its.
+    assert_eq!(info(&app, "l").await["spp_mean"], 0.5);
+    assert_eq!(listed(&list(&app).await, "l"), (32.into(), 0.5.into()));
+    // A count newer than the render (`convergence=none` counts the cells) is the newest.
+    post(&app, "l", 2);
+    let request = Request::get("/v1/frames/l?convergence=none")
+        .body(Body::empty())
+        .unwrap();
+    assert_eq!(testing::send(&app, request).await.json()["spp_mean"], 0.75);
+    assert_eq!(listed(&list(&app).await, "l"), (48.into(), 0.75.into()));
+}
+
 /// A writer that posts to each of `ids` now and every 10 ms (on tokio's clock), until aborted.
 fn keep_writing(app: &AppState, ids: &[&str]) -> tokio::task::JoinHandle<()> {
     let (app, ids) = (
