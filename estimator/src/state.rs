@@ -1481,12 +1481,16 @@ pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
         use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
         let ahead = cells.get(at..).unwrap_or_default();
         let ahead = &ahead[..words.min(ahead.len())];
-        // Each line's start, from the line of the first word to the line of the last byte: a
-        // counted loop (an iterator over the words' chunks was a fifth of the resolve's
-        // support step).
+        // Each line's start, from the line of the first word to the line of the last byte (none
+        // for no words): a counted loop (an iterator over the words' chunks was a fifth of the
+        // resolve's support step).
         let first = ahead.as_ptr().cast::<i8>();
         let end = size_of_val(ahead) as isize;
-        let mut line = -((first as usize & 63) as isize);
+        let mut line = if end == 0 {
+            0
+        } else {
+            -((first as usize & 63) as isize)
+        };
         while line < end {
             // SAFETY: a prefetch never faults (the address is a line the words touch anyway).
             unsafe { _mm_prefetch::<_MM_HINT_T0>(first.wrapping_offset(line)) }
