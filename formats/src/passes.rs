@@ -508,18 +508,9 @@ impl Scratch {
     /// Takes back the samples and AOV values of a pass decoded into this scratch (or any pass),
     /// to reuse them.
     pub fn recycle(&mut self, pass: Pass) {
-        if pass.rgb.capacity() > self.rgb.capacity() {
-            self.rgb = pass.rgb;
-        }
+        keep_larger(&mut self.rgb, pass.rgb);
         if let Some(aovs) = pass.aovs {
-            self.recycle_aovs(aovs);
-        }
-    }
-
-    /// Takes back a pass's AOV values (taken out of it), to reuse them.
-    pub fn recycle_aovs(&mut self, aovs: Vec<f32>) {
-        if aovs.capacity() > self.aovs.capacity() {
-            self.aovs = aovs;
+            keep_larger(&mut self.aovs, aovs);
         }
     }
 
@@ -554,12 +545,17 @@ impl Scratch {
 
     /// Keeps a decode's samples (unless the pass took them) and counts for the next one.
     fn keep(&mut self, planes: Planes) {
-        if planes.rgb.capacity() > self.rgb.capacity() {
-            self.rgb = planes.rgb;
-        }
-        self.recycle_aovs(planes.aovs);
+        keep_larger(&mut self.rgb, planes.rgb);
+        keep_larger(&mut self.aovs, planes.aovs);
         self.writes
             .extend(planes.writes.into_iter().filter(|w| w.capacity() > 0));
+    }
+}
+
+/// Keeps `buf` as `spare` if it has more room.
+fn keep_larger<T>(spare: &mut Vec<T>, buf: Vec<T>) {
+    if buf.capacity() > spare.capacity() {
+        *spare = buf;
     }
 }
 
