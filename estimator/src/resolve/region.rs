@@ -154,6 +154,16 @@ impl Rect {
     }
 }
 
+/// The pixels a [`resolve_region_into`] wrote: what a caller that keeps something made from the
+/// resolved layers (a need map) makes again.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Rewritten {
+    /// The whole frame was resolved.
+    Whole,
+    /// Only the pixels of these rectangles (none if nothing changed).
+    Areas(Vec<Rect>),
+}
+
 /// At most this many crops per region resolve (more changed rectangles are merged).
 const MAX_CROPS: usize = 16;
 
@@ -213,6 +223,8 @@ fn affected(changed: &Rect, (reach, tile): (u32, u32), width: u32, height: u32) 
 /// [`resolve_bands_into`] or this function does). The caller vouches that `out` holds a resolve
 /// of this frame and that `changed` covers every change since.
 ///
+/// Returns the pixels it wrote ([`Rewritten`]): every output outside them is as it was.
+///
 /// [`resolve_bands`]: super::resolve_bands
 /// [`resolve_bands_into`]: super::resolve_bands_into
 pub fn resolve_region_into(
@@ -221,7 +233,7 @@ pub fn resolve_region_into(
     threads: usize,
     changed: &[Rect],
     out: &mut Resolved,
-) -> Result<(), TilingError> {
+) -> Result<Rewritten, TilingError> {
     resolve_region_with(Kernel::detect(), bands, params, threads, changed, out)
 }
 
@@ -236,7 +248,7 @@ pub fn resolve_region_with(
     threads: usize,
     changed: &[Rect],
     out: &mut Resolved,
-) -> Result<(), TilingError> {
+) -> Result<Rewritten, TilingError> {
     region(kernel, bands, params, threads, changed, out, FULL_ABOVE)
 }
 
@@ -250,7 +262,7 @@ fn region(
     changed: &[Rect],
     out: &mut Resolved,
     full_above: f64,
-) -> Result<(), TilingError> {
+) -> Result<Rewritten, TilingError> {
     assert!(kernel.available(), "{kernel:?} kernel on a CPU without it");
     let (width, height, rows) = frame_rows(bands)?;
     let pixels = width as usize * height as usize;
@@ -263,7 +275,7 @@ fn region(
         ] == [pixels; 4]
         && out.scratch.resolved_with == Some(*params);
     if !patchable {
-        return resolve_bands_with(kernel, bands, params, threads, out);
+        return resolve_bands_with(kernel, bands, params, threads, out).map(|()| Rewritten::Whole);
     }
     let reach = reach(params);
     // The crop around an affected region: what its outputs read.
@@ -278,7 +290,7 @@ fn region(
         .map(|a| a.dilate(margin, width, height).area())
         .sum();
     if cost as f64 > full_above * pixels as f64 {
-        return resolve_bands_with(kernel, bands, params, threads, out);
+        return resolve_bands_with(kernel, bands, params, threads, out).map(|()| Rewritten::Whole);
     }
     let layout = bands[0].layout();
     let len = cell_len(layout.cascades());
@@ -320,7 +332,7 @@ fn region(
         }
     }
     out.scratch.crop = Some(crop);
-    Ok(())
+    Ok(Rewritten::Areas(areas))
 }
 
 #[cfg(test)]
