@@ -29,8 +29,8 @@
 //! fraction of the mean's, which falls toward 0 as samples accumulate (the estimator is
 //! consistent), and the spp spread.
 
-use crate::layout::{ParamError, COUNT_ONE};
-use crate::resolve::{ResolveParams, Resolved, TilingError};
+use crate::layout::{CascadeLayout, ParamError, COUNT_ONE, MAX_CASCADES};
+use crate::resolve::{Rect, ResolveParams, Resolved, TilingError};
 use crate::state::{cascade_units, cell_len, FrameState};
 
 /// Default edge of a need-map tile, in pixels: 16x16 tiles give a 1080p frame 120x68 tiles,
@@ -229,6 +229,9 @@ pub struct NeedMap {
     pub tiles: Vec<TileNeed>,
 }
 
+/// Fewest pixels to make again for which [`NeedMap::build_on`] starts threads.
+const MIN_THREAD_PIXELS: u64 = 1 << 16;
+
 /// Sample counts whose `kappa(N)` [`NeedMap::build`] looks up rather than computes.
 const KAPPA_TABLE: usize = 1024;
 
@@ -241,97 +244,142 @@ impl NeedMap {
         params: &ResolveParams,
         tile: u32,
     ) -> Result<NeedMap, NeedError> {
+        Self::build_on(bands, resolved, params, tile, 1)
+    }
+
+    /// [`NeedMap::build`] on `threads` threads, rows of tiles each: the same map for any number
+    /// (each tile's sums are added by one thread, in the same order).
+    pub fn build_on(
+        bands: &[&FrameState],
+        resolved: &Resolved,
+        params: &ResolveParams,
+        tile: u32,
+        threads: usize,
+    ) -> Result<NeedMap, NeedError> {
         let tile = check_tile(tile)?;
+        let rows = rows_of(bands, resolved)?;
         let (width, height) = (resolved.width, resolved.height);
-        let first = bands.first().ok_or(TilingError("no bands".into()))?;
-        let mut next_row = 0;
-        for band in bands {
-            if (band.width(), band.height()) != (width, height) || band.layout() != first.layout() {
-                return Err(TilingError(format!(
-                    "band {:?} does not belong to the resolved {width}x{height} frame",
-                    band.rows()
-                ))
-                .into());
-            }
-            if band.rows().start != next_row {
-                return Err(TilingError(format!("band {:?} is out of order", band.rows())).into());
-            }
-            next_row = band.rows().end;
-        }
-        if next_row != height {
-            return Err(TilingError(format!("bands cover {next_row} of {height} rows")).into());
-        }
-        let layout = first.layout();
-        let k = layout.cascades();
         let (tiles_x, tiles_y) = (width.div_ceil(tile), height.div_ceil(tile));
-        let mut tiles: Vec<TileNeed> = (0..tiles_y)
-            .flat_map(|ty| {
-                (0..tiles_x).map(move |tx| TileNeed {
-                    x: tx * tile,
-                    y: ty * tile,
-                    width: tile.min(width - tx * tile),
-                    height: tile.min(height - ty * tile),
-                    spp_min: u64::MAX,
-                    ..TileNeed::default()
-                })
-            })
-            .collect();
-        let one = 1.0 / COUNT_ONE as f64;
-        let mut counts = vec![0.0f64; k + 2];
-        // `kappa(N)` of the pixels with fewer than `KAPPA_TABLE` samples, looked up: computed per
-        // pixel, `N.powf` was 40 % of the map's time (the same values: the table holds them).
-        let kappas: Vec<f64> = (0..KAPPA_TABLE)
-            .map(|n| params.kappa_at(n as f64))
-            .collect();
-        for band in bands {
-            for y in band.rows() {
-                let row = band.row(y);
-                for (x, cell) in row.chunks_exact(cell_len(k)).enumerate() {
-                    let x = x as u32;
-                    let i = (y * width + x) as usize;
-                    let t = &mut tiles[((y / tile) * tiles_x + x / tile) as usize];
-                    let n = resolved.spp[i];
-                    t.samples += n;
-                    t.spp_min = t.spp_min.min(n);
-                    t.spp_max = t.spp_max.max(n);
-                    if n == 0 {
-                        t.empty += 1;
-                        continue;
-                    }
-                    t.mean += layout.luminance(resolved.mean[i].map(f64::from));
-                    t.removed += layout.luminance(resolved.removed[i].map(f64::from));
-                    for j in 0..k {
-                        counts[j + 1] = cell[4 * j + 3] as f64 * one;
-                    }
-                    let nf = n as f64;
-                    let kappa = match kappas.get(n as usize) {
-                        Some(&kappa) => kappa,
-                        None => params.kappa_at(nf),
-                    };
-                    let mut deficit = 0.0;
-                    for j in 0..k {
-                        let support = counts[j] + counts[j + 1] + counts[j + 2];
-                        let u = (1.0 - (support - params.kappa_min()) / kappa).clamp(0.0, 1.0);
-                        if u > 0.0 {
-                            let b = [0, 1, 2].map(|c| cascade_units(cell, j, c));
-                            deficit += u * layout.luminance(b) * layout.unit_value(j);
-                        }
-                    }
-                    t.deficit += deficit / nf;
-                }
-            }
-        }
-        for t in &mut tiles {
-            t.need = t.score();
-        }
-        Ok(NeedMap {
+        let mut map = NeedMap {
             width,
             height,
             tile,
             tiles_x,
             tiles_y,
-            tiles,
-        })
+            tiles: vec![TileNeed::default(); (tiles_x * tiles_y) as usize],
+        };
+        let all = vec![true; map.tiles.len()];
+        map.fill(&rows, bands[0].layout(), resolved, params, &all, threads);
+        Ok(map)
+    }
+
+    /// Brings the map up to date after the cells and the resolved pixels of the frame changed
+    /// only within `areas` (what [`crate::resolve_region_into`] says it rewrote): the tiles
+    /// that meet them are made again, and the map is the one [`NeedMap::build_on`] gives,
+    /// in every bit. Returns the number of tiles made again. A frame of another size is refused.
+    pub fn update(
+        &mut self,
+        bands: &[&FrameState],
+        resolved: &Resolved,
+        params: &ResolveParams,
+        areas: &[Rect],
+        threads: usize,
+    ) -> Result<usize, NeedError> {
+        let rows = rows_of(bands, resolved)?;
+        if (resolved.width, resolved.height) != (self.width, self.height) {
+            return Err(TilingError(format!(
+                "a {}x{} frame's map cannot be brought up to a {}x{} frame",
+                self.width, self.height, resolved.width, resolved.height
+            ))
+            .into());
+        }
+        let mut stale = vec![false; self.tiles.len()];
+        let tile = self.tile;
+        for a in areas.iter().filter(|a| !a.is_empty()) {
+            let (x1, y1) = (a.x1.min(self.width), a.y1.min(self.height));
+            if a.x0 >= x1 || a.y0 >= y1 {
+                continue;
+            }
+            for ty in a.y0 / tile..y1.div_ceil(tile) {
+                for tx in a.x0 / tile..x1.div_ceil(tile) {
+                    stale[(ty * self.tiles_x + tx) as usize] = true;
+                }
+            }
+        }
+        self.fill(&rows, bands[0].layout(), resolved, params, &stale, threads);
+        Ok(stale.iter().filter(|&&s| s).count())
+    }
+
+    /// Computes the tiles marked in `which` again from the cells (`rows`, one per pixel row)
+    /// and the resolved layers, rows of tiles split between up to `threads` threads.
+    fn fill(
+        &mut self,
+        rows: &[&[u64]],
+        layout: &CascadeLayout,
+        resolved: &Resolved,
+        params: &ResolveParams,
+        which: &[bool],
+        threads: usize,
+    ) {
+        let tiles_x = self.tiles_x as usize;
+        let stale = which.iter().filter(|&&s| s).count();
+        if stale == 0 {
+            return;
+        }
+        // `kappa(N)` of the pixels with fewer than `KAPPA_TABLE` samples, looked up: computed per
+        // pixel, `N.powf` was 40 % of the map's time (the same values: the table holds them).
+        let kappas: Vec<f64> = (0..KAPPA_TABLE)
+            .map(|n| params.kappa_at(n as f64))
+            .collect();
+        let geometry = Geometry {
+            width: self.width,
+            height: self.height,
+            tile: self.tile,
+            tiles_x: self.tiles_x,
+        };
+        let job = |first_row: usize, tiles: &mut [TileNeed], which: &[bool]| {
+            for (i, (t, &stale)) in tiles.iter_mut().zip(which).enumerate() {
+                if stale {
+                    *t = geometry.empty(first_row * tiles_x + i);
+                }
+            }
+            for (r, (tiles, which)) in tiles
+                .chunks_mut(tiles_x)
+                .zip(which.chunks(tiles_x))
+                .enumerate()
+            {
+                let ty = (first_row + r) as u32;
+                add_tile_row(
+                    rows, layout, resolved, params, &kappas, &geometry, ty, tiles, which,
+                );
+            }
+        };
+        // Threads only for work worth one (a patch's few tiles are done here).
+        let pixels = stale as u64 * u64::from(self.tile).pow(2);
+        let threads = if pixels < MIN_THREAD_PIXELS {
+            1
+        } else {
+            threads.max(1)
+        };
+        let per = (self.tiles_y as usize).div_ceil(threads).max(1);
+        if threads == 1 {
+            job(0, &mut self.tiles, which);
+        } else {
+            std::thread::scope(|scope| {
+                for (c, (tiles, which)) in self
+                    .tiles
+                    .chunks_mut(per * tiles_x)
+                    .zip(which.chunks(per * tiles_x))
+                    .enumerate()
+                {
+                    let job = &job;
+                    scope.spawn(move || job(c * per, tiles, which));
+                }
+            });
+        }
+        for (t, _) in self.tiles.iter_mut().zip(which).filter(|(_, &s)| s) {
+            t.need = t.score();
+        }
     }
 
     /// The whole frame's figures, for a map built with `params`.
@@ -405,6 +453,108 @@ impl NeedMap {
     }
 }
 
+/// The tiling of a need map.
+struct Geometry {
+    width: u32,
+    height: u32,
+    tile: u32,
+    tiles_x: u32,
+}
+
+impl Geometry {
+    /// Tile `i` (row-major) with nothing added yet.
+    fn empty(&self, i: usize) -> TileNeed {
+        let (tx, ty) = (i as u32 % self.tiles_x, i as u32 / self.tiles_x);
+        let (x, y) = (tx * self.tile, ty * self.tile);
+        TileNeed {
+            x,
+            y,
+            width: self.tile.min(self.width - x),
+            height: self.tile.min(self.height - y),
+            spp_min: u64::MAX,
+            ..TileNeed::default()
+        }
+    }
+}
+
+/// Every row of cells of the frame held as `bands`, checked to be the frame `resolved` is of.
+fn rows_of<'s>(bands: &[&'s FrameState], resolved: &Resolved) -> Result<Vec<&'s [u64]>, NeedError> {
+    let (width, height, rows) = crate::resolve::frame_rows(bands)?;
+    let pixels = width as usize * height as usize;
+    if (width, height) != (resolved.width, resolved.height)
+        || [
+            resolved.spp.len(),
+            resolved.mean.len(),
+            resolved.removed.len(),
+        ] != [pixels; 3]
+    {
+        return Err(TilingError(format!(
+            "bands of a {width}x{height} frame do not belong to the resolved {}x{} frame",
+            resolved.width, resolved.height
+        ))
+        .into());
+    }
+    Ok(rows)
+}
+
+/// Adds the pixels of the tiles of tile row `ty` marked in `which` to `tiles` (that row's
+/// tiles), each tile's pixels row by row, left to right.
+#[allow(clippy::too_many_arguments)]
+fn add_tile_row(
+    rows: &[&[u64]],
+    layout: &CascadeLayout,
+    resolved: &Resolved,
+    params: &ResolveParams,
+    kappas: &[f64],
+    g: &Geometry,
+    ty: u32,
+    tiles: &mut [TileNeed],
+    which: &[bool],
+) {
+    let k = layout.cascades();
+    let len = cell_len(k);
+    let one = 1.0 / COUNT_ONE as f64;
+    let mut counts = [0.0f64; MAX_CASCADES as usize + 2];
+    let y_end = ((ty + 1) * g.tile).min(g.height);
+    for y in ty * g.tile..y_end {
+        let row = rows[y as usize];
+        for (t, _) in tiles.iter_mut().zip(which).filter(|(_, &s)| s) {
+            for x in t.x..t.x + t.width {
+                let cell = &row[x as usize * len..][..len];
+                let i = (y * g.width + x) as usize;
+                let n = resolved.spp[i];
+                t.samples += n;
+                t.spp_min = t.spp_min.min(n);
+                t.spp_max = t.spp_max.max(n);
+                if n == 0 {
+                    t.empty += 1;
+                    continue;
+                }
+                t.mean += layout.luminance(resolved.mean[i].map(f64::from));
+                t.removed += layout.luminance(resolved.removed[i].map(f64::from));
+                for j in 0..k {
+                    counts[j + 1] = cell[4 * j + 3] as f64 * one;
+                }
+                let nf = n as f64;
+                let kappa = match kappas.get(n as usize) {
+                    Some(&kappa) => kappa,
+                    None => params.kappa_at(nf),
+                };
+                let mut deficit = 0.0;
+                for j in 0..k {
+                    let support = counts[j] + counts[j + 1] + counts[j + 2];
+                    let u = (1.0 - (support - params.kappa_min()) / kappa).clamp(0.0, 1.0);
+                    if u > 0.0 {
+                        let b = [0, 1, 2].map(|c| cascade_units(cell, j, c));
+                        deficit += u * layout.luminance(b) * layout.unit_value(j);
+                    }
+                }
+                t.deficit += deficit / nf;
+            }
+        }
+    }
+}
+
 impl NeedMap {
     /// The map with `base / (spp + 1)` added to every tile's need, `spp` the tile's mean
     /// samples per pixel: the doubt every tile has that the score cannot see. The score counts
@@ -456,7 +606,7 @@ pub enum NeedError {
 mod tests {
     use super::*;
     use crate::layout::{CascadeLayout, REC709_LUMINANCE};
-    use crate::resolve::resolve_bands;
+    use crate::resolve::{resolve_bands, resolve_region_into, Rewritten};
 
     /// A 2x1 frame with `c0 = 1`, so grey 0.5 lies wholly in cascade 0 with one count per
     /// sample: pixel A has 8 samples, pixel B has 2.
@@ -551,6 +701,92 @@ mod tests {
                 "n {n}: deficit {deficit}, by hand {expected}"
             );
         }
+    }
+
+    /// A frame of `w` x `h` pixels, a firefly scene's `passes` passes, held as `bands` bands.
+    fn firefly_bands(w: u32, h: u32, passes: u64, bands: u32) -> (FrameState, Vec<FrameState>) {
+        let scene = splatd_scenes::synth::FireflyScene::new(w, h, 11);
+        let mut state = FrameState::new(w, h, CascadeLayout::with_defaults());
+        for pass in 0..passes {
+            state.splat_all(scene.pass(pass));
+        }
+        let mut held = FrameState::bands(w, h, bands, state.layout());
+        for band in &mut held {
+            band.merge_overlap(&state).unwrap();
+        }
+        (state, held)
+    }
+
+    /// The map is the same, to the last bit, whatever the number of threads (the frame is
+    /// large enough for threads to be used) and however the frame is split into bands.
+    #[test]
+    fn a_map_is_the_same_on_any_number_of_threads() {
+        let (w, h) = (320, 240);
+        assert!(
+            w * h >= MIN_THREAD_PIXELS as u32,
+            "large enough for threads"
+        );
+        let (state, bands) = firefly_bands(w, h, 2, 5);
+        let bands: Vec<&FrameState> = bands.iter().collect();
+        let params = ResolveParams::with_defaults();
+        let resolved = resolve_bands(&[&state], &params, 1).unwrap();
+        let one = NeedMap::build(&[&state], &resolved, &params, DEFAULT_NEED_TILE).unwrap();
+        assert!(one.tiles.iter().any(|t| t.deficit > 0.0 && t.removed > 0.0));
+        for threads in [2, 3, 7] {
+            let many =
+                NeedMap::build_on(&bands, &resolved, &params, DEFAULT_NEED_TILE, threads).unwrap();
+            assert!(many == one, "{threads} threads");
+            let odd = NeedMap::build_on(&bands, &resolved, &params, 7, threads).unwrap();
+            assert!(odd == NeedMap::build(&[&state], &resolved, &params, 7).unwrap());
+        }
+    }
+
+    /// After batches in a few places, the map brought up to date over the pixels the patched
+    /// resolve rewrote is the map built afresh, and only the tiles there were made again.
+    #[test]
+    fn an_updated_map_is_the_map_built_afresh() {
+        let (w, h) = (320, 240);
+        let (mut state, _) = firefly_bands(w, h, 2, 1);
+        let params = ResolveParams::with_defaults();
+        let mut resolved = resolve_bands(&[&state], &params, 1).unwrap();
+        let mut map =
+            NeedMap::build_on(&[&state], &resolved, &params, DEFAULT_NEED_TILE, 2).unwrap();
+        let changes = [
+            vec![Rect::pixel(5, 7)],
+            vec![Rect::new(100, 50, 140, 60), Rect::pixel(319, 239)],
+            vec![Rect::new(200, 0, 201, 240)],
+        ];
+        for (round, rects) in changes.iter().enumerate() {
+            for r in rects {
+                for y in r.y0..r.y1 {
+                    for x in r.x0..r.x1 {
+                        let v = 0.1 + (x * 7 + y * 3 + round as u32) as f32 % 5.0;
+                        state.splat(x, y, [v * 900.0, v, v]).unwrap();
+                    }
+                }
+            }
+            let rewritten =
+                resolve_region_into(&[&state], &params, 2, rects, &mut resolved).unwrap();
+            let Rewritten::Areas(areas) = rewritten else {
+                panic!("round {round}: a patch, not the whole frame");
+            };
+            let made = map
+                .update(&[&state], &resolved, &params, &areas, 2)
+                .unwrap();
+            assert!(
+                made > 0 && made < map.tiles.len() / 2,
+                "round {round}: {made} tiles"
+            );
+            let fresh = NeedMap::build(&[&state], &resolved, &params, DEFAULT_NEED_TILE).unwrap();
+            assert!(map == fresh, "round {round}");
+            assert_eq!(map.convergence(&params), fresh.convergence(&params));
+        }
+        let other = FrameState::new(w, h + 1, state.layout().clone());
+        let resolved_other = resolve_bands(&[&other], &params, 1).unwrap();
+        assert!(matches!(
+            map.update(&[&other], &resolved_other, &params, &[], 1),
+            Err(NeedError::Tiling(_))
+        ));
     }
 
     #[test]

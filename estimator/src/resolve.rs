@@ -380,7 +380,9 @@ pub fn resolve_bands_with(
 
 /// The rows of the frame that `bands` tile (checked: same size and layout, in order, every
 /// row once), and the frame's size.
-fn frame_rows<'s>(bands: &[&'s FrameState]) -> Result<(u32, u32, Vec<&'s [u64]>), TilingError> {
+pub(crate) fn frame_rows<'s>(
+    bands: &[&'s FrameState],
+) -> Result<(u32, u32, Vec<&'s [u64]>), TilingError> {
     let first = bands
         .first()
         .ok_or_else(|| TilingError("no bands".into()))?;
