@@ -102,7 +102,7 @@ pub async fn need_map(
                     kept.with_need_since(frame, threads, wanted, |map, _| to_api(frame.id(), map))
                 } else {
                     let map = kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
-                        NeedMap::build(&cut.band_refs(), resolved, &params, tile)
+                        NeedMap::build_on(&cut.band_refs(), resolved, &params, tile, threads)
                     });
                     to_api(
                         frame.id(),

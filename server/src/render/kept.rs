@@ -24,7 +24,11 @@
 //! most `MAX_KEPT + 1` resolves are held, and the spare goes as soon as a frame takes it.
 //!
 //! With a kept resolve can go the frame's need map at the default tile size, made from the same
-//! cut when figures are asked for, whose figures are filed in the frame's history. The renders
+//! cut when figures are asked for, whose figures are filed in the frame's history. It is
+//! patched like the resolve: the pixels each patch rewrote are remembered until figures are
+//! asked for, and then only the map's tiles meeting them are made again (`NeedMap::update`), so
+//! figures after a batch in one worker's tile cost about what the patch did, not a read of the
+//! whole state. The renders
 //! of a changing frame that start together when its pace ends (an image, the live page's
 //! previews, a dashboard's figures) share one resolve instead of each patching the changes the
 //! one before it left, and figures asked for after an image of the same version cost a need
@@ -34,7 +38,7 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
 use splatd_estimator::{
-    resolve_bands_into, resolve_region_into, NeedMap, Rect, ResolveParams, Resolved,
+    resolve_bands_into, resolve_region_into, NeedMap, Rect, ResolveParams, Resolved, Rewritten,
     DEFAULT_NEED_TILE,
 };
 
@@ -50,7 +54,12 @@ const MAX_PATCHES: usize = 16;
 struct Kept {
     version: u64,
     resolved: Option<Resolved>,
+    /// The need map at the default tile, of the frame at `need_version` except the tiles that
+    /// meet `stale`: the pixels patches rewrote since (renders of images do not bring it up to
+    /// date; the next figures render makes those tiles again).
     need: Option<NeedMap>,
+    need_version: u64,
+    stale: Vec<Rect>,
 }
 
 type Slot = Arc<Mutex<Kept>>;
@@ -63,6 +72,9 @@ pub struct KeptResolves {
     patched: std::sync::atomic::AtomicU64,
     /// Renders that resolved the whole frame at its own parameters.
     whole: std::sync::atomic::AtomicU64,
+    /// Need-map tiles made (every tile of a map built whole, the stale ones of a map brought
+    /// up to date).
+    need_tiles: std::sync::atomic::AtomicU64,
     /// The buffers of the last resolve that stopped being kept, for the next first resolve.
     spare: Mutex<Option<Resolved>>,
 }
@@ -87,6 +99,12 @@ impl KeptResolves {
     /// How many renders resolved a whole frame at its own parameters so far.
     pub fn whole(&self) -> u64 {
         self.whole.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    /// How many need-map tiles renders made so far (all of a map built whole, the stale ones
+    /// of a map brought up to date).
+    pub fn need_tiles(&self) -> u64 {
+        self.need_tiles.load(std::sync::atomic::Ordering::Relaxed)
     }
 
     fn slot(&self, frame: &ShardedFrame) -> Slot {
@@ -122,6 +140,7 @@ impl KeptResolves {
         };
         if let Some(resolved) = kept.resolved.take() {
             kept.need = None;
+            kept.stale.clear();
             *self.spare.lock().unwrap_or_else(|e| e.into_inner()) = Some(resolved);
         }
     }
@@ -189,8 +208,16 @@ impl KeptResolves {
                 match frame.changes_between(kept.version, cut.version) {
                     Some(changed) => {
                         let changed = Rect::merge(&changed, MAX_PATCHES);
-                        resolve_region_into(&bands, params, threads, &changed, resolved)
-                            .expect("a frame's bands tile it");
+                        match resolve_region_into(&bands, params, threads, &changed, resolved)
+                            .expect("a frame's bands tile it")
+                        {
+                            // The need map's tiles there are made again when figures are asked.
+                            Rewritten::Areas(areas) => {
+                                kept.stale.extend(areas);
+                                kept.stale = Rect::merge(&kept.stale, MAX_PATCHES);
+                            }
+                            Rewritten::Whole => kept.need = None,
+                        }
                         self.patched
                             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         Made::Patched
@@ -211,21 +238,41 @@ impl KeptResolves {
                 Made::Whole
             }
         };
-        if made != Made::Kept {
-            self.whole.fetch_add(
-                u64::from(made == Made::Whole),
-                std::sync::atomic::Ordering::Relaxed,
-            );
+        if made == Made::Whole {
+            self.whole
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             kept.need = None;
         }
-        if need && kept.need.is_none() {
+        if kept.need.is_none() {
+            kept.stale.clear();
+        }
+        if need && (kept.need.is_none() || kept.need_version != cut.version) {
             let resolved = kept.resolved.as_ref().expect("kept above");
-            let map = NeedMap::build(&bands, resolved, params, DEFAULT_NEED_TILE)
-                .expect("a frame's bands tile it");
+            let map = match kept.need.take() {
+                // Patched since: the tiles the patches rewrote are made again.
+                Some(mut map) => {
+                    let made = map
+                        .update(&bands, resolved, params, &kept.stale, threads)
+                        .expect("a frame's bands tile it");
+                    self.need_tiles
+                        .fetch_add(made as u64, std::sync::atomic::Ordering::Relaxed);
+                    map
+                }
+                None => {
+                    let map =
+                        NeedMap::build_on(&bands, resolved, params, DEFAULT_NEED_TILE, threads)
+                            .expect("a frame's bands tile it");
+                    self.need_tiles
+                        .fetch_add(map.tiles.len() as u64, std::sync::atomic::Ordering::Relaxed);
+                    map
+                }
+            };
+            kept.stale.clear();
             let mut history = frame.history();
             let seconds = history.seconds();
             history.record(cut.version, seconds, map.convergence(params));
             kept.need = Some(map);
+            kept.need_version = cut.version;
         }
         kept.version = cut.version;
         drop(bands);
@@ -246,13 +293,13 @@ impl KeptResolves {
         {
             let slot = self.slot(frame);
             let guard = slot.lock().unwrap_or_else(|e| e.into_inner());
-            if let Some(need) = guard.need.as_ref().filter(|_| guard.version >= wanted) {
-                return use_it(need, guard.version);
+            if let Some(need) = guard.need.as_ref().filter(|_| guard.need_version >= wanted) {
+                return use_it(need, guard.need_version);
             }
         }
         self.bring_up_to_date(frame, threads, true, |kept, cut, _| {
             drop(cut);
-            use_it(kept.need.as_ref().expect("made above"), kept.version)
+            use_it(kept.need.as_ref().expect("made above"), kept.need_version)
         })
     }
 
@@ -487,5 +534,62 @@ mod tests {
         assert_eq!(samples, u64::from(2 * w * h));
         assert_eq!(frame.history().latest_version(), Some(now));
         assert_eq!(kept.patched(), 1);
+    }
+
+    /// After batches in one worker's tile, figures renders make again only the need map's
+    /// tiles that the patched resolve rewrote, also when an image render patched the resolve
+    /// in between (its rewritten pixels are remembered for the next figures), and each map is
+    /// the map built afresh from a fresh resolve of the same cut (the oracle).
+    #[test]
+    fn figures_after_a_tile_make_only_the_tiles_near_it_again() {
+        let (w, h) = (320, 240);
+        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let params = frame.spec().resolve;
+        let scene = FireflyScene::new(w, h, 9);
+        let records = (0..2)
+            .flat_map(|p| scene.pass(p))
+            .map(|(x, y, rgb)| Record::new(x, y, rgb));
+        frame
+            .ingest(&Batch::new("f", 1, 0, records.collect()).unwrap())
+            .unwrap();
+        let kept = KeptResolves::default();
+        let all = u64::from(w.div_ceil(DEFAULT_NEED_TILE) * h.div_ceil(DEFAULT_NEED_TILE));
+        let figures = |kept: &KeptResolves| {
+            let (tiles, version) =
+                kept.with_need_since(&frame, 2, frame.version(), |m, v| (m.tiles.clone(), v));
+            let cut = frame.cut();
+            assert_eq!(version, cut.version);
+            let resolved = cut.resolve(&params, 1);
+            let oracle =
+                NeedMap::build(&cut.band_refs(), &resolved, &params, DEFAULT_NEED_TILE).unwrap();
+            assert!(tiles == oracle.tiles, "the map of a fresh resolve");
+        };
+        figures(&kept);
+        assert_eq!(kept.need_tiles(), all, "the first map is built whole");
+        for seq in 1..5u64 {
+            let x0 = (seq as u32 * 29) % (w - 16);
+            let records: Vec<Record> = scene
+                .pass(seq + 10)
+                .filter(|&(x, y, _)| (x0..x0 + 16).contains(&x) && (40..56).contains(&y))
+                .map(|(x, y, rgb)| Record::new(x, y, rgb))
+                .collect();
+            frame
+                .ingest(&Batch::new("f", 1, seq, records).unwrap())
+                .unwrap();
+            if seq % 2 == 0 {
+                // An image first: it patches the resolve and leaves the map stale.
+                kept.with_resolved(&frame, &params, 1, |_, _, made| {
+                    assert_eq!(made, Made::Patched)
+                });
+            }
+            let before = kept.need_tiles();
+            figures(&kept);
+            let made = kept.need_tiles() - before;
+            assert!(
+                made > 0 && made < all / 2,
+                "batch {seq}: {made} of {all} tiles"
+            );
+        }
+        assert_eq!(kept.whole(), 1, "only the first resolve was whole");
     }
 }
