@@ -337,6 +337,25 @@ mod tests {
     use splatd_proto::{Batch, Record};
     use splatd_scenes::synth::FireflyScene;
 
+    /// Ingests batch `seq`: a worker's tile, the square of `side` pixels at `(x0, y0)` of the
+    /// scene's pass `seq + 10` (fireflies included).
+    fn ingest_tile(
+        frame: &ShardedFrame,
+        scene: &FireflyScene,
+        seq: u64,
+        (x0, y0): (u32, u32),
+        side: u32,
+    ) {
+        let records: Vec<Record> = scene
+            .pass(seq + 10)
+            .filter(|&(x, y, _)| (x0..x0 + side).contains(&x) && (y0..y0 + side).contains(&y))
+            .map(|(x, y, rgb)| Record::new(x, y, rgb))
+            .collect();
+        frame
+            .ingest(&Batch::new("f", 1, seq, records).unwrap())
+            .unwrap();
+    }
+
     /// Renders after batches in one tile patch the kept resolve, and every patched resolve is
     /// bit for bit a fresh resolve of the same cut (the oracle); a pass, which changes every
     /// pixel, and other parameters are resolved whole.
@@ -368,16 +387,7 @@ mod tests {
         check(Made::Whole);
         check(Made::Kept);
         for seq in 1..6u64 {
-            // A worker's tile, fireflies included.
-            let x0 = (seq as u32 * 13) % (w - 12);
-            let records: Vec<Record> = scene
-                .pass(seq + 10)
-                .filter(|&(x, y, _)| (x0..x0 + 12).contains(&x) && (20..32).contains(&y))
-                .map(|(x, y, rgb)| Record::new(x, y, rgb))
-                .collect();
-            frame
-                .ingest(&Batch::new("f", 1, seq, records).unwrap())
-                .unwrap();
+            ingest_tile(&frame, &scene, seq, ((seq as u32 * 13) % (w - 12), 20), 12);
             check(Made::Patched);
         }
         assert_eq!(kept.patched(), 5);
@@ -567,15 +577,7 @@ mod tests {
         figures(&kept);
         assert_eq!(kept.need_tiles(), all, "the first map is built whole");
         for seq in 1..5u64 {
-            let x0 = (seq as u32 * 29) % (w - 16);
-            let records: Vec<Record> = scene
-                .pass(seq + 10)
-                .filter(|&(x, y, _)| (x0..x0 + 16).contains(&x) && (40..56).contains(&y))
-                .map(|(x, y, rgb)| Record::new(x, y, rgb))
-                .collect();
-            frame
-                .ingest(&Batch::new("f", 1, seq, records).unwrap())
-                .unwrap();
+            ingest_tile(&frame, &scene, seq, ((seq as u32 * 29) % (w - 16), 40), 16);
             if seq % 2 == 0 {
                 // An image first: it patches the resolve and leaves the map stale.
                 kept.with_resolved(&frame, &params, 1, |_, _, made| {
