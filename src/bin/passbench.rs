@@ -14,8 +14,8 @@
 //! `splatd serve` (the binary beside this one) and times, in pairs whose order alternates:
 //!
 //! * splatd: `splatd post --create --frame F pass_*.exr` (the CLI, as an operator runs it) to a
-//!   fresh frame, then `GET /v1/frames/F/image.exr` written to a file (resolve + EXR encode +
-//!   transfer);
+//!   fresh frame, then `GET /v1/frames/F/image.exr` written to a file as it arrives (resolve +
+//!   EXR encode + transfer);
 //! * oiiotool: `oiiotool p0 p1 --add p2 --add ... --mulc 1/N -o avg.exr`.
 //!
 //! It prints each pair, the median ratio splatd / oiiotool beside its goal (<= 1.0), splatd's
@@ -212,6 +212,30 @@ impl Bench<'_> {
         })
     }
 
+    /// `GET path` written to `out` as its chunks arrive, as `curl -o` does (the whole body
+    /// collected in memory and copied first took 0.4 s more than the resolve and the encoding on
+    /// a VM whose fresh memory faults in slowly); returns its bytes.
+    fn download(&self, path: &str, out: &Path) -> Result<usize> {
+        use std::io::Write;
+        self.runtime.block_on(async {
+            let mut r = self
+                .http
+                .get(format!("{}{path}", self.server.url))
+                .send()
+                .await?;
+            if !r.status().is_success() {
+                bail!("GET {path}: HTTP {}: {}", r.status(), r.text().await?);
+            }
+            let mut file = std::fs::File::create(out)?;
+            let mut bytes = 0;
+            while let Some(chunk) = r.chunk().await? {
+                file.write_all(&chunk)?;
+                bytes += chunk.len();
+            }
+            Ok(bytes)
+        })
+    }
+
     fn delete(&self, frame: &str) -> Result<()> {
         self.runtime.block_on(async {
             let r = self
@@ -232,15 +256,14 @@ impl Bench<'_> {
         let t0 = Instant::now();
         self.post(frame)?;
         let t1 = Instant::now();
-        let image = self.get(&format!("/v1/frames/{frame}/image.exr"))?;
-        std::fs::write(out, &image)?;
+        let bytes = self.download(&format!("/v1/frames/{frame}/image.exr"), out)?;
         let t2 = Instant::now();
         let run = SplatdRun {
             post: (t1 - t0).as_secs_f64(),
             fetch: (t2 - t1).as_secs_f64(),
             server_cpu: cpu_of(pid, self.tick)? - s0,
             cli_cpu: children_cpu(self.tick)? - c0,
-            bytes: image.len(),
+            bytes,
         };
         self.delete(frame)?;
         Ok(run)
@@ -407,11 +430,17 @@ fn bench(args: &Args, dir: &Path, tick: f64) -> Result<()> {
             bench.post(&frame)?;
             let before = bench.denoise_seconds()?;
             let t = Instant::now();
-            let image = bench.get(&format!("/v1/frames/{frame}/image.exr?denoise=oidn"))?;
+            let bytes = bench.download(
+                &format!("/v1/frames/{frame}/image.exr?denoise=oidn"),
+                &dir.join(format!("denoised_{run}.exr")),
+            )?;
             let total = t.elapsed().as_secs_f64();
             let oidn = bench.denoise_seconds()? - before;
             let t = Instant::now();
-            bench.get(&format!("/v1/frames/{frame}/image.exr"))?;
+            bench.download(
+                &format!("/v1/frames/{frame}/image.exr"),
+                &dir.join(format!("plain_{run}.exr")),
+            )?;
             let plain = t.elapsed().as_secs_f64();
             bench.delete(&frame)?;
             if oidn <= 0.0 {
@@ -423,7 +452,7 @@ fn bench(args: &Args, dir: &Path, tick: f64) -> Result<()> {
                  s, beyond OIDN {beyond:.2} s ({:.2} of OIDN's; {:.1} MB); the plain image.exr \
                  of the same frame after it {plain:.2} s | {}",
                 beyond / oidn,
-                image.len() as f64 / 1e6,
+                bytes as f64 / 1e6,
                 uptime()
             );
             ratios.push(beyond / oidn);
