@@ -28,11 +28,10 @@
 //! patched like the resolve: the pixels each patch rewrote are remembered until figures are
 //! asked for, and then only the map's tiles meeting them are made again (`NeedMap::update`), so
 //! figures after a batch in one worker's tile cost about what the patch did, not a read of the
-//! whole state. The renders
-//! of a changing frame that start together when its pace ends (an image, the live page's
-//! previews, a dashboard's figures) share one resolve instead of each patching the changes the
-//! one before it left, and figures asked for after an image of the same version cost a need
-//! map, not a resolve.
+//! whole state. The renders of a changing frame that start together when its pace ends (an
+//! image, the live page's previews, a dashboard's figures) share one resolve instead of each
+//! patching the changes the one before it left, and figures asked for after an image of the
+//! same version cost a need map, not a resolve.
 
 use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
