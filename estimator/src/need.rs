@@ -755,11 +755,12 @@ mod tests {
             vec![Rect::pixel(5, 7)],
             vec![Rect::new(100, 50, 140, 60), Rect::pixel(319, 239)],
             vec![Rect::new(200, 0, 201, 240)],
+            vec![Rect::new(300, 200, 400, 300)],
         ];
         for (round, rects) in changes.iter().enumerate() {
             for r in rects {
-                for y in r.y0..r.y1 {
-                    for x in r.x0..r.x1 {
+                for y in r.y0..r.y1.min(h) {
+                    for x in r.x0..r.x1.min(w) {
                         let v = 0.1 + (x * 7 + y * 3 + round as u32) as f32 % 5.0;
                         state.splat(x, y, [v * 900.0, v, v]).unwrap();
                     }
@@ -767,9 +768,12 @@ mod tests {
             }
             let rewritten =
                 resolve_region_into(&[&state], &params, 2, rects, &mut resolved).unwrap();
-            let Rewritten::Areas(areas) = rewritten else {
+            let Rewritten::Areas(mut areas) = rewritten else {
                 panic!("round {round}: a patch, not the whole frame");
             };
+            // More than was rewritten, past the frame's corner too: those tiles are made again
+            // to the same figures.
+            areas.push(Rect::new(w - 5, h - 5, w + 50, h + 50));
             let made = map
                 .update(&[&state], &resolved, &params, &areas, 2)
                 .unwrap();
