@@ -198,18 +198,22 @@ impl Bench<'_> {
             .args(self.files))
     }
 
+    /// The response to `GET path`, an error unless it succeeded.
+    async fn fetch(&self, path: &str) -> Result<reqwest::Response> {
+        let r = self
+            .http
+            .get(format!("{}{path}", self.server.url))
+            .send()
+            .await?;
+        if !r.status().is_success() {
+            bail!("GET {path}: HTTP {}: {}", r.status(), r.text().await?);
+        }
+        Ok(r)
+    }
+
     fn get(&self, path: &str) -> Result<Vec<u8>> {
-        self.runtime.block_on(async {
-            let r = self
-                .http
-                .get(format!("{}{path}", self.server.url))
-                .send()
-                .await?;
-            if !r.status().is_success() {
-                bail!("GET {path}: HTTP {}: {}", r.status(), r.text().await?);
-            }
-            Ok(r.bytes().await?.to_vec())
-        })
+        self.runtime
+            .block_on(async { Ok(self.fetch(path).await?.bytes().await?.to_vec()) })
     }
 
     /// `GET path` written to `out` as its chunks arrive, as `curl -o` does (the whole body
@@ -218,14 +222,7 @@ impl Bench<'_> {
     fn download(&self, path: &str, out: &Path) -> Result<usize> {
         use std::io::Write;
         self.runtime.block_on(async {
-            let mut r = self
-                .http
-                .get(format!("{}{path}", self.server.url))
-                .send()
-                .await?;
-            if !r.status().is_success() {
-                bail!("GET {path}: HTTP {}: {}", r.status(), r.text().await?);
-            }
+            let mut r = self.fetch(path).await?;
             let mut file = std::fs::File::create(out)?;
             let mut bytes = 0;
             while let Some(chunk) = r.chunk().await? {
