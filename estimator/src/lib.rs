@@ -40,8 +40,8 @@ pub use need::{
     MAX_NEED_TILE,
 };
 pub use resolve::{
-    dependency_radius, resolve_bands, resolve_bands_into, resolve_bands_with, resolve_region_into,
-    resolve_region_with, Rect, ResolveParams, Resolved, Rewritten, TilingError, Variant,
+    dependency_radius, reached_by, resolve_bands, resolve_bands_into, resolve_bands_with,
+    resolve_region_into, resolve_region_with, Rect, ResolveParams, Resolved, TilingError, Variant,
     DEFAULT_KAPPA, DEFAULT_KAPPA_EXPONENT, DEFAULT_KAPPA_MIN, DEFAULT_VARIANT, SHADER_E_MIN_FLOOR,
 };
 pub use resolve_spread::{

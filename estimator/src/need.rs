@@ -274,7 +274,7 @@ impl NeedMap {
     }
 
     /// Brings the map up to date after the cells and the resolved pixels of the frame changed
-    /// only within `areas` (what [`crate::resolve_region_into`] says it rewrote): the tiles
+    /// only within `areas` (what [`crate::reached_by`] gives for the changed cells): the tiles
     /// that meet them are made again, and the map is the one [`NeedMap::build_on`] gives,
     /// in every bit. Returns the number of tiles made again. A frame of another size is refused.
     pub fn update(
@@ -606,7 +606,7 @@ pub enum NeedError {
 mod tests {
     use super::*;
     use crate::layout::{CascadeLayout, REC709_LUMINANCE};
-    use crate::resolve::{resolve_bands, resolve_region_into, Rewritten};
+    use crate::resolve::{reached_by, resolve_bands, resolve_bands_into, resolve_region_into};
 
     /// A 2x1 frame with `c0 = 1`, so grey 0.5 lies wholly in cascade 0 with one count per
     /// sample: pixel A has 8 samples, pixel B has 2.
@@ -741,8 +741,9 @@ mod tests {
         }
     }
 
-    /// After batches in a few places, the map brought up to date over the pixels the patched
-    /// resolve rewrote is the map built afresh, and only the tiles there were made again.
+    /// After batches in a few places, the map brought up to date over the pixels the changes
+    /// reach is the map built afresh, whether the resolve was patched or made whole, and only
+    /// the tiles there were made again.
     #[test]
     fn an_updated_map_is_the_map_built_afresh() {
         let (w, h) = (320, 240);
@@ -766,13 +767,16 @@ mod tests {
                     }
                 }
             }
-            let rewritten =
+            // Patched, or (every other round) resolved whole: outside what the change reaches
+            // the outputs are the same bits either way.
+            if round % 2 == 0 {
                 resolve_region_into(&[&state], &params, 2, rects, &mut resolved).unwrap();
-            let Rewritten::Areas(mut areas) = rewritten else {
-                panic!("round {round}: a patch, not the whole frame");
-            };
-            // More than was rewritten, past the frame's corner too: those tiles are made again
-            // to the same figures.
+            } else {
+                resolve_bands_into(&[&state], &params, 2, &mut resolved).unwrap();
+            }
+            let mut areas = reached_by(&params, rects, w, h);
+            // More than the change reaches, past the frame's corner too: those tiles are made
+            // again to the same figures.
             areas.push(Rect::new(w - 5, h - 5, w + 50, h + 50));
             let made = map
                 .update(&[&state], &resolved, &params, &areas, 2)

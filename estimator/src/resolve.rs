@@ -30,7 +30,7 @@ mod reference_spread;
 mod region;
 pub(crate) mod rows;
 
-pub use region::{dependency_radius, resolve_region_into, resolve_region_with, Rect, Rewritten};
+pub use region::{dependency_radius, reached_by, resolve_region_into, resolve_region_with, Rect};
 use rows::{Consts, Layers, Part, Rows};
 
 /// Which weight formula to use.

@@ -154,16 +154,6 @@ impl Rect {
     }
 }
 
-/// The pixels a [`resolve_region_into`] wrote: what a caller that keeps something made from the
-/// resolved layers (a need map) makes again.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Rewritten {
-    /// The whole frame was resolved.
-    Whole,
-    /// Only the pixels of these rectangles (none if nothing changed).
-    Areas(Vec<Rect>),
-}
-
 /// At most this many crops per region resolve (more changed rectangles are merged).
 const MAX_CROPS: usize = 16;
 
@@ -208,6 +198,21 @@ fn affected(changed: &Rect, (reach, tile): (u32, u32), width: u32, height: u32) 
     )
 }
 
+/// The pixels of a `width` x `height` frame whose outputs with `params` a change of the cells
+/// in `changed` can reach (at most `MAX_CROPS` rectangles, each a union of some of the
+/// areas): what [`resolve_region_into`] resolves again, and what anything made from the
+/// resolved layers and the cells of single pixels (a need map's tiles: `NeedMap::update`) must
+/// make again. Every output outside them is the same bits as before the change, however the
+/// resolve after it was made.
+pub fn reached_by(params: &ResolveParams, changed: &[Rect], width: u32, height: u32) -> Vec<Rect> {
+    let reach = reach(params);
+    let areas: Vec<Rect> = changed
+        .iter()
+        .map(|r| affected(r, reach, width, height))
+        .collect();
+    Rect::merge(&areas, MAX_CROPS)
+}
+
 /// Brings `out`, a resolve of the same frame with the same `params`, up to date after the
 /// cells of the pixels in `changed` changed (rectangles in the frame's pixels; overlapping,
 /// empty or past the frame's edge is fine; every pixel whose cell changed must be in one):
@@ -223,8 +228,6 @@ fn affected(changed: &Rect, (reach, tile): (u32, u32), width: u32, height: u32) 
 /// [`resolve_bands_into`] or this function does). The caller vouches that `out` holds a resolve
 /// of this frame and that `changed` covers every change since.
 ///
-/// Returns the pixels it wrote ([`Rewritten`]): every output outside them is as it was.
-///
 /// [`resolve_bands`]: super::resolve_bands
 /// [`resolve_bands_into`]: super::resolve_bands_into
 pub fn resolve_region_into(
@@ -233,7 +236,7 @@ pub fn resolve_region_into(
     threads: usize,
     changed: &[Rect],
     out: &mut Resolved,
-) -> Result<Rewritten, TilingError> {
+) -> Result<(), TilingError> {
     resolve_region_with(Kernel::detect(), bands, params, threads, changed, out)
 }
 
@@ -248,7 +251,7 @@ pub fn resolve_region_with(
     threads: usize,
     changed: &[Rect],
     out: &mut Resolved,
-) -> Result<Rewritten, TilingError> {
+) -> Result<(), TilingError> {
     region(kernel, bands, params, threads, changed, out, FULL_ABOVE)
 }
 
@@ -262,7 +265,7 @@ fn region(
     changed: &[Rect],
     out: &mut Resolved,
     full_above: f64,
-) -> Result<Rewritten, TilingError> {
+) -> Result<(), TilingError> {
     assert!(kernel.available(), "{kernel:?} kernel on a CPU without it");
     let (width, height, rows) = frame_rows(bands)?;
     let pixels = width as usize * height as usize;
@@ -275,22 +278,17 @@ fn region(
         ] == [pixels; 4]
         && out.scratch.resolved_with == Some(*params);
     if !patchable {
-        return resolve_bands_with(kernel, bands, params, threads, out).map(|()| Rewritten::Whole);
+        return resolve_bands_with(kernel, bands, params, threads, out);
     }
-    let reach = reach(params);
     // The crop around an affected region: what its outputs read.
-    let margin = reach.0;
-    let areas: Vec<Rect> = changed
-        .iter()
-        .map(|r| affected(r, reach, width, height))
-        .collect();
-    let areas = Rect::merge(&areas, MAX_CROPS);
+    let margin = reach(params).0;
+    let areas = reached_by(params, changed, width, height);
     let cost: u64 = areas
         .iter()
         .map(|a| a.dilate(margin, width, height).area())
         .sum();
     if cost as f64 > full_above * pixels as f64 {
-        return resolve_bands_with(kernel, bands, params, threads, out).map(|()| Rewritten::Whole);
+        return resolve_bands_with(kernel, bands, params, threads, out);
     }
     let layout = bands[0].layout();
     let len = cell_len(layout.cascades());
@@ -332,7 +330,7 @@ fn region(
         }
     }
     out.scratch.crop = Some(crop);
-    Ok(Rewritten::Areas(areas))
+    Ok(())
 }
 
 #[cfg(test)]

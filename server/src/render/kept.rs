@@ -25,10 +25,10 @@
 //!
 //! With a kept resolve can go the frame's need map at the default tile size, made from the same
 //! cut when figures are asked for, whose figures are filed in the frame's history. It is
-//! patched like the resolve: the pixels each patch rewrote are remembered until figures are
-//! asked for, and then only the map's tiles meeting them are made again (`NeedMap::update`), so
-//! figures after a batch in one worker's tile cost about what the patch did, not a read of the
-//! whole state. The renders of a changing frame that start together when its pace ends (an
+//! patched like the resolve: when figures are asked for, only the map's tiles that the frame's
+//! changes since the map reach are made again (`reached_by`, `NeedMap::update`), so figures
+//! after a batch in one worker's tile cost about what the patch did, not a read of the whole
+//! state. The renders of a changing frame that start together when its pace ends (an
 //! image, the live page's previews, a dashboard's figures) share one resolve instead of each
 //! patching the changes the one before it left, and figures asked for after an image of the
 //! same version cost a need map, not a resolve.
@@ -37,7 +37,7 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
 use splatd_estimator::{
-    resolve_bands_into, resolve_region_into, NeedMap, Rect, ResolveParams, Resolved, Rewritten,
+    reached_by, resolve_bands_into, resolve_region_into, NeedMap, Rect, ResolveParams, Resolved,
     DEFAULT_NEED_TILE,
 };
 
@@ -53,12 +53,11 @@ const MAX_PATCHES: usize = 16;
 struct Kept {
     version: u64,
     resolved: Option<Resolved>,
-    /// The need map at the default tile, of the frame at `need_version` except the tiles that
-    /// meet `stale`: the pixels patches rewrote since (renders of images do not bring it up to
-    /// date; the next figures render makes those tiles again).
+    /// The need map at the default tile, of the frame at `need_version` (renders of images
+    /// do not bring it up to date; the next figures render makes again the tiles that the
+    /// frame's changes since reach).
     need: Option<NeedMap>,
     need_version: u64,
-    stale: Vec<Rect>,
 }
 
 type Slot = Arc<Mutex<Kept>>;
@@ -139,7 +138,6 @@ impl KeptResolves {
         };
         if let Some(resolved) = kept.resolved.take() {
             kept.need = None;
-            kept.stale.clear();
             *self.spare.lock().unwrap_or_else(|e| e.into_inner()) = Some(resolved);
         }
     }
@@ -207,16 +205,8 @@ impl KeptResolves {
                 match frame.changes_between(kept.version, cut.version) {
                     Some(changed) => {
                         let changed = Rect::merge(&changed, MAX_PATCHES);
-                        match resolve_region_into(&bands, params, threads, &changed, resolved)
-                            .expect("a frame's bands tile it")
-                        {
-                            // The need map's tiles there are made again when figures are asked.
-                            Rewritten::Areas(areas) => {
-                                kept.stale.extend(areas);
-                                kept.stale = Rect::merge(&kept.stale, MAX_PATCHES);
-                            }
-                            Rewritten::Whole => kept.need = None,
-                        }
+                        resolve_region_into(&bands, params, threads, &changed, resolved)
+                            .expect("a frame's bands tile it");
                         self.patched
                             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         Made::Patched
@@ -237,36 +227,35 @@ impl KeptResolves {
                 Made::Whole
             }
         };
-        if made == Made::Whole {
-            self.whole
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-            kept.need = None;
-        }
-        if kept.need.is_none() {
-            kept.stale.clear();
-        }
+        self.whole.fetch_add(
+            u64::from(made == Made::Whole),
+            std::sync::atomic::Ordering::Relaxed,
+        );
         if need && (kept.need.is_none() || kept.need_version != cut.version) {
             let resolved = kept.resolved.as_ref().expect("kept above");
-            let map = match kept.need.take() {
-                // Patched since: the tiles the patches rewrote are made again.
-                Some(mut map) => {
-                    let made = map
-                        .update(&bands, resolved, params, &kept.stale, threads)
+            // The map's tiles that the changes since it was made reach are made again (however
+            // the resolve was brought up to date, the outputs elsewhere are the same bits); all
+            // of them when those changes are no longer known.
+            let changed = frame.changes_between(kept.need_version, cut.version);
+            let (map, tiles) = match (kept.need.take(), changed) {
+                (Some(mut map), Some(changed)) => {
+                    let (w, h) = (resolved.width, resolved.height);
+                    let areas = reached_by(params, &Rect::merge(&changed, MAX_PATCHES), w, h);
+                    let tiles = map
+                        .update(&bands, resolved, params, &areas, threads)
                         .expect("a frame's bands tile it");
-                    self.need_tiles
-                        .fetch_add(made as u64, std::sync::atomic::Ordering::Relaxed);
-                    map
+                    (map, tiles)
                 }
-                None => {
+                _ => {
                     let map =
                         NeedMap::build_on(&bands, resolved, params, DEFAULT_NEED_TILE, threads)
                             .expect("a frame's bands tile it");
-                    self.need_tiles
-                        .fetch_add(map.tiles.len() as u64, std::sync::atomic::Ordering::Relaxed);
-                    map
+                    let tiles = map.tiles.len();
+                    (map, tiles)
                 }
             };
-            kept.stale.clear();
+            self.need_tiles
+                .fetch_add(tiles as u64, std::sync::atomic::Ordering::Relaxed);
             let mut history = frame.history();
             let seconds = history.seconds();
             history.record(cut.version, seconds, map.convergence(params));
@@ -546,9 +535,9 @@ mod tests {
     }
 
     /// After batches in one worker's tile, figures renders make again only the need map's
-    /// tiles that the patched resolve rewrote, also when an image render patched the resolve
-    /// in between (its rewritten pixels are remembered for the next figures), and each map is
-    /// the map built afresh from a fresh resolve of the same cut (the oracle).
+    /// tiles that the frame's changes since the map reach, also when an image render patched
+    /// the resolve in between (the changes it patched are still the map's to catch up on), and
+    /// each map is the map built afresh from a fresh resolve of the same cut (the oracle).
     #[test]
     fn figures_after_a_tile_make_only_the_tiles_near_it_again() {
         let (w, h) = (320, 240);
