@@ -232,9 +232,6 @@ pub struct NeedMap {
 /// Fewest pixels to make again for which [`NeedMap::build_on`] starts threads.
 const MIN_THREAD_PIXELS: u64 = 1 << 16;
 
-/// Sample counts whose `kappa(N)` [`NeedMap::build`] looks up rather than computes.
-const KAPPA_TABLE: usize = 1024;
-
 impl NeedMap {
     /// The need map of a frame held as `bands` (as for [`crate::resolve_bands`]) whose resolve
     /// with `params` is `resolved`, in tiles of `tile` pixels.
@@ -326,11 +323,7 @@ impl NeedMap {
         if stale == 0 {
             return;
         }
-        // `kappa(N)` of the pixels with fewer than `KAPPA_TABLE` samples, looked up: computed per
-        // pixel, `N.powf` was 40 % of the map's time (the same values: the table holds them).
-        let kappas: Vec<f64> = (0..KAPPA_TABLE)
-            .map(|n| params.kappa_at(n as f64))
-            .collect();
+        let kappas = params.kappa_table();
         let geometry = Geometry {
             width: self.width,
             height: self.height,

@@ -36,7 +36,7 @@
 // The group loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
 
-use super::{support_samples, ResolveParams, Variant, SHADER_E_MIN_FLOOR};
+use super::{support_samples, ResolveParams, Variant, KAPPA_TABLE, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_CASCADES};
 use crate::resolve_spread::{support_word, Source};
 use crate::state::{cell_len, prefetch, Kernel, HI_BITS, HI_MASK};
@@ -106,16 +106,11 @@ pub(crate) struct Consts {
     base: f64,
     solid_share: f64,
     edge_share: Option<f64>,
-    /// `kappa * N^kappa_exponent` and its reciprocal for `N < KAP_TABLE` (`N.powf` is most of a
-    /// row's arithmetic otherwise, and a scalar division per pixel with its branchy lookup was
-    /// 11 % of the `paper` row loop's samples; the table holds the same bits as computing them).
+    /// `kappa(N)` ([`ResolveParams::kappa_table`]) and its reciprocal for `N < KAPPA_TABLE` (a
+    /// scalar division per pixel with its branchy lookup was 11 % of the `paper` row loop's
+    /// samples).
     kap_table: Vec<[f64; 2]>,
 }
-
-/// Sample counts whose `kappa(N)` is looked up rather than computed (a power of two: an index is
-/// masked into the table).
-const KAP_TABLE: usize = 1024;
-const _: () = assert!(KAP_TABLE.is_power_of_two());
 
 impl Consts {
     /// The layout's cascades.
@@ -140,11 +135,10 @@ impl Consts {
             kap_table: Vec::new(),
         };
         if c.kappa_exponent != 0.0 {
-            c.kap_table = (0..KAP_TABLE)
-                .map(|n| {
-                    let kap = c.kappa * (n as f64).powf(c.kappa_exponent);
-                    [kap, 1.0 / kap]
-                })
+            c.kap_table = params
+                .kappa_table()
+                .into_iter()
+                .map(|kap| [kap, 1.0 / kap])
                 .collect();
         }
         for j in 0..k {
@@ -576,17 +570,17 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
         // kappa(N), for the weights and the spread stage's solid test.
         let mut kap = [c.kappa; STRIP];
         if c.kappa_exponent != 0.0 {
-            let table: &[[f64; 2]; KAP_TABLE] = c.kap_table[..].try_into().expect("a table");
-            if n.iter().all(|&n| n < KAP_TABLE as f64) {
+            let table: &[[f64; 2]; KAPPA_TABLE] = c.kap_table[..].try_into().expect("a table");
+            if n.iter().all(|&n| n < KAPPA_TABLE as f64) {
                 for x in 0..STRIP {
                     // `N` is a whole number below `2^52`: in the mantissa of `N + 2^52`. The mask
-                    // keeps the index in the table without a branch (`N < KAP_TABLE`, above).
-                    let at = (n[x] + TWO_52).to_bits() as usize & (KAP_TABLE - 1);
+                    // keeps the index in the table without a branch (`N < KAPPA_TABLE`, above).
+                    let at = (n[x] + TWO_52).to_bits() as usize & (KAPPA_TABLE - 1);
                     [kap[x], inv_kappa[x]] = table[at];
                 }
             } else {
                 for x in 0..STRIP {
-                    [kap[x], inv_kappa[x]] = if n[x] < KAP_TABLE as f64 {
+                    [kap[x], inv_kappa[x]] = if n[x] < KAPPA_TABLE as f64 {
                         table[n[x] as usize]
                     } else {
                         let kap = c.kappa * n[x].powf(c.kappa_exponent);
