@@ -198,17 +198,22 @@ impl Bench<'_> {
             .args(self.files))
     }
 
-    /// The response to `GET path`, an error unless it succeeded.
-    async fn fetch(&self, path: &str) -> Result<reqwest::Response> {
+    /// The response to `method path`, an error unless it succeeded.
+    async fn send(&self, method: reqwest::Method, path: &str) -> Result<reqwest::Response> {
         let r = self
             .http
-            .get(format!("{}{path}", self.server.url))
+            .request(method.clone(), format!("{}{path}", self.server.url))
             .send()
             .await?;
         if !r.status().is_success() {
-            bail!("GET {path}: HTTP {}: {}", r.status(), r.text().await?);
+            bail!("{method} {path}: HTTP {}: {}", r.status(), r.text().await?);
         }
         Ok(r)
+    }
+
+    /// The response to `GET path`, an error unless it succeeded.
+    async fn fetch(&self, path: &str) -> Result<reqwest::Response> {
+        self.send(reqwest::Method::GET, path).await
     }
 
     fn get(&self, path: &str) -> Result<Vec<u8>> {
@@ -235,14 +240,8 @@ impl Bench<'_> {
 
     fn delete(&self, frame: &str) -> Result<()> {
         self.runtime.block_on(async {
-            let r = self
-                .http
-                .delete(format!("{}/v1/frames/{frame}", self.server.url))
-                .send()
+            self.send(reqwest::Method::DELETE, &format!("/v1/frames/{frame}"))
                 .await?;
-            if !r.status().is_success() {
-                bail!("DELETE {frame}: HTTP {}", r.status());
-            }
             Ok(())
         })
     }
