@@ -99,13 +99,8 @@ pub(crate) struct Consts {
     luminance: [f64; 3],
     unit_value: [f64; K_MAX],
     inv_scale: [f64; K_MAX],
-    variant: Variant,
-    kappa: f64,
-    kappa_min: f64,
-    kappa_exponent: f64,
+    params: ResolveParams,
     base: f64,
-    solid_share: f64,
-    edge_share: Option<f64>,
     /// `kappa(N)` ([`ResolveParams::kappa_table`]) and its reciprocal for `N < KAPPA_TABLE` (a
     /// scalar division per pixel with its branchy lookup was 11 % of the `paper` row loop's
     /// samples).
@@ -125,16 +120,11 @@ impl Consts {
             luminance: layout.luminance_weights(),
             unit_value: [0.0; K_MAX],
             inv_scale: [0.0; K_MAX],
-            variant: params.variant,
-            kappa: params.kappa,
-            kappa_min: params.kappa_min,
-            kappa_exponent: params.kappa_exponent,
+            params: *params,
             base: layout.base(),
-            solid_share: params.spread().solid_share(),
-            edge_share: params.spread().edge_share(),
             kap_table: Vec::new(),
         };
-        if c.kappa_exponent != 0.0 {
+        if params.kappa_exponent != 0.0 {
             c.kap_table = params
                 .kappa_table()
                 .into_iter()
@@ -531,7 +521,7 @@ unsafe fn row_avx2(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>) {
 #[inline(always)]
 fn row_any<const AVX2: bool>(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>) {
     let bands = !part.support.is_empty();
-    match (c.variant, bands) {
+    match (c.params.variant, bands) {
         (Variant::Off, false) => row::<OFF, false, AVX2>(c, at, part),
         (Variant::Off, true) => row::<OFF, true, AVX2>(c, at, part),
         (Variant::Shader, false) => row::<SHADER, false, AVX2>(c, at, part),
@@ -554,7 +544,7 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
     let k = c.k;
     let len = cell_len(k);
     let [l0, l1, l2] = c.luminance;
-    let kmin = c.kappa_min;
+    let kmin = c.params.kappa_min;
     let shader_energy = 0.4 + 0.6 * c.base;
     let cells = at.cells;
     {
@@ -566,10 +556,10 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 .map(|p| p[j * STRIP..(j + 1) * STRIP].try_into().expect("a strip"))
         };
         let n = own(k);
-        let mut inv_kappa = [1.0 / c.kappa; STRIP];
+        let mut inv_kappa = [1.0 / c.params.kappa; STRIP];
         // kappa(N), for the weights and the spread stage's solid test.
-        let mut kap = [c.kappa; STRIP];
-        if c.kappa_exponent != 0.0 {
+        let mut kap = [c.params.kappa; STRIP];
+        if c.params.kappa_exponent != 0.0 {
             let table: &[[f64; 2]; KAPPA_TABLE] = c.kap_table[..].try_into().expect("a table");
             if n.iter().all(|&n| n < KAPPA_TABLE as f64) {
                 for x in 0..STRIP {
@@ -583,7 +573,7 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                     [kap[x], inv_kappa[x]] = if n[x] < KAPPA_TABLE as f64 {
                         table[n[x] as usize]
                     } else {
-                        let kap = c.kappa * n[x].powf(c.kappa_exponent);
+                        let kap = c.params.kappa_at(n[x]);
                         [kap, 1.0 / kap]
                     };
                 }
@@ -608,8 +598,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
         // same f32 comparison as the plain computation's).
         let mut solid_from = [0.0f32; STRIP];
         if BANDS {
+            let solid_share = c.params.spread().solid_share();
             for x in 0..STRIP {
-                solid_from[x] = (kap[x] + kmin).max(c.solid_share * n[x]) as f32;
+                solid_from[x] = (kap[x] + kmin).max(solid_share * n[x]) as f32;
             }
         }
         let small = n.iter().all(|&n| n <= SMALL_N);
@@ -772,7 +763,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                         is_source &= is_source - 1;
                         // The edge rule's test, on the support as its word holds it.
                         let edge = c
-                            .edge_share
+                            .params
+                            .spread()
+                            .edge_share()
                             .is_some_and(|share| (own[x] as f32) as f64 >= share * n[x]);
                         sources.push(Source {
                             x: (at.x0 + x) as u32,
