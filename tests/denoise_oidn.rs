@@ -23,6 +23,7 @@ use crate::common::{
     scrape_metrics, Log, Options, Server, ServerProcess,
 };
 use bytes::Bytes;
+use splatd_formats::preview;
 use splatd_proto::api::{AovSpec, CreateFrame, Denoise, DenoiseGuides, DenoiseQuality, ImageQuery};
 use splatd_proto::{Batch, Client, ClientError, Record, Variant};
 
@@ -559,7 +560,8 @@ fn denoised_finals_guided_unguided_and_by_default() {
     assert!(!default_off.has("denoised.G"));
     assert!(default_off.attributes.get("splatd:denoiser").is_none());
 
-    // The preview shows the denoised final too.
+    // The preview shows the denoised final too (the same OIDN run on the same input, at the
+    // quality `image.exr` has by default), at the reweighted layer's exposure, as every layer.
     let preview = reqwest::blocking::get(format!(
         "{}/v1/frames/guided/preview.png?layer=denoised",
         server.url
@@ -568,7 +570,23 @@ fn denoised_finals_guided_unguided_and_by_default() {
     assert_eq!(preview.status(), 200);
     assert_eq!(preview.headers()["content-type"], "image/png");
     let png = preview.bytes().unwrap();
-    assert!(png.starts_with(b"\x89PNG"), "a PNG");
+    let mut reader = png::Decoder::new(&png[..]).read_info().unwrap();
+    let mut shown = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut shown).unwrap();
+    assert_eq!(
+        (info.width, info.height, info.color_type),
+        (W, H, png::ColorType::Rgb)
+    );
+    let exposure = preview::auto_exposure(&guided_exr.rgb("", ["R", "G", "B"]));
+    let denoised = guided_exr.rgb("denoised.", ["R", "G", "B"]);
+    let want: Vec<u8> = preview::tonemap(&denoised, exposure)
+        .into_iter()
+        .flatten()
+        .collect();
+    assert!(
+        shown == want,
+        "the preview is the denoised layer at the reweighted layer's exposure"
+    );
 }
 
 #[test]

@@ -52,10 +52,11 @@ pub async fn get_image(
     // cascades when asked for), at 12 bytes per pixel and layer.
     // AOV means: two copies (planes and channels) of 4 bytes per channel and pixel.
     let aov_bytes = px * 8 * frame.spec().aov_channels() as u64;
-    // A denoise (`denoise_bytes`) and the `denoised` layer in the EXR. The state copy's share
-    // is given back before OIDN runs.
+    // A denoise (`denoise_bytes`), the copy of the resolve the EXR is encoded from once the
+    // kept one is let go (three RGB layers and the counts, 44 bytes a pixel) and the `denoised`
+    // layer in the EXR. The state copy's share is given back before OIDN runs.
     let denoise_bytes = match oidn {
-        Some(_) => denoise_bytes(app.denoiser.memory(), px) + px * 12 * 2,
+        Some(_) => denoise_bytes(app.denoiser.memory(), px) + px * 44 + px * 12 * 2,
         None => 0,
     };
     let cost =
@@ -247,26 +248,32 @@ pub async fn get_preview(
     let png = app
         .renders
         .get_or_render(&frame, key, cost, move |frame, wanted, reservation| {
-            // A layer that needs nothing of the state is answered by a resolve of the version
-            // read before this render began or a later one, kept by a render of another kind.
-            let encode = |resolved: &splatd_estimator::Resolved, denoised: Option<&[[f32; 3]]>| {
-                let exposure = query.exposure.unwrap_or_else(|| {
-                    splatd_formats::preview::auto_exposure(&resolved.reweighted)
-                }) * query.stops.exp2();
-                let layer = match query.layer {
-                    PreviewLayer::Reweighted => &resolved.reweighted[..],
-                    PreviewLayer::Mean => &resolved.mean[..],
-                    PreviewLayer::Removed => &resolved.removed[..],
-                    PreviewLayer::Denoised => denoised.expect("made for the denoised layer"),
-                };
+            // Every layer is shown at the exposure of the reweighted one (unless the query sets
+            // it), so that switching layers compares them.
+            let exposure = |resolved: &splatd_estimator::Resolved| {
+                query
+                    .exposure
+                    .unwrap_or_else(|| splatd_formats::preview::auto_exposure(&resolved.reweighted))
+                    * query.stops.exp2()
+            };
+            let encode = |width: u32, height: u32, layer: &[[f32; 3]], exposure: f32| {
                 let pixels = splatd_formats::preview::tonemap(layer, exposure);
-                splatd_formats::preview::encode_png(resolved.width, resolved.height, &pixels)
+                splatd_formats::preview::encode_png(width, height, &pixels)
                     .map(Bytes::from)
                     .map_err(|e| ApiError::internal("PNG encoding", e))
             };
             let Some(oidn) = oidn else {
+                // A layer that needs nothing of the state is answered by a resolve of the
+                // version read before this render began or a later one, kept by a render of
+                // another kind.
                 return kept.with_resolved_since(frame, &params, threads, wanted, |resolved, _| {
-                    encode(resolved, None)
+                    let layer = match query.layer {
+                        PreviewLayer::Reweighted => &resolved.reweighted[..],
+                        PreviewLayer::Mean => &resolved.mean[..],
+                        PreviewLayer::Removed => &resolved.removed[..],
+                        PreviewLayer::Denoised => unreachable!("a denoised preview has OIDN"),
+                    };
+                    encode(resolved.width, resolved.height, layer, exposure(resolved))
                 });
             };
             let denoising = Denoising {
@@ -275,7 +282,9 @@ pub async fn get_preview(
                 budget: &budget,
                 quality: DenoiseQuality::High,
             };
-            let (resolved, aovs, plan) =
+            // Of the kept resolve the denoised layer needs only its size and exposure (OIDN's
+            // input is in the plan): nothing of it is copied.
+            let (size, exposure, aovs, plan) =
                 kept.with_resolved(frame, &params, threads, |resolved, cut, _| {
                     let aovs = cut
                         .aovs
@@ -283,12 +292,13 @@ pub async fn get_preview(
                         .map(|sums| sums.means())
                         .unwrap_or_default();
                     let plan = denoising.plan(frame, cut, reservation, &params, threads);
-                    (resolved.clone(), aovs, plan)
+                    let size = (resolved.width, resolved.height);
+                    (size, exposure(resolved), aovs, plan)
                 });
             // OIDN runs with the kept resolve free for other renders of the frame.
             let planes: Vec<&[f32]> = aovs.iter().map(Vec::as_slice).collect();
             let denoised = denoising.run(frame, plan, &planes)?.rgb;
-            encode(&resolved, Some(&denoised))
+            encode(size.0, size.1, &denoised, exposure)
         })
         .await?;
     Ok((
@@ -301,10 +311,9 @@ pub async fn get_preview(
 }
 
 /// Bytes a render that denoises `px` pixels reserves for the denoise: OIDN's floor (more is
-/// taken when OIDN runs, if free), the plan's images, and the copy of the resolve it encodes
-/// from once it has let go of the kept one (three RGB layers and the counts).
+/// taken when OIDN runs, if free) and the plan's images.
 fn denoise_bytes(memory: denoise::OidnMemory, px: u64) -> u64 {
-    memory.reserved_bytes(px) + denoise::image_bytes(px) + px * 44
+    memory.reserved_bytes(px) + denoise::image_bytes(px)
 }
 
 /// Drops `cut`, a copy of `frame`'s state, and gives its share of the render's working memory
