@@ -6,7 +6,8 @@
 //!   traffic they cannot avoid (a loop reading and writing the same cascade slots of the same
 //!   cells in the same order, no arithmetic; plain RGB + count accumulation for reference),
 //!   resolve against one read of the state (into new output buffers, as `resolve_bands` returns,
-//!   and into buffers reused from the previous resolve) and its scaling with threads, an
+//!   and into buffers reused from the previous resolve), its first stage alone and, for scale,
+//!   the same passes with every weight 1 (the plain mean), and its scaling with threads, an
 //!   incremental resolve after a batch in 1 % of the pixels against a whole one, merge
 //!   against memcpy, and the state size. Default size 1920x1080. The cells (and the baselines'
 //!   buffers) ask for transparent huge pages, as the server's frames do; `--pages 4k` leaves
@@ -586,6 +587,19 @@ fn speed(size: (u32, u32), huge: bool, spp: usize) -> Result<()> {
         } else {
             best_wall_of(3, paper)
         };
+        // The same row pass with every weight 1 (`off`, the plain mean): what reading the
+        // cells, converting their sums and writing the layers cost before any weight.
+        let off_params = ResolveParams::off();
+        let off = || {
+            resolve_bands_into(&[&state8], &off_params, threads, &mut paper_out)
+                .expect("whole frame");
+            black_box(&paper_out);
+        };
+        let t_off = if threads == 1 {
+            best_of(3, off)
+        } else {
+            best_wall_of(3, off)
+        };
         if threads == 1 {
             t_one_wall = t_wall;
         }
@@ -610,6 +624,13 @@ fn speed(size: (u32, u32), huge: bool, spp: usize) -> Result<()> {
             params.variant(),
             t_into - t_paper,
             reused.working_bytes() as f64 / pixels as f64
+        );
+        println!(
+            "  for scale, {:?} (the same passes with every weight 1: the plain mean) {:.3} s \
+             ({:.2}x the read)",
+            Variant::Off,
+            t_off,
+            t_off / t_read
         );
         if threads == 1 {
             let r = t_resolve / t_read;
