@@ -227,18 +227,20 @@ pub async fn get_preview(
 ) -> Result<impl IntoResponse, ApiError> {
     let params = frame.spec().resolve;
     let threads = app.resolve_threads;
-    let oidn = match query.layer {
-        PreviewLayer::Denoised => Some(app.denoiser.oidn()?.clone()),
-        _ => None,
+    let shown = match query.layer {
+        PreviewLayer::Reweighted => Shown::Layer(|r| &r.reweighted),
+        PreviewLayer::Mean => Shown::Layer(|r| &r.mean),
+        PreviewLayer::Removed => Shown::Layer(|r| &r.removed),
+        PreviewLayer::Denoised => Shown::Denoised(app.denoiser.oidn()?.clone()),
     };
     let px = pixels(&frame);
     // The copy of the state, three resolved layers, the tone-mapped bytes and the PNG; for the
     // denoised layer, a denoise (`denoise_bytes`) and the AOV means.
-    let denoise_bytes = match oidn {
-        Some(_) => {
+    let denoise_bytes = match shown {
+        Shown::Denoised(_) => {
             denoise_bytes(app.denoiser.memory(), px) + px * 4 * frame.spec().aov_channels() as u64
         }
-        None => 0,
+        Shown::Layer(_) => 0,
     };
     let cost = frame.spec().memory_bytes() + px * (36 + 6) + denoise_bytes;
     let key = format!("png {:?} {:?} {}", query.layer, query.exposure, query.stops);
@@ -262,22 +264,19 @@ pub async fn get_preview(
                     .map(Bytes::from)
                     .map_err(|e| ApiError::internal("PNG encoding", e))
             };
-            let Some(oidn) = oidn else {
+            let oidn = match &shown {
                 // A layer that needs nothing of the state is answered by a resolve of the
                 // version read before this render began or a later one, kept by a render of
                 // another kind.
-                return kept.with_resolved_since(frame, &params, threads, wanted, |resolved, _| {
-                    let layer = match query.layer {
-                        PreviewLayer::Reweighted => &resolved.reweighted[..],
-                        PreviewLayer::Mean => &resolved.mean[..],
-                        PreviewLayer::Removed => &resolved.removed[..],
-                        PreviewLayer::Denoised => unreachable!("a denoised preview has OIDN"),
-                    };
-                    encode(resolved.width, resolved.height, layer, exposure(resolved))
-                });
+                Shown::Layer(layer) => {
+                    return kept.with_resolved_since(frame, &params, threads, wanted, |r, _| {
+                        encode(r.width, r.height, layer(r), exposure(r))
+                    });
+                }
+                Shown::Denoised(oidn) => oidn,
             };
             let denoising = Denoising {
-                oidn: &oidn,
+                oidn,
                 memory,
                 budget: &budget,
                 quality: DenoiseQuality::High,
@@ -308,6 +307,12 @@ pub async fn get_preview(
         ],
         png,
     ))
+}
+
+/// What a preview shows: a layer of the resolve, or the denoised final (made with this OIDN).
+enum Shown {
+    Layer(fn(&splatd_estimator::Resolved) -> &[[f32; 3]]),
+    Denoised(Arc<splatd_denoise::Oidn>),
 }
 
 /// Bytes a render that denoises `px` pixels reserves for the denoise: OIDN's floor (more is
