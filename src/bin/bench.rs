@@ -565,41 +565,25 @@ fn speed(size: (u32, u32), huge: bool, spp: usize) -> Result<()> {
             let t = best_wall_of(3, resolve);
             (t, t)
         };
-        let into = || {
-            resolve_bands_into(&[&state8], &params, threads, &mut reused).expect("whole frame");
-            black_box(&reused);
+        // Into buffers reused from the resolve before, timed as above.
+        let time_into = |params: &ResolveParams, out: &mut Resolved| {
+            let mut into = || {
+                resolve_bands_into(&[&state8], params, threads, out).expect("whole frame");
+                black_box(&*out);
+            };
+            if threads == 1 {
+                best_of(3, &mut into)
+            } else {
+                best_wall_of(3, &mut into)
+            }
         };
-        let t_into = if threads == 1 {
-            best_of(3, into)
-        } else {
-            best_wall_of(3, into)
-        };
-        // The paper's resolve alone (the default's first stage), into reused buffers too: the
-        // difference to the default is the spread's second stage.
-        let paper_params = params.with_variant(Variant::Paper);
-        let paper = || {
-            resolve_bands_into(&[&state8], &paper_params, threads, &mut paper_out)
-                .expect("whole frame");
-            black_box(&paper_out);
-        };
-        let t_paper = if threads == 1 {
-            best_of(3, paper)
-        } else {
-            best_wall_of(3, paper)
-        };
+        let t_into = time_into(&params, &mut reused);
+        // The paper's resolve alone (the default's first stage): the difference to the default
+        // is the spread's second stage.
+        let t_paper = time_into(&params.with_variant(Variant::Paper), &mut paper_out);
         // The same row pass with every weight 1 (`off`, the plain mean): what reading the
         // cells, converting their sums and writing the layers cost before any weight.
-        let off_params = ResolveParams::off();
-        let off = || {
-            resolve_bands_into(&[&state8], &off_params, threads, &mut paper_out)
-                .expect("whole frame");
-            black_box(&paper_out);
-        };
-        let t_off = if threads == 1 {
-            best_of(3, off)
-        } else {
-            best_wall_of(3, off)
-        };
+        let t_off = time_into(&ResolveParams::off(), &mut paper_out);
         if threads == 1 {
             t_one_wall = t_wall;
         }
