@@ -235,10 +235,13 @@ impl KeptResolves {
             let resolved = kept.resolved.as_ref().expect("kept above");
             // The map's tiles that the changes since it was made reach are made again (however
             // the resolve was brought up to date, the outputs elsewhere are the same bits); all
-            // of them when those changes are no longer known.
-            let changed = frame.changes_between(kept.need_version, cut.version);
-            let (map, tiles) = match (kept.need.take(), changed) {
-                (Some(mut map), Some(changed)) => {
+            // of them when there is no map or those changes are no longer known.
+            let stale = kept.need.take().and_then(|map| {
+                let changed = frame.changes_between(kept.need_version, cut.version)?;
+                Some((map, changed))
+            });
+            let (map, tiles) = match stale {
+                Some((mut map, changed)) => {
                     let (w, h) = (resolved.width, resolved.height);
                     let areas = reached_by(params, &Rect::merge(&changed, MAX_PATCHES), w, h);
                     let tiles = map
@@ -246,7 +249,7 @@ impl KeptResolves {
                         .expect("a frame's bands tile it");
                     (map, tiles)
                 }
-                _ => {
+                None => {
                     let map =
                         NeedMap::build_on(&bands, resolved, params, DEFAULT_NEED_TILE, threads)
                             .expect("a frame's bands tile it");
