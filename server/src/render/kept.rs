@@ -227,10 +227,10 @@ impl KeptResolves {
                 Made::Whole
             }
         };
-        self.whole.fetch_add(
-            u64::from(made == Made::Whole),
-            std::sync::atomic::Ordering::Relaxed,
-        );
+        if made == Made::Whole {
+            self.whole
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
         if need && (kept.need.is_none() || kept.need_version != cut.version) {
             let resolved = kept.resolved.as_ref().expect("kept above");
             // The map's tiles that the changes since it was made reach are made again (however
