@@ -8,8 +8,8 @@
 //!
 //! `--writers` tasks post batches of records (scan-line runs with a heavy-tailed brightness, as
 //! `loadgen` makes them) to a 1920x1080 frame without pause, through phases of `--seconds`
-//! each, alternated `none, watch, loop` for `--rounds` rounds (with a settling second between
-//! phases, whose posts are not counted):
+//! each, alternated `none, watch, loop, kappa` for `--rounds` rounds (with a settling second
+//! between phases, whose posts are not counted):
 //!
 //! * `none`: the writers alone;
 //! * `watch`: plus a dashboard polling `GET /v1/frames/{id}` and `GET /metrics` once a second
@@ -20,11 +20,16 @@
 //!   count moved and none are loading, as `server/src/http/web/index.html` polls; like
 //!   `setInterval` it does not wait for the last refresh, up to 4 in flight) and an `image.exr`
 //!   fetched every 5 s;
-//! * `loop`: plus one client fetching `image.exr` back to back.
+//! * `loop`: plus one client fetching `image.exr` back to back;
+//! * `kappa`: instead, [`KAPPA_READERS`] clients each fetching `image.exr` back to back with a
+//!   `kappa` of its own that changes every request, so that no two requests can share a
+//!   resolve (as a lighting TD sweeping `kappa` would): every request a whole resolve, held to
+//!   the frame's render pace like any other.
 //!
 //! It prints ingest samples/s and batch post latency (p50, p99, max) per phase, the server's CPU
 //! seconds per second of each phase (`/proc/PID/stat`), the ratios beside their goals (ingest
-//! with watchers / without >= 0.9; post p99 with the image loop / without <= 1.5), and the
+//! with watchers / without >= 0.9; post p99 with the image loop / without <= 1.5; ingest with the
+//! `kappa` readers / without, which has no goal of its own), and the
 //! server CPU time of one `/metrics` scrape and of one round of `GET /v1/frames/{id}` over 20
 //! frames, on a second server holding 64 unchanged 512x512 frames, with the renders they caused
 //! (the server's `splatd_renders_total` before and after; goal: none).
@@ -90,10 +95,13 @@ const P99_GOAL: f64 = 1.5;
 /// `splatd_renders_total` before and after).
 const SCRAPE_GOAL_RENDERS: u64 = 0;
 
-const PHASES: [&str; 3] = ["none", "watch", "loop"];
+const PHASES: [&str; 4] = ["none", "watch", "loop", "kappa"];
 const NONE: usize = 0;
 const WATCH: usize = 1;
 const LOOP: usize = 2;
+const KAPPA: usize = 3;
+/// Clients fetching `image.exr` with `kappa`s of their own in the `kappa` phase.
+const KAPPA_READERS: usize = 4;
 /// Between phases: nothing is counted.
 const SETTLE: usize = usize::MAX;
 
@@ -437,6 +445,27 @@ async fn images(shared: Arc<Shared>) -> Result<()> {
     Ok(())
 }
 
+/// In `kappa`: `image.exr` back to back, each request with a `kappa` no other request of the
+/// phase asks for (reader `reader` of [`KAPPA_READERS`]: 2.0, 2.0 + 1/64, ... interleaved with
+/// the other readers'), so no resolve is shared.
+async fn kappa_reader(shared: Arc<Shared>, reader: usize) -> Result<()> {
+    let path = format!("/v1/frames/{FRAME}/image.exr");
+    let mut request = 0;
+    while !shared.stop.load(Ordering::SeqCst) {
+        let phase = shared.phase();
+        if phase != KAPPA {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            continue;
+        }
+        let kappa = 2.0 + (request * KAPPA_READERS + reader) as f64 / 64.0;
+        request += 1;
+        shared
+            .get(phase, "kappa image.exr", &format!("{path}?kappa={kappa}"))
+            .await?;
+    }
+    Ok(())
+}
+
 async fn phases(args: &Args, shared: &Arc<Shared>, pid: u32, tick: f64) -> Result<()> {
     let settle = || async {
         shared.phase.store(SETTLE, Ordering::SeqCst);
@@ -450,7 +479,7 @@ async fn phases(args: &Args, shared: &Arc<Shared>, pid: u32, tick: f64) -> Resul
     settle().await;
     tokio::time::sleep(Duration::from_secs_f64(args.seconds.min(3.0))).await;
     for round in 0..args.rounds {
-        for phase in [NONE, WATCH, LOOP] {
+        for phase in [NONE, WATCH, LOOP, KAPPA] {
             settle().await;
             let cpu0 = cpu_seconds(pid, tick)?;
             let t0 = Instant::now();
@@ -653,7 +682,7 @@ fn main() -> Result<()> {
     let server = start_server(args.render_share)?;
     let pid = server.pid();
     let url = server.url.clone();
-    let stats = (0..3).map(|_| PhaseStats::default()).collect();
+    let stats = PHASES.iter().map(|_| PhaseStats::default()).collect();
     let shared = Arc::new(Shared {
         phase: AtomicUsize::new(SETTLE),
         stop: AtomicBool::new(false),
@@ -665,13 +694,14 @@ fn main() -> Result<()> {
     });
     println!(
         "{}x{} frame, {} writers posting batches of {} records; phases of {} s, {} rounds of \
-         none/watch/loop; server log {}",
+         {}; server log {}",
         args.width,
         args.height,
         args.writers,
         args.batch,
         args.seconds,
         args.rounds,
+        PHASES.join("/"),
         server
             .log_path()
             .map_or("-".into(), |p| p.display().to_string())
@@ -691,6 +721,9 @@ fn main() -> Result<()> {
         tasks.push(tokio::spawn(dashboard(shared.clone())));
         tasks.push(tokio::spawn(live_page(shared.clone())));
         tasks.push(tokio::spawn(images(shared.clone())));
+        for reader in 0..KAPPA_READERS {
+            tasks.push(tokio::spawn(kappa_reader(shared.clone(), reader)));
+        }
         let result = phases(&args, &shared, pid, tick).await;
         shared.stop.store(true, Ordering::SeqCst);
         for t in tasks {
@@ -711,8 +744,8 @@ fn main() -> Result<()> {
 /// Prints the per-phase figures; the goal lines.
 fn report(shared: &Shared) -> Result<Vec<String>> {
     let mut stats = shared.stats.lock().unwrap();
-    let mut rate = [0.0; 3];
-    let mut p99 = [0.0; 3];
+    let mut rate = [0.0; PHASES.len()];
+    let mut p99 = [0.0; PHASES.len()];
     println!();
     for (phase, s) in stats.iter_mut().enumerate() {
         s.post_ms.sort_by(f64::total_cmp);
@@ -782,6 +815,11 @@ fn report(shared: &Shared) -> Result<Vec<String>> {
         format!(
             "ingest with image loop / without: ratio {:.2} (no goal; for reference)",
             rate[LOOP] / rate[NONE]
+        ),
+        format!(
+            "ingest with {KAPPA_READERS} readers varying kappa / without: ratio {:.2} (no goal; \
+             bounded by --render-share, for reference)",
+            rate[KAPPA] / rate[NONE]
         ),
     ])
 }
