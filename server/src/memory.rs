@@ -207,15 +207,24 @@ impl CellPool {
         self.free.take_fitting(len * 8, len * 16)
     }
 
-    /// Idle cells with room for `len` words, or new memory with that room, on huge pages
-    /// before anything touches it: for a copy that fills them (a band copied on write). Grown
-    /// from nothing by the copy, the memory would be on 4 KiB pages: a 1080p frame's bands
-    /// would take 100 000 page faults to copy.
+    /// Idle cells with room for `len` words, or new memory with that room (so the copy never
+    /// grows it): for a copy that fills them (a band copied on write).
+    ///
+    /// New memory is left on 4 KiB pages, not advised for huge ones. The copy runs under the
+    /// band's lock, and new huge pages can be slow to fault in: on the 2-core test box (a
+    /// virtual machine whose balloon device reports the memory its guest frees to the host),
+    /// filling 12 MB of new memory took 75-119 ms on huge pages and 5.0-5.5 ms on 4 KiB pages
+    /// (a C loop, nothing else running), and in `watchbench` the writers' copies into new
+    /// huge pages took 73-173 ms a band on average (pooled cells: 1.2 ms), every writer of the
+    /// band waiting behind them; on 4 KiB pages, 15.5 ms at the 99.9th percentile of the
+    /// writers' posts with watchers against 119-139 ms, and 39-41 ms at most against 534-567 ms.
+    /// The price: such cells stay on 4 KiB pages as they go round the pool, and there a band
+    /// takes random pixels up to a tenth slower (`bench speed --pages 4k`: 57-63 against 66-69
+    /// M samples/s; scan-line runs and passes the same).
     pub fn take_for_copy(&self, len: usize) -> Vec<u64> {
-        let mut cells = self.take(len);
+        let cells = self.take(len);
         if cells.capacity() < len {
-            cells = Vec::with_capacity(len);
-            advise_or_log(cells.spare_capacity_mut());
+            return Vec::with_capacity(len);
         }
         cells
     }
