@@ -199,34 +199,14 @@ impl Default for CellPool {
 
 impl CellPool {
     /// Idle cells with room for `len` words (the smallest that has) and at most twice that, or
-    /// a new buffer that [`FrameState::band_in`](splatd_estimator::FrameState::band_in)
-    /// replaces with zeroed memory. Either way the contents are garbage until the band zeroes
-    /// them. A far larger buffer (a frame's AOV sums, a larger frame's band) is left for a
-    /// request of its size, not held by a band that would use a fraction of it.
+    /// an empty buffer. Either way the contents are garbage until a band is made in them:
+    /// [`FrameState::band_in`](splatd_estimator::FrameState::band_in) zeroes them (replacing an
+    /// empty buffer with zeroed memory), `clone_in` copies a band into them (growing an empty
+    /// one once, to the copy's length). A far larger buffer (a frame's AOV sums, a larger
+    /// frame's band) is left for a request of its size, not held by a band that would use a
+    /// fraction of it.
     pub fn take(&self, len: usize) -> Vec<u64> {
         self.free.take_fitting(len * 8, len * 16)
-    }
-
-    /// Idle cells with room for `len` words, or new memory with that room (so the copy never
-    /// grows it): for a copy that fills them (a band copied on write).
-    ///
-    /// New memory is left on 4 KiB pages, not advised for huge ones. The copy runs under the
-    /// band's lock, and new huge pages can be slow to fault in: on the 2-core test box (a
-    /// virtual machine whose balloon device reports the memory its guest frees to the host),
-    /// filling 12 MB of new memory took 75-119 ms on huge pages and 5.0-5.5 ms on 4 KiB pages
-    /// (a C loop, nothing else running), and in `watchbench` the writers' copies into new
-    /// huge pages took 73-173 ms a band on average (pooled cells: 1.2 ms), every writer of the
-    /// band waiting behind them; on 4 KiB pages, 15.5 ms at the 99.9th percentile of the
-    /// writers' posts with watchers against 119-139 ms, and 39-41 ms at most against 534-567 ms.
-    /// The price: such cells stay on 4 KiB pages as they go round the pool, and there a band
-    /// takes random pixels up to a tenth slower (`bench speed --pages 4k`: 57-63 against 66-69
-    /// M samples/s; scan-line runs and passes the same).
-    pub fn take_for_copy(&self, len: usize) -> Vec<u64> {
-        let cells = self.take(len);
-        if cells.capacity() < len {
-            return Vec::with_capacity(len);
-        }
-        cells
     }
 
     /// Keeps `cells` for a later frame.
@@ -290,19 +270,24 @@ mod tests {
         advise_huge_pages::<u64>(&[]).unwrap();
     }
 
-    /// A copy's cells are idle ones where the pool has them, else new memory with room for the
-    /// whole copy (so the copy never grows it, which would leave it on 4 KiB pages).
+    /// A band's copy on write (`FrameState::clone_in` of cells from the pool, as
+    /// `ShardedFrame::own` makes it) lands in idle cells where the pool has them, else in new
+    /// memory with room for the whole copy.
     #[test]
     fn cells_for_a_copy_come_from_the_pool_or_hold_it_whole() {
+        let layout = splatd_estimator::CascadeLayout::with_defaults();
+        let band = splatd_estimator::FrameState::new(512, 256, layout);
+        let len = band.cells().len();
         let pool = CellPool::default();
-        let fresh = pool.take_for_copy(3 << 20);
-        assert!(fresh.is_empty());
-        assert!(fresh.capacity() >= 3 << 20);
-        let idle = vec![5u64; 4 << 20];
+        let fresh = band.clone_in(pool.take(len)).into_cells();
+        assert!(fresh.capacity() >= len);
+        assert_eq!(fresh, band.cells());
+        let idle = vec![5u64; len + len / 2];
         let at = idle.as_ptr();
         pool.give(idle);
-        let taken = pool.take_for_copy(3 << 20);
-        assert_eq!(taken.as_ptr(), at, "the idle cells, not new memory");
+        let copy = band.clone_in(pool.take(len));
+        assert_eq!(copy.cells().as_ptr(), at, "the idle cells, not new memory");
+        assert_eq!(copy.cells(), band.cells());
         assert_eq!(pool.idle_bytes(), 0);
     }
 

@@ -190,12 +190,24 @@ impl ShardedFrame {
     ///
     /// The band it leaves goes to the pool as well, if the cut let go of it while the copy was
     /// made (see [`CellPool::give_band`]).
+    ///
+    /// With no idle cells that fit, the copy grows new memory on 4 KiB pages, not advised for
+    /// huge ones: it runs under the band's lock, and new huge pages can be slow to fault in. On
+    /// the 2-core test box (a virtual machine whose balloon device reports the memory its guest
+    /// frees to the host) filling 12 MB of new memory took 75-119 ms on huge pages and 5.0-5.5
+    /// ms on 4 KiB pages (a C loop, nothing else running); in `watchbench` the writers' copies
+    /// into new huge pages took 73-173 ms a band on average (from the pool: 1.2 ms), every
+    /// writer of the band waiting behind them, and on 4 KiB pages the writers' posts with
+    /// watchers took 15.5 ms at the 99.9th percentile against 119-139 ms, 39-41 ms at most
+    /// against 534-567 ms. The price: such cells stay on 4 KiB pages as they go round the
+    /// pool, and there a band takes random pixels up to a tenth slower (`bench speed --pages
+    /// 4k`: 57-63 against 66-69 M samples/s; scan-line runs and passes the same).
     fn own<'a>(&self, band: &'a mut Arc<FrameState>) -> &'a mut FrameState {
         if Arc::get_mut(band).is_none() {
             // Tests hold the copy here while the cut that holds the band ends (`pause`).
             let _ = crate::failpoint::hit("frame:copying_band");
             if let Some(pool) = &self.pool {
-                let copy = band.clone_in(pool.take_for_copy(band.cells().len()));
+                let copy = band.clone_in(pool.take(band.cells().len()));
                 pool.give_band(std::mem::replace(band, Arc::new(copy)));
             }
         }
@@ -211,7 +223,7 @@ impl ShardedFrame {
             // Tests hold the copy here while the cut that holds the sums ends (`pause`).
             let _ = crate::failpoint::hit("frame:copying_aovs");
             if let Some(pool) = &self.pool {
-                let copy = sums.clone_in(pool.take_for_copy(sums.words().len()));
+                let copy = sums.clone_in(pool.take(sums.words().len()));
                 pool.give_aovs(std::mem::replace(sums, Arc::new(copy)));
             }
         }
