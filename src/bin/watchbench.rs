@@ -479,7 +479,7 @@ async fn phases(args: &Args, shared: &Arc<Shared>, pid: u32, tick: f64) -> Resul
     settle().await;
     tokio::time::sleep(Duration::from_secs_f64(args.seconds.min(3.0))).await;
     for round in 0..args.rounds {
-        for phase in [NONE, WATCH, LOOP, KAPPA] {
+        for phase in 0..PHASES.len() {
             settle().await;
             let cpu0 = cpu_seconds(pid, tick)?;
             let t0 = Instant::now();
