@@ -1525,9 +1525,25 @@ pub(crate) fn zeroed_in(mut words: Vec<u64>, len: usize) -> Vec<u64> {
 /// its caches, every cache line they touch. Only a hint: it never faults and changes no result.
 #[inline(always)]
 pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
-    #[cfg(target_arch = "x86_64")]
-    {
-        use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+    Lines::of(cells, at, words).prefetch(usize::MAX);
+}
+
+/// The cache lines of some words, to prefetch a few at a time among other work: prefetches of
+/// many lines in a row fill the core's queue of misses, and the core stalls on them with
+/// nothing else to do (see [`FrameState::add_block`]).
+pub(crate) struct Lines {
+    /// The first word; never dereferenced, only handed to the prefetch instruction.
+    first: *const i8,
+    /// Offset in bytes of the next line to ask for, from `first`.
+    line: isize,
+    /// Bytes from `first` to the end of the last word.
+    end: isize,
+}
+
+impl Lines {
+    /// The lines of the words `at .. at + words` of `cells` (those inside it).
+    #[inline(always)]
+    pub(crate) fn of(cells: &[u64], at: usize, words: usize) -> Self {
         let ahead = cells.get(at..).unwrap_or_default();
         let ahead = &ahead[..words.min(ahead.len())];
         // Each line's start, from the line of the first word to the line of the last byte (none
@@ -1535,19 +1551,35 @@ pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
         // resolve's support step).
         let first = ahead.as_ptr().cast::<i8>();
         let end = size_of_val(ahead) as isize;
-        let mut line = if end == 0 {
+        let line = if end == 0 {
             0
         } else {
             -((first as usize & 63) as isize)
         };
-        while line < end {
-            // SAFETY: a prefetch never faults (the address is a line the words touch anyway).
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(first.wrapping_offset(line)) }
-            line += 64;
+        Self { first, line, end }
+    }
+
+    /// Lines not yet asked for.
+    #[inline(always)]
+    pub(crate) fn left(&self) -> usize {
+        ((self.end - self.line).max(0) as usize).div_ceil(64)
+    }
+
+    /// Asks the CPU to start loading the next `n` lines (or those left).
+    #[inline(always)]
+    pub(crate) fn prefetch(&mut self, n: usize) {
+        let mut n = n;
+        while self.line < self.end && n > 0 {
+            #[cfg(target_arch = "x86_64")]
+            {
+                use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+                // SAFETY: a prefetch never faults (the address is a line the words touch).
+                unsafe { _mm_prefetch::<_MM_HINT_T0>(self.first.wrapping_offset(self.line)) }
+            }
+            self.line += 64;
+            n -= 1;
         }
     }
-    #[cfg(not(target_arch = "x86_64"))]
-    let _ = (cells, at, words);
 }
 
 /// Adds a share to a cascade below the top: cannot overflow within the bounds (debug-asserted).

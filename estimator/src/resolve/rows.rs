@@ -39,7 +39,7 @@
 use super::{support_samples, ResolveParams, Variant, KAPPA_TABLE, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_CASCADES};
 use crate::resolve_spread::{support_word, Source};
-use crate::state::{cell_len, prefetch, Kernel, HI_BITS, HI_MASK};
+use crate::state::{cell_len, Kernel, Lines, HI_BITS, HI_MASK};
 
 /// Pixels per group of the support step.
 pub(super) const LANES: usize = 8;
@@ -62,6 +62,15 @@ const COLUMN_STRIPS: usize = 8;
 /// hardware's prefetchers alone. Measured with `bench speed`'s 1080p 8-cascade state, one
 /// thread: 1, 2, 4, 8 and 16 groups ahead took the `paper` resolve from 68 ms to 56-62 ms, 4
 /// the best (8 KiB ahead).
+///
+/// A group's prefetches (its 33 lines) are spread over its cascades' loads, a few beside each
+/// (`avx2::support_group`), as the record splat spreads its own (`FrameState::add_block`): all
+/// in a row, they filled the core's queue of misses, and on the Zen 4 VM 21 % of the support
+/// step's samples sat on the instruction after them. Spread, the `paper` resolve took 102-106
+/// ms against 115-124 ms (one thread, 4 alternated runs, best of 9 each); 2 and 8 groups ahead
+/// were no better than 4 there. Past the strip's column the prefetches fetch cells read only
+/// with the next column; sending them to the start of the next row's column instead was
+/// slower in 3 runs of 3 (101-104 ms against 96-102 ms), so they stay where they are.
 const PREFETCH_GROUPS: usize = 4;
 
 /// Length of a support plane: a strip and the pixel on each side.
@@ -393,15 +402,16 @@ fn support<const AVX2: bool>(
             continue;
         }
         let group = group_cells(cells, x0 + g, w, len, LANES, tail);
-        prefetch(cells, (x0 + g + PREFETCH_GROUPS * LANES) * len, LANES * len);
+        let mut ahead = Lines::of(cells, (x0 + g + PREFETCH_GROUPS * LANES) * len, LANES * len);
         if AVX2 {
             #[cfg(target_arch = "x86_64")]
             {
                 // SAFETY: only compiled into the AVX2 kernel (see `support_avx2`).
-                unsafe { avx2::support_group(group, len, k, own, at) };
+                unsafe { avx2::support_group(group, len, k, own, at, &mut ahead) };
                 continue;
             }
         }
+        ahead.prefetch(usize::MAX);
         // Word by word: faster here than 256-bit loads of whole cascades (measured), since the
         // counts are a quarter of the words these first reads of the cells bring in.
         let mut count = [[0u64; LANES]; K_MAX];
@@ -812,7 +822,9 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
 mod avx2 {
     use std::arch::x86_64::*;
 
-    use super::{COUNT_ONE, FRAC_BITS, HI_BITS, HI_MASK, K_MAX, LANES, OWN, STRIP, TWO_52, TWO_64};
+    use super::{
+        Lines, COUNT_ONE, FRAC_BITS, HI_BITS, HI_MASK, K_MAX, LANES, OWN, STRIP, TWO_52, TWO_64,
+    };
 
     /// One group's support counts, as [`support`](super::support)'s group loop computes them
     /// with the same operations in the same order: planes `0 .. k` of `n_j` and plane `k` of
@@ -827,6 +839,7 @@ mod avx2 {
         k: usize,
         own: &mut [f64],
         at: usize,
+        ahead: &mut Lines,
     ) {
         const _: () = assert!(LANES == 8, "two vectors of 4 pixels");
         assert!(
@@ -836,7 +849,9 @@ mod avx2 {
         let word = |l: usize, j: usize| group[l * len + 4 * j + 3] as i64;
         let mut count = [[_mm256_setzero_si256(); 2]; K_MAX];
         let mut total = [_mm256_setzero_si256(); 2];
+        let per = ahead.left().div_ceil(k);
         for j in 0..k {
+            ahead.prefetch(per);
             for h in 0..2 {
                 let l = 4 * h;
                 let c =
