@@ -1559,26 +1559,29 @@ impl Lines {
         Self { first, line, end }
     }
 
-    /// Lines not yet asked for.
+    /// Lines not yet asked for (by which the AVX2 support step spreads its prefetches).
+    #[cfg(target_arch = "x86_64")]
     #[inline(always)]
     pub(crate) fn left(&self) -> usize {
         ((self.end - self.line).max(0) as usize).div_ceil(64)
     }
 
-    /// Asks the CPU to start loading the next `n` lines (or those left).
+    /// Asks the CPU to start loading the next `n` lines (or those left); a no-op where the
+    /// instruction is not used (outside x86-64), without even walking the lines.
     #[inline(always)]
     pub(crate) fn prefetch(&mut self, n: usize) {
-        let mut n = n;
-        while self.line < self.end && n > 0 {
-            #[cfg(target_arch = "x86_64")]
-            {
-                use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
-                // SAFETY: a prefetch never faults (the address is a line the words touch).
-                unsafe { _mm_prefetch::<_MM_HINT_T0>(self.first.wrapping_offset(self.line)) }
+        #[cfg(target_arch = "x86_64")]
+        for _ in 0..n {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            if self.line >= self.end {
+                break;
             }
+            // SAFETY: a prefetch never faults (the address is a line the words touch).
+            unsafe { _mm_prefetch::<_MM_HINT_T0>(self.first.wrapping_offset(self.line)) }
             self.line += 64;
-            n -= 1;
         }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (n, self.first, self.line, self.end);
     }
 }
 
