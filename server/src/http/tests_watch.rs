@@ -197,9 +197,10 @@ async fn scrape(app: &AppState, timeout: Option<&str>) -> String {
 /// As if every frame's last render had taken 100 s (a saturated head): at the default share of
 /// 0.2, their next renders wait 400 s while writers keep changing them.
 fn renders_took_100_s(app: &AppState) {
+    let (paces, ended) = (app.renders.paces(), tokio::time::Instant::now());
+    let took = std::time::Duration::from_secs(100);
     for frame in app.store.list() {
-        let paces = app.renders.paces();
-        paces.rendered(&frame, frame.version(), std::time::Duration::from_secs(100));
+        paces.rendered(&frame, frame.version(), ended, took);
     }
 }
 
@@ -326,9 +327,7 @@ async fn counts_alone_never_wait_for_a_busy_frames_render() {
     info(&app, "c").await;
     assert_eq!(app.renders.rendered(), 1);
     let frame = app.store.get("c").unwrap();
-    app.renders
-        .paces()
-        .rendered(&frame, frame.version(), Duration::from_secs(100));
+    renders_took_100_s(&app);
     let writer = keep_writing(&app, &["c"]);
     for _ in 0..3 {
         tokio::time::sleep(Duration::from_millis(25)).await;
@@ -400,9 +399,7 @@ async fn the_latest_figures_never_wait_for_a_busy_frames_render() {
     assert_eq!(latest(app.clone()).await["convergence"]["samples"], 16);
 
     // The frame turns busy, and its next render waits a 400 s pace.
-    app.renders
-        .paces()
-        .rendered(&frame, frame.version(), Duration::from_secs(100));
+    renders_took_100_s(&app);
     let writer = keep_writing(&app, &["l"]);
     for _ in 0..3 {
         tokio::time::sleep(Duration::from_millis(25)).await;

@@ -231,6 +231,7 @@ impl Renders {
         let frame = frame.clone();
         let filed = entry.clone();
         let paces = self.paces.clone();
+        let clock = pace::Clock::start();
         let rendered = on_render_thread(move || {
             let started = std::time::Instant::now();
             let bytes = render(&frame, version, &mut reservation);
@@ -238,7 +239,7 @@ impl Renders {
             if let Ok(bytes) = &bytes {
                 filed.file(version, bytes);
             }
-            paces.rendered(&frame, version, started.elapsed());
+            paces.rendered(&frame, version, clock.now(), started.elapsed());
             drop(turn);
             bytes
         })

@@ -20,7 +20,9 @@
 
 use std::collections::HashMap;
 use std::sync::Mutex;
-use std::time::{Duration, Instant};
+use std::time::Duration;
+
+use tokio::time::Instant;
 
 use crate::frame::ShardedFrame;
 
@@ -29,6 +31,29 @@ pub const QUIET: Duration = Duration::from_millis(100);
 
 /// The share of the wall time a changing frame's renders may take unless set.
 pub const DEFAULT_SHARE: f64 = 0.2;
+
+/// Tokio's clock where a thread outside the runtime can read it: tokio's instant when made
+/// (in the runtime, paused in tests) plus the real time since.
+#[derive(Debug, Clone, Copy)]
+pub struct Clock {
+    tokio: Instant,
+    real: std::time::Instant,
+}
+
+impl Clock {
+    /// Tokio's clock from now on; made in the runtime.
+    pub fn start() -> Clock {
+        Clock {
+            tokio: Instant::now(),
+            real: std::time::Instant::now(),
+        }
+    }
+
+    /// The time on tokio's clock.
+    pub fn now(&self) -> Instant {
+        self.tokio + self.real.elapsed()
+    }
+}
 
 /// The latest renders of one frame.
 #[derive(Debug, Default, Clone, Copy)]
@@ -73,23 +98,30 @@ impl Paces {
 
     /// Waits for `frame`'s pace if the frame changed since its last render and keeps changing:
     /// until the next render may start, or until [`QUIET`] passes with no new samples,
-    /// whichever comes first. Renders of any kind that waited for the same pace start together
-    /// when it ends (one wait, not one after another). Returns the time waited.
+    /// whichever comes first. Returns the time waited.
+    ///
+    /// The moment is read again at every step of the wait, so a render of the frame that ends
+    /// meanwhile moves it for every request waiting: renders of any kind that wait for the
+    /// frame start together when its pace ends, and share one resolve
+    /// ([`KeptResolves`](crate::render::KeptResolves)). A wait that kept the moment it read
+    /// first ended before those that began after the next render had ended, so the live page's
+    /// previews, a dashboard's figures and an image each started at a moment of their own and
+    /// each resolved a frame that the writers had changed all over. That also let a changing
+    /// frame's renders take more than their share: `watchbench` (2 rounds) ran 36-39 renders
+    /// with 16 resolves; reading the moment again, 29-30 with 11-12.
     pub async fn wait(&self, frame: &ShardedFrame) -> Duration {
-        let gate = self.gate(frame);
-        let Some(next) = gate.next.filter(|_| frame.version() != gate.version) else {
-            return Duration::ZERO;
-        };
-        // On tokio's clock from here (paused in tests), so the loop ends by its own deadline.
-        let start = tokio::time::Instant::now();
-        let deadline = start + next.saturating_duration_since(Instant::now());
+        let start = Instant::now();
         loop {
-            let now = tokio::time::Instant::now();
-            if now >= deadline {
+            let gate = self.gate(frame);
+            let Some(next) = gate.next.filter(|_| frame.version() != gate.version) else {
+                break;
+            };
+            let now = Instant::now();
+            if now >= next {
                 break;
             }
             let seen = frame.version();
-            tokio::time::sleep((deadline - now).min(QUIET)).await;
+            tokio::time::sleep((next - now).min(QUIET)).await;
             if frame.version() == seen {
                 break;
             }
@@ -97,9 +129,13 @@ impl Paces {
         start.elapsed()
     }
 
-    /// Files a render of `frame` at `version` that took `took` and ended now.
-    pub fn rendered(&self, frame: &ShardedFrame, version: u64, took: Duration) {
-        let next = Instant::now() + took.mul_f64(1.0 / self.share - 1.0);
+    /// Files a render of `frame` at `version` that took `took` and ended at `ended`.
+    ///
+    /// The moments are on tokio's clock, which tests pause, so that a wait ends by its own
+    /// deadline there too; a render thread, outside the runtime, reads it through
+    /// [`Clock`].
+    pub fn rendered(&self, frame: &ShardedFrame, version: u64, ended: Instant, took: Duration) {
+        let next = ended + took.mul_f64(1.0 / self.share - 1.0);
         let mut frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
         let gate = frames.entry(frame.serial()).or_default();
         gate.version = gate.version.max(version);
@@ -144,7 +180,7 @@ mod tests {
             Duration::ZERO,
             "a frame never rendered"
         );
-        paces.rendered(&f, f.version(), Duration::from_secs(1));
+        paces.rendered(&f, f.version(), Instant::now(), Duration::from_secs(1));
         assert_eq!(paces.wait(&f).await, Duration::ZERO, "an unchanged frame");
 
         // A writer adds a sample every 10 ms for 10 s: two renders wait out one pace together.
@@ -159,16 +195,15 @@ mod tests {
             })
         };
         let (a, b) = tokio::join!(paces.wait(&f), paces.wait(&f));
-        // The pace was set from the real clock an instant before the paused one started
-        // counting, and tokio's timers round up to the millisecond: 4 s, give or take 1 ms.
+        // Tokio's timers round up to the millisecond: 4 s, or up to 1 ms more.
         let ms = Duration::from_millis(1);
         for waited in [a, b] {
             assert!(
-                waited > Duration::from_secs(4) - ms && waited <= Duration::from_secs(4) + ms,
+                waited >= Duration::from_secs(4) && waited <= Duration::from_secs(4) + ms,
                 "waited {waited:?}"
             );
         }
-        paces.rendered(&f, f.version(), Duration::from_secs(1));
+        paces.rendered(&f, f.version(), Instant::now(), Duration::from_secs(1));
         writer.abort();
 
         // One more sample, then nothing: the wait ends after one quiet spell.
@@ -180,12 +215,58 @@ mod tests {
         );
     }
 
+    /// A render that ends while requests wait for the frame's pace moves the moment for all of
+    /// them, those already waiting too: they start together, when the pace it set ends.
+    #[tokio::test(start_paused = true)]
+    async fn a_render_that_ends_meanwhile_moves_every_wait_to_its_pace() {
+        let paces = Arc::new(Paces::new(0.2));
+        let f = frame();
+        paces.rendered(&f, f.version(), Instant::now(), Duration::from_secs(1));
+        add(&f, 0);
+        let writer = {
+            let f = f.clone();
+            tokio::spawn(async move {
+                for seq in 1..2000 {
+                    tokio::time::sleep(Duration::from_millis(10)).await;
+                    add(&f, seq);
+                }
+            })
+        };
+        let start = Instant::now();
+        let waiting = |after: Duration| {
+            let (paces, f) = (paces.clone(), f.clone());
+            tokio::spawn(async move {
+                tokio::time::sleep(after).await;
+                paces.wait(&f).await;
+                Instant::now() - start
+            })
+        };
+        // One request waits from the start for the pace of the 1 s render (4 s).
+        let first = waiting(Duration::ZERO);
+        // A render of another kind, which read the frame at the start, ends at 1 s after 2 s:
+        // the next may start 8 s after it, 9 s after the start.
+        let read = f.version();
+        tokio::time::sleep(Duration::from_secs(1)).await;
+        paces.rendered(&f, read, Instant::now(), Duration::from_secs(2));
+        // Another request comes at 2 s.
+        let second = waiting(Duration::from_secs(1));
+        let (first, second) = (first.await.unwrap(), second.await.unwrap());
+        writer.abort();
+        let ms = Duration::from_millis(1);
+        for ended in [first, second] {
+            assert!(
+                ended >= Duration::from_secs(9) && ended <= Duration::from_secs(9) + ms,
+                "a wait ended {ended:?} after the start, not with the latest render's pace"
+            );
+        }
+    }
+
     /// A share of 1 renders a changing frame back to back; the share is clamped.
     #[tokio::test(start_paused = true)]
     async fn a_share_of_one_never_waits() {
         let paces = Paces::new(1.0);
         let f = frame();
-        paces.rendered(&f, 0, Duration::from_secs(3));
+        paces.rendered(&f, 0, Instant::now(), Duration::from_secs(3));
         add(&f, 0);
         assert_eq!(paces.wait(&f).await, Duration::ZERO);
         assert_eq!(Paces::new(f64::NAN).share(), 1.0);
