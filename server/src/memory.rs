@@ -219,8 +219,9 @@ impl CellPool {
     /// Keeps the cells of `band` if nothing else holds it; a band still shared is left to its
     /// other holders. Its last two holders are a cut that ended and the frame that moved on to
     /// a copy of it, each giving it here, in either order (a snapshot may finish while the
-    /// frame's writer is still copying the band): with [`Arc::into_inner`] exactly one of them
-    /// gets the cells, even when both let go at the same moment. (Given only by the cut, as
+    /// frame's writer is still copying the band): with
+    /// [`Arc::into_inner`](std::sync::Arc::into_inner) exactly one of them gets the cells, even
+    /// when both let go at the same moment. (Given only by the cut, as
     /// first written, they were freed whenever the copy took longer than the rest of the
     /// snapshot, and the next copy faulted in fresh memory: with a 216 MB copy of AOV sums,
     /// every snapshot's under `loadgen --kind passes --aovs`.)
