@@ -89,6 +89,8 @@ pub async fn need_map(
     // The copy of the state and the resolved layers (three RGB layers and the counts).
     let cost = frame.spec().memory_bytes() + pixels * 44;
     let kept = app.renders.kept().clone();
+    // While this request waits, renders of other kinds that resolve the frame make the map too.
+    let _wanted = (tile == estimator::DEFAULT_NEED_TILE).then(|| kept.want_figures(frame));
     let bytes = app
         .renders
         .get_or_render(

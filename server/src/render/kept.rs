@@ -30,10 +30,12 @@
 //! after a batch in one worker's tile cost about what the patch did, not a read of the whole
 //! state. The renders of a changing frame that start together when its pace ends (an
 //! image, the live page's previews, a dashboard's figures) share one resolve instead of each
-//! patching the changes the one before it left, and figures asked for after an image of the
-//! same version cost a need map, not a resolve.
+//! patching the changes the one before it left: while a request for figures waits, whichever
+//! of them resolves the frame makes the need map from the same cut
+//! ([`KeptResolves::want_figures`]). Figures asked for after an image of the same version cost
+//! a need map, not a resolve.
 
-use std::collections::VecDeque;
+use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
 
 use splatd_estimator::{
@@ -54,8 +56,9 @@ struct Kept {
     version: u64,
     resolved: Option<Resolved>,
     /// The need map at the default tile, of the frame at `need_version` (renders of images
-    /// do not bring it up to date; the next figures render makes again the tiles that the
-    /// frame's changes since reach).
+    /// bring it up to date only while figures are wanted, [`KeptResolves::want_figures`];
+    /// otherwise the next figures render makes again the tiles that the frame's changes since
+    /// reach).
     need: Option<NeedMap>,
     need_version: u64,
 }
@@ -75,6 +78,28 @@ pub struct KeptResolves {
     need_tiles: std::sync::atomic::AtomicU64,
     /// The buffers of the last resolve that stopped being kept, for the next first resolve.
     spare: Mutex<Option<Resolved>>,
+    /// Requests for figures waiting for a render, by frame serial ([`FiguresWanted`]).
+    figures_wanted: Mutex<HashMap<u64, usize>>,
+}
+
+/// A request for a frame's figures waiting for its render, from
+/// [`KeptResolves::want_figures`] until dropped.
+#[derive(Debug)]
+pub struct FiguresWanted {
+    kept: Arc<KeptResolves>,
+    serial: u64,
+}
+
+impl Drop for FiguresWanted {
+    fn drop(&mut self) {
+        let mut wanted = self.kept.wanted();
+        if let Some(n) = wanted.get_mut(&self.serial) {
+            *n -= 1;
+            if *n == 0 {
+                wanted.remove(&self.serial);
+            }
+        }
+    }
 }
 
 /// How a render got its resolve.
@@ -103,6 +128,26 @@ impl KeptResolves {
     /// of a map brought up to date).
     pub fn need_tiles(&self) -> u64 {
         self.need_tiles.load(std::sync::atomic::Ordering::Relaxed)
+    }
+
+    fn wanted(&self) -> std::sync::MutexGuard<'_, HashMap<u64, usize>> {
+        self.figures_wanted
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Marks `frame`'s figures as wanted until the guard is dropped: a request for them holds
+    /// it while it waits for its render. Meanwhile, a render of another kind that brings the
+    /// kept resolve up to date brings the need map with it, from the same cut, so the figures
+    /// render that starts beside it (at the frame's pace) finds both made and resolves
+    /// nothing. Without it, an image or preview that took the kept resolve first left the
+    /// figures render to resolve the frame again from a cut of its own, a few batches newer.
+    pub fn want_figures(self: &Arc<Self>, frame: &ShardedFrame) -> FiguresWanted {
+        *self.wanted().entry(frame.serial()).or_default() += 1;
+        FiguresWanted {
+            kept: self.clone(),
+            serial: frame.serial(),
+        }
     }
 
     fn slot(&self, frame: &ShardedFrame) -> Slot {
@@ -192,6 +237,7 @@ impl KeptResolves {
         let mut guard = slot.lock().unwrap_or_else(|e| e.into_inner());
         let kept = &mut *guard;
         let cut = frame.cut();
+        let need = need || self.wanted().contains_key(&frame.serial());
         let bands = cut.band_refs();
         let made = match kept.resolved.as_mut() {
             Some(_) if kept.version == cut.version => Made::Kept,
@@ -535,6 +581,63 @@ mod tests {
         assert_eq!(samples, u64::from(2 * w * h));
         assert_eq!(frame.history().latest_version(), Some(now));
         assert_eq!(kept.patched(), 1);
+    }
+
+    /// While a request for figures waits, a render of the layers that resolves the frame makes
+    /// the need map from the same cut, so the figures render beside it resolves nothing and
+    /// files the figures of that cut (the map of a fresh resolve of it, the oracle); with no
+    /// request waiting, renders of layers leave the map alone.
+    #[test]
+    fn a_layer_render_makes_the_map_while_figures_are_wanted() {
+        let (w, h) = (40, 30);
+        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let params = frame.spec().resolve;
+        let scene = FireflyScene::new(w, h, 4);
+        let pass = |seq: u64| {
+            let records = scene.pass(seq).map(|(x, y, rgb)| Record::new(x, y, rgb));
+            let batch = Batch::new("f", 1, seq, records.collect()).unwrap();
+            frame.ingest(&batch).unwrap();
+            frame.version()
+        };
+        let layers = |kept: &KeptResolves, asked: u64| {
+            kept.with_resolved_since(&frame, &params, 1, asked, |_, made| {
+                assert_ne!(made, Made::Kept, "the frame changed since")
+            });
+        };
+        let kept = Arc::new(KeptResolves::default());
+        kept.with_need_since(&frame, 1, pass(0), |_, _| ());
+        let tiles = kept.need_tiles();
+
+        layers(&kept, pass(1));
+        assert_eq!(kept.need_tiles(), tiles, "no figures wanted: no map made");
+
+        let asked = pass(2);
+        let wanted = kept.want_figures(&frame);
+        layers(&kept, asked);
+        assert!(
+            kept.need_tiles() > tiles,
+            "figures wanted: the map made too"
+        );
+        let resolves = (kept.whole(), kept.patched());
+        let oracle = {
+            let cut = frame.cut();
+            let resolved = cut.resolve(&params, 1);
+            NeedMap::build(&cut.band_refs(), &resolved, &params, DEFAULT_NEED_TILE).unwrap()
+        };
+        let (map, version) = kept.with_need_since(&frame, 1, asked, |m, v| (m.tiles.clone(), v));
+        assert_eq!(version, asked);
+        assert_eq!(map, oracle.tiles);
+        assert_eq!(frame.history().latest_version(), Some(asked));
+        assert_eq!(
+            (kept.whole(), kept.patched()),
+            resolves,
+            "the figures render resolved nothing"
+        );
+
+        drop(wanted);
+        let tiles = kept.need_tiles();
+        layers(&kept, pass(3));
+        assert_eq!(kept.need_tiles(), tiles, "the request went: no map made");
     }
 
     /// After batches in one worker's tile, figures renders make again only the need map's

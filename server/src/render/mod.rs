@@ -37,7 +37,7 @@ pub mod denoise;
 pub mod figures;
 mod kept;
 pub mod pace;
-pub use kept::{KeptResolves, Made, MAX_KEPT};
+pub use kept::{FiguresWanted, KeptResolves, Made, MAX_KEPT};
 
 /// Which render of a frame: the frame's serial (so a deleted and re-created frame never hits
 /// the old one's renders) and the query in a canonical form.
