@@ -58,6 +58,8 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
     assert_eq!(get("splatd_samples_rejected_total"), 1.0);
     assert_eq!(get("splatd_frames"), 1.0);
     assert_eq!(get("splatd_resolve_seconds_count"), 2.0);
+    // Two images of one version: one resolve, the first.
+    assert_eq!(get("splatd_resolves_total{made=\"whole\"}"), 1.0);
     assert!(get("splatd_resolve_seconds_bucket{le=\"+Inf\"}") == 2.0);
     assert!(get("splatd_ingest_bytes_total") > 5.0 * 200.0);
     assert!(
@@ -110,4 +112,12 @@ fn metrics_count_ingest_rejections_frames_and_resolves() {
         (low * (1.0 - 1e-9)..=high * (1.0 + 1e-9)).contains(&rate) || (slow_scrape && rate == 0.0),
         "{rate} samples/s, not 100 samples over {shortest}..{longest} s"
     );
+    // The first scrape's figures took the images' resolve as it was; the second's patched it
+    // where the batches changed the frame.
+    let text = scrape_metrics(&server.url);
+    let m = parse_metrics(&text);
+    for (made, resolves) in [("whole", 1.0), ("patched", 1.0)] {
+        let key = format!("splatd_resolves_total{{made=\"{made}\"}}");
+        assert_eq!(m.get(&key), Some(&resolves), "{key} in:\n{text}");
+    }
 }

@@ -24,6 +24,10 @@ pub const RESOLVE_SECONDS: &str = "splatd_resolve_seconds";
 /// Renders run for images, previews, need maps and convergence figures; requests that shared
 /// one count once (a dashboard of unchanged frames adds none).
 pub const RENDERS: &str = "splatd_renders_total";
+/// Resolves renders ran, label `made`: `whole` (a whole frame resolved) or `patched` (a kept
+/// resolve brought up to date where the frame changed). Renders that took a kept resolve as it
+/// was add none.
+pub const RESOLVES: &str = "splatd_resolves_total";
 /// Seconds a request waited for a changing frame's render pace (`--render-share`), when it
 /// waited (histogram).
 pub const RENDER_PACE_SECONDS: &str = "splatd_render_pace_seconds";
@@ -74,7 +78,7 @@ pub const FRAME_CONVERGED_BELOW: &str = "splatd_frame_converged_below";
 pub const FRAME_FIGURES_AGE: &str = "splatd_frame_figures_age_seconds";
 
 /// Every name above.
-pub const ALL: [&str; 32] = [
+pub const ALL: [&str; 33] = [
     SAMPLES_INGESTED,
     BATCHES_INGESTED,
     BATCHES_DUPLICATE,
@@ -85,6 +89,7 @@ pub const ALL: [&str; 32] = [
     IDLE_CELL_BYTES,
     RESOLVE_SECONDS,
     RENDERS,
+    RESOLVES,
     RENDER_PACE_SECONDS,
     DENOISE_SECONDS,
     DENOISED_IMAGES,

@@ -27,7 +27,9 @@
 //!   the frame's render pace like any other.
 //!
 //! It prints ingest samples/s and batch post latency (p50, p99, p99.9, max) per phase, the
-//! server's CPU seconds per second of each phase (`/proc/PID/stat`), the ratios beside their
+//! server's CPU seconds per second of each phase (`/proc/PID/stat`), the renders and resolves
+//! the server counted in `watch` (`splatd_renders_total` and `splatd_resolves_total` in the
+//! dashboard's first and last scrape of each round), the ratios beside their
 //! goals (ingest with watchers / without >= 0.9; post p99 with the image loop / without <= 1.5;
 //! ingest with the `kappa` readers / without, which has no goal of its own), and the server CPU
 //! time of one `/metrics` scrape and of one round of `GET /v1/frames/{id}` over 20 frames, on a
@@ -118,6 +120,9 @@ struct PhaseStats {
     watcher_ms: Vec<(&'static str, f64)>,
     skipped_refreshes: u64,
     load: Vec<f64>,
+    /// Renders and resolves the server counted between the dashboard's first and last
+    /// `/metrics` of each stint of the phase, and the seconds between those scrapes.
+    server_renders: (f64, f64, f64),
 }
 
 struct Shared {
@@ -317,14 +322,34 @@ async fn writer(shared: Arc<Shared>, pool: Arc<Pool>, worker: u64) -> Result<()>
     Ok(())
 }
 
-/// Every second in `watch`: frame info, then a Prometheus scrape.
+/// The sum of every series of counter `name` in a Prometheus text body.
+fn counter(text: &str, name: &str) -> f64 {
+    text.lines()
+        .filter(|l| {
+            l.strip_prefix(name)
+                .is_some_and(|rest| rest.starts_with([' ', '{']))
+        })
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
+}
+
+/// Every second in `watch`: frame info, then a Prometheus scrape. The scrapes' render and
+/// resolve counters, first and last of each stint of the phase, go to the phase's figures.
 async fn dashboard(shared: Arc<Shared>) -> Result<()> {
     let mut tick = tokio::time::interval(Duration::from_secs(1));
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    // (when, renders, resolves) of this stint's first scrape and of its latest.
+    let mut stint: Option<[(Instant, f64, f64); 2]> = None;
     while !shared.stop.load(Ordering::SeqCst) {
         tick.tick().await;
         let phase = shared.phase();
         if phase != WATCH {
+            if let Some([(t0, renders0, resolves0), (t1, renders1, resolves1)]) = stint.take() {
+                let counted = &mut shared.stats.lock().unwrap()[WATCH].server_renders;
+                counted.0 += renders1 - renders0;
+                counted.1 += resolves1 - resolves0;
+                counted.2 += (t1 - t0).as_secs_f64();
+            }
             continue;
         }
         shared
@@ -333,9 +358,16 @@ async fn dashboard(shared: Arc<Shared>) -> Result<()> {
         // Prometheus tells a target how long it will wait (its scrape timeout, at most its
         // interval): the server waits for paced renders at most half of that.
         let timeout = [(splatd_server::http::operations::SCRAPE_TIMEOUT_HEADER, "1")];
-        shared
+        let text = shared
             .get_with(phase, "dashboard /metrics", "/metrics", &timeout)
             .await?;
+        let text = String::from_utf8_lossy(&text);
+        let now = (
+            Instant::now(),
+            counter(&text, splatd_server::meters::RENDERS),
+            counter(&text, splatd_server::meters::RESOLVES),
+        );
+        stint = Some(stint.map_or([now, now], |[first, _]| [first, now]));
     }
     Ok(())
 }
@@ -788,6 +820,13 @@ fn report(shared: &Shared) -> Result<Vec<String>> {
             println!(
                 "         live page refreshes skipped (4 in flight): {}",
                 s.skipped_refreshes
+            );
+        }
+        let (renders, resolves, seconds) = s.server_renders;
+        if seconds > 0.0 {
+            println!(
+                "         the server's renders {renders}, resolves {resolves} in {seconds:.1} s \
+                 (its /metrics, the dashboard's first and last scrape of each round)"
             );
         }
     }

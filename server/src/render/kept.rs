@@ -113,6 +113,18 @@ pub enum Made {
     Whole,
 }
 
+impl Made {
+    /// Counts a resolve made so in the server's metrics (`splatd_resolves_total{made}`).
+    fn count(self) {
+        let made = match self {
+            Made::Kept => return,
+            Made::Patched => "patched",
+            Made::Whole => "whole",
+        };
+        metrics::counter!(crate::meters::RESOLVES, "made" => made).increment(1);
+    }
+}
+
 impl KeptResolves {
     /// How many renders patched a kept resolve so far.
     pub fn patched(&self) -> u64 {
@@ -215,6 +227,7 @@ impl KeptResolves {
         if *params != frame.spec().resolve {
             let cut = frame.cut();
             let resolved = cut.resolve(params, threads);
+            Made::Whole.count();
             return use_it(&resolved, cut, Made::Whole);
         }
         self.bring_up_to_date(frame, threads, false, |kept, cut, made| {
@@ -253,8 +266,6 @@ impl KeptResolves {
                         let changed = Rect::merge(&changed, MAX_PATCHES);
                         resolve_region_into(&bands, params, threads, &changed, resolved)
                             .expect("a frame's bands tile it");
-                        self.patched
-                            .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
                         Made::Patched
                     }
                     None => {
@@ -273,10 +284,15 @@ impl KeptResolves {
                 Made::Whole
             }
         };
-        if made == Made::Whole {
-            self.whole
-                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let counter = match made {
+            Made::Kept => None,
+            Made::Patched => Some(&self.patched),
+            Made::Whole => Some(&self.whole),
+        };
+        if let Some(counter) = counter {
+            counter.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         }
+        made.count();
         if need && (kept.need.is_none() || kept.need_version != cut.version) {
             let resolved = kept.resolved.as_ref().expect("kept above");
             // The map's tiles that the changes since it was made reach are made again (however
