@@ -390,6 +390,14 @@ mod tests {
     use splatd_proto::{Batch, Record};
     use splatd_scenes::synth::FireflyScene;
 
+    /// Ingests the scene's pass `seq` whole as batch `seq`; the frame's version after it.
+    fn ingest_pass(frame: &ShardedFrame, scene: &FireflyScene, seq: u64) -> u64 {
+        let records = scene.pass(seq).map(|(x, y, rgb)| Record::new(x, y, rgb));
+        let batch = Batch::new("f", 1, seq, records.collect()).unwrap();
+        frame.ingest(&batch).unwrap();
+        frame.version()
+    }
+
     /// Ingests batch `seq`: a worker's tile, the square of `side` pixels at `(x0, y0)` of the
     /// scene's pass `seq + 10` (fireflies included).
     fn ingest_tile(
@@ -548,13 +556,8 @@ mod tests {
         let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
         let params = frame.spec().resolve;
         let scene = FireflyScene::new(w, h, 3);
-        let batch = |seq: u64| {
-            let records = scene.pass(seq).map(|(x, y, rgb)| Record::new(x, y, rgb));
-            Batch::new("f", 1, seq, records.collect()).unwrap()
-        };
-        frame.ingest(&batch(0)).unwrap();
         let kept = KeptResolves::default();
-        let asked = frame.version();
+        let asked = ingest_pass(&frame, &scene, 0);
         kept.with_resolved(&frame, &params, 1, |_, _, made| {
             assert_eq!(made, Made::Whole)
         });
@@ -578,7 +581,7 @@ mod tests {
         );
 
         // A writer adds a pass; a render that started before it still gets the kept map.
-        frame.ingest(&batch(1)).unwrap();
+        ingest_pass(&frame, &scene, 1);
         let (tiles, version) = kept.with_need_since(&frame, 1, asked, |m, v| (m.tiles.clone(), v));
         assert_eq!(version, asked);
         assert_eq!(tiles, oracle.tiles);
@@ -609,12 +612,7 @@ mod tests {
         let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
         let params = frame.spec().resolve;
         let scene = FireflyScene::new(w, h, 4);
-        let pass = |seq: u64| {
-            let records = scene.pass(seq).map(|(x, y, rgb)| Record::new(x, y, rgb));
-            let batch = Batch::new("f", 1, seq, records.collect()).unwrap();
-            frame.ingest(&batch).unwrap();
-            frame.version()
-        };
+        let pass = |seq: u64| ingest_pass(&frame, &scene, seq);
         let layers = |kept: &KeptResolves, asked: u64| {
             kept.with_resolved_since(&frame, &params, 1, asked, |_, made| {
                 assert_ne!(made, Made::Kept, "the frame changed since")

@@ -168,6 +168,18 @@ mod tests {
         frame.ingest(&batch).unwrap();
     }
 
+    /// A writer adding `batches` samples to `frame`, the first now, then one every 10 ms.
+    fn writing(frame: &Arc<ShardedFrame>, batches: u64) -> tokio::task::JoinHandle<()> {
+        add(frame, 0);
+        let f = frame.clone();
+        tokio::spawn(async move {
+            for seq in 1..batches {
+                tokio::time::sleep(Duration::from_millis(10)).await;
+                add(&f, seq);
+            }
+        })
+    }
+
     /// After a render of 1 s at a share of 0.2, the next render of a frame that keeps changing
     /// waits 4 s; of a frame that went quiet, one quiet spell; of an unchanged frame, nothing.
     /// On tokio's paused clock, so the waits are exact.
@@ -184,16 +196,7 @@ mod tests {
         assert_eq!(paces.wait(&f).await, Duration::ZERO, "an unchanged frame");
 
         // A writer adds a sample every 10 ms for 10 s: two renders wait out one pace together.
-        add(&f, 0);
-        let writer = {
-            let f = f.clone();
-            tokio::spawn(async move {
-                for seq in 1..1000 {
-                    tokio::time::sleep(Duration::from_millis(10)).await;
-                    add(&f, seq);
-                }
-            })
-        };
+        let writer = writing(&f, 1000);
         let (a, b) = tokio::join!(paces.wait(&f), paces.wait(&f));
         // Tokio's timers round up to the millisecond: 4 s, or up to 1 ms more.
         let ms = Duration::from_millis(1);
@@ -222,16 +225,7 @@ mod tests {
         let paces = Arc::new(Paces::new(0.2));
         let f = frame();
         paces.rendered(&f, f.version(), Instant::now(), Duration::from_secs(1));
-        add(&f, 0);
-        let writer = {
-            let f = f.clone();
-            tokio::spawn(async move {
-                for seq in 1..2000 {
-                    tokio::time::sleep(Duration::from_millis(10)).await;
-                    add(&f, seq);
-                }
-            })
-        };
+        let writer = writing(&f, 2000);
         let start = Instant::now();
         let waiting = |after: Duration| {
             let (paces, f) = (paces.clone(), f.clone());
