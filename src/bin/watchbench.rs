@@ -322,7 +322,8 @@ async fn writer(shared: Arc<Shared>, pool: Arc<Pool>, worker: u64) -> Result<()>
     Ok(())
 }
 
-/// The sum of every series of counter `name` in a Prometheus text body.
+/// The sum of every series of counter `name` in a Prometheus text body (0 before the server
+/// counted any).
 fn counter(text: &str, name: &str) -> f64 {
     text.lines()
         .filter(|l| {
@@ -565,15 +566,6 @@ async fn wait_idle(pid: u32, tick: f64) -> Result<f64> {
     }
 }
 
-/// `splatd_renders_total` in a Prometheus text page (0 before the first render).
-fn renders_total(metrics: &str) -> u64 {
-    metrics
-        .lines()
-        .find_map(|line| line.strip_prefix("splatd_renders_total "))
-        .and_then(|n| n.trim().parse::<f64>().ok())
-        .map_or(0, |n| n as u64)
-}
-
 /// The scrape-cost lines: a fresh server with `scrape_frames` unchanged frames.
 async fn scrape_cost(args: &Args, tick: f64) -> Result<Vec<String>> {
     let server = start_server(args.render_share)?;
@@ -620,7 +612,7 @@ async fn scrape_cost(args: &Args, tick: f64) -> Result<Vec<String>> {
                 .await?
                 .text()
                 .await?;
-            Ok::<u64, anyhow::Error>(renders_total(&text))
+            Ok::<u64, anyhow::Error>(counter(&text, splatd_server::meters::RENDERS) as u64)
         }
     };
     let idle = wait_idle(pid, tick).await?;
