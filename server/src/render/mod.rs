@@ -225,29 +225,70 @@ impl Renders {
         }
         let version = frame.version();
         let mut reservation = self.budget.reserve(cost).await?;
+        let filed = entry.clone();
+        let rendered = self
+            .run(frame, version, turn, move |frame, version| {
+                let bytes = render(frame, version, &mut reservation);
+                drop(reservation);
+                if let Ok(bytes) = &bytes {
+                    filed.file(version, bytes);
+                }
+                bytes
+            })
+            .await;
+        let bytes = rendered.map_err(RenderError::Failed)?;
+        self.trim();
+        Ok(bytes)
+    }
+
+    /// Runs `work` as a render of `frame` that no request waits for (the tev feed), if the
+    /// frame's pace lets a render start now or `quiet` (the frame has not changed for a while,
+    /// as a request's wait ends after [`pace::QUIET`]): on a render thread after reserving
+    /// `cost` bytes, given the version read before it, counted and filed with the frame's pace
+    /// like any render. `None` if the pace is not over: the caller tries again later rather
+    /// than wait (a loop over frames would wait out each frame's pace in turn). Renders of
+    /// other kinds may share the kept resolve it makes ([`KeptResolves`]).
+    pub async fn render_if_due<T: Send + 'static>(
+        &self,
+        frame: &Arc<ShardedFrame>,
+        quiet: bool,
+        cost: u64,
+        work: impl FnOnce(&ShardedFrame, u64) -> T + Send + 'static,
+    ) -> Result<Option<T>, Busy> {
+        if !quiet && !self.paces.due(frame) {
+            return Ok(None);
+        }
+        let version = frame.version();
+        let reservation = self.budget.reserve(cost).await?;
+        Ok(Some(self.run(frame, version, reservation, work).await))
+    }
+
+    /// Counts a render of `frame` at `version` and runs `work` on a render thread, which files
+    /// the render with the frame's pace and then lets `hold` go (the turn of the render's
+    /// query, a reservation): so the next render in line finds the pace set. The thread owns
+    /// `hold`, so a request that gives up waiting lets nothing go early.
+    async fn run<T: Send + 'static, H: Send + 'static>(
+        &self,
+        frame: &Arc<ShardedFrame>,
+        version: u64,
+        hold: H,
+        work: impl FnOnce(&ShardedFrame, u64) -> T + Send + 'static,
+    ) -> T {
         self.rendered
             .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         metrics::counter!(crate::meters::RENDERS).increment(1);
         let frame = frame.clone();
-        let filed = entry.clone();
         let paces = self.paces.clone();
         let clock = pace::Clock::start();
-        let rendered = on_render_thread(move || {
+        on_render_thread(move || {
             let started = std::time::Instant::now();
-            let bytes = render(&frame, version, &mut reservation);
-            drop(reservation);
-            if let Ok(bytes) = &bytes {
-                filed.file(version, bytes);
-            }
+            let done = work(&frame, version);
             paces.rendered(&frame, version, clock.now(), started.elapsed());
-            drop(turn);
-            bytes
+            drop(hold);
+            done
         })
         .await
-        .expect("a render does not panic");
-        let bytes = rendered.map_err(RenderError::Failed)?;
-        self.trim();
-        Ok(bytes)
+        .expect("a render does not panic")
     }
 
     /// Drops the oldest finished renders while the kept ones hold more than a quarter of the

@@ -129,6 +129,16 @@ impl Paces {
         start.elapsed()
     }
 
+    /// Whether a render of `frame` may start now: the frame never rendered, unchanged since its
+    /// last render, or its pace over. For work that no request waits for (the tev feed), which
+    /// skips a frame until then instead of waiting in [`Paces::wait`].
+    pub fn due(&self, frame: &ShardedFrame) -> bool {
+        let gate = self.gate(frame);
+        gate.next
+            .filter(|_| frame.version() != gate.version)
+            .is_none_or(|next| Instant::now() >= next)
+    }
+
     /// Files a render of `frame` at `version` that took `took` and ended at `ended`.
     ///
     /// The moments are on tokio's clock, which tests pause, so that a wait ends by its own
@@ -253,6 +263,26 @@ mod tests {
                 "a wait ended {ended:?} after the start, not with the latest render's pace"
             );
         }
+    }
+
+    /// `due` says without waiting what `wait` waits for: a changed frame is due once its pace
+    /// is over, an unchanged one at once.
+    #[tokio::test(start_paused = true)]
+    async fn a_changed_frame_is_due_when_its_pace_ends() {
+        let paces = Paces::new(0.2);
+        let f = frame();
+        assert!(paces.due(&f), "a frame never rendered");
+        paces.rendered(&f, f.version(), Instant::now(), Duration::from_secs(1));
+        assert!(paces.due(&f), "an unchanged frame");
+        add(&f, 1);
+        assert!(
+            !paces.due(&f),
+            "a frame changed right after a render of 1 s"
+        );
+        tokio::time::sleep(Duration::from_millis(3999)).await;
+        assert!(!paces.due(&f), "the pace of a 1 s render at 0.2 is 4 s");
+        tokio::time::sleep(Duration::from_millis(1)).await;
+        assert!(paces.due(&f), "the pace is over");
     }
 
     /// A share of 1 renders a changing frame back to back; the share is clamped.
