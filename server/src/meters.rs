@@ -21,8 +21,8 @@ pub const FRAMES: &str = "splatd_frames";
 pub const IDLE_CELL_BYTES: &str = "splatd_idle_cell_bytes";
 /// Seconds an `image.exr` took (histogram).
 pub const RESOLVE_SECONDS: &str = "splatd_resolve_seconds";
-/// Renders run for images, previews, need maps and convergence figures; requests that shared
-/// one count once (a dashboard of unchanged frames adds none).
+/// Renders run for images, previews, need maps, convergence figures and the tev feed;
+/// requests that shared one count once (a dashboard of unchanged frames adds none).
 pub const RENDERS: &str = "splatd_renders_total";
 /// Resolves renders ran, label `made`: `whole` (a whole frame resolved) or `patched` (a kept
 /// resolve brought up to date where the frame changed). Renders that took a kept resolve as it
