@@ -241,26 +241,26 @@ impl Renders {
         Ok(bytes)
     }
 
-    /// Runs `work` as a render of `frame` that no request waits for (the tev feed), if the
-    /// frame's pace lets a render start now or `quiet` (the frame has not changed for a while,
-    /// as a request's wait ends after [`pace::QUIET`]): on a render thread after reserving
-    /// `cost` bytes, given the version read before it, counted and filed with the frame's pace
-    /// like any render. `None` if the pace is not over: the caller tries again later rather
-    /// than wait (a loop over frames would wait out each frame's pace in turn). Renders of
-    /// other kinds may share the kept resolve it makes ([`KeptResolves`]).
-    pub async fn render_if_due<T: Send + 'static>(
+    /// Whether the pace of `frame` lets a render of it start now ([`pace::Paces::due`]): for
+    /// renders that no request waits for, which skip a frame until then rather than wait (a
+    /// loop over frames would wait out each frame's pace in turn).
+    pub fn due(&self, frame: &ShardedFrame) -> bool {
+        self.paces.due(frame)
+    }
+
+    /// Runs `work` as a render of `frame` that no request waits for (the tev feed), holding
+    /// `reservation` of the working budget: on a render thread, given the version read before
+    /// it, counted and filed with the frame's pace like any render. Renders of other kinds may
+    /// share the kept resolve it makes ([`KeptResolves`]). The caller checks [`Renders::due`]
+    /// first.
+    pub async fn background<T: Send + 'static>(
         &self,
         frame: &Arc<ShardedFrame>,
-        quiet: bool,
-        cost: u64,
+        reservation: Reservation,
         work: impl FnOnce(&ShardedFrame, u64) -> T + Send + 'static,
-    ) -> Result<Option<T>, Busy> {
-        if !quiet && !self.paces.due(frame) {
-            return Ok(None);
-        }
+    ) -> T {
         let version = frame.version();
-        let reservation = self.budget.reserve(cost).await?;
-        Ok(Some(self.run(frame, version, reservation, work).await))
+        self.run(frame, version, reservation, work).await
     }
 
     /// Counts a render of `frame` at `version` and runs `work` on a render thread, which files

@@ -24,41 +24,14 @@
 pub mod tev;
 
 use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use splatd_estimator::Resolved;
 
-use crate::viewer::tev::{TevError, TevSink};
+use crate::frame::ShardedFrame;
+use crate::viewer::tev::TevSink;
 
 use super::AppState;
-
-/// The connection to tev and the layers last sent, kept for the next update.
-#[derive(Default)]
-struct Feed {
-    sink: Option<TevSink>,
-    layers: Resolved,
-}
-
-impl Feed {
-    /// Connects to tev at `addr` unless connected (a new connection, after a failed send too,
-    /// may be a new tev, which gets every image created again), then fills the layers with
-    /// `fill` and shows them as tev's image `name`. So nothing is resolved for a tev that is
-    /// not there.
-    fn update(
-        &mut self,
-        addr: &str,
-        name: &str,
-        fill: impl FnOnce(&mut Resolved),
-    ) -> Result<(), TevError> {
-        let sink = match self.sink.take().filter(TevSink::is_connected) {
-            Some(sink) => self.sink.insert(sink),
-            None => self.sink.insert(TevSink::connect(addr)?),
-        };
-        fill(&mut self.layers);
-        sink.show(name, &self.layers)
-    }
-}
 
 /// Runs until `stop` changes.
 pub async fn run(
@@ -67,8 +40,9 @@ pub async fn run(
     interval: Duration,
     mut stop: tokio::sync::watch::Receiver<bool>,
 ) {
-    // Used by one update at a time, on its render thread.
-    let feed = Arc::new(Mutex::new(Feed::default()));
+    let mut sink: Option<TevSink> = None;
+    // The layers last sent, kept as buffers for the next update.
+    let mut layers = Resolved::default();
     // Per frame, the version shown, and the version seen in the round before.
     let mut shown: HashMap<String, u64> = HashMap::new();
     let mut seen: HashMap<String, u64> = HashMap::new();
@@ -84,34 +58,58 @@ pub async fn run(
                 continue;
             }
             let quiet = seen.insert(frame.id().to_owned(), version) == Some(version);
-            let threads = app.resolve_threads;
-            let params = frame.spec().resolve;
-            let kept = app.renders.kept().clone();
-            let (target, feed) = (addr.clone(), feed.clone());
+            if !quiet && !app.renders.due(&frame) {
+                // Its pace is not over: a later round shows it.
+                continue;
+            }
+            // Connected first, so that nothing is reserved, resolved or counted for a tev that
+            // is not there; a new connection (after a failed send too) may be a new tev, which
+            // gets every image created again.
+            let connected = match sink.take().filter(TevSink::is_connected) {
+                Some(s) => Ok(s),
+                None => {
+                    let target = addr.clone();
+                    tokio::task::spawn_blocking(move || TevSink::connect(&target))
+                        .await
+                        .expect("connecting does not panic")
+                }
+            };
+            let mut s = match connected {
+                Ok(s) => s,
+                Err(e) => {
+                    if !down {
+                        tracing::warn!(%addr, error = %e, "tev is not reachable; will retry");
+                        down = true;
+                    }
+                    shown.clear();
+                    break;
+                }
+            };
             let r = &frame.spec().request;
             // The frame's cut (copied as writers change it) and the kept resolve's layers,
             // then the copy of three of them sent from.
             let cost = frame.spec().memory_bytes() + u64::from(r.width) * u64::from(r.height) * 96;
-            let update = app
-                .renders
-                .render_if_due(&frame, quiet, cost, move |f, wanted| {
-                    let mut feed = feed.lock().unwrap_or_else(|e| e.into_inner());
-                    // Sent from a copy: a slow tev must not hold up the frame's other renders.
-                    feed.update(&target, f.id(), |layers| {
-                        kept.with_resolved_since(f, &params, threads, wanted, |resolved, _| {
-                            copy_layers(resolved, layers)
-                        })
-                    })
-                });
-            let result = match update.await {
-                Ok(Some(result)) => result,
-                // Its pace is not over: a later round shows it.
-                Ok(None) => continue,
+            let reservation = match app.renders.budget().reserve(cost).await {
+                Ok(reservation) => reservation,
                 Err(busy) => {
                     tracing::warn!(frame = frame.id(), error = %busy, "tev update postponed");
+                    sink = Some(s);
                     continue;
                 }
             };
+            let (threads, params) = (app.resolve_threads, frame.spec().resolve);
+            let kept = app.renders.kept().clone();
+            let mut buffers = std::mem::take(&mut layers);
+            let update = move |f: &ShardedFrame, wanted| {
+                // Sent from a copy: a slow tev must not hold up the frame's other renders.
+                kept.with_resolved_since(f, &params, threads, wanted, |resolved, _| {
+                    copy_layers(resolved, &mut buffers)
+                });
+                let result = s.show(f.id(), &buffers);
+                (s, buffers, result)
+            };
+            let (s, buffers, result) = app.renders.background(&frame, reservation, update).await;
+            (sink, layers) = (Some(s), buffers);
             match result {
                 Ok(()) => {
                     shown.insert(frame.id().to_owned(), version);
@@ -120,14 +118,6 @@ pub async fn run(
                         tracing::info!(%addr, "tev reachable again");
                         down = false;
                     }
-                }
-                Err(e @ TevError::Connect { .. }) => {
-                    if !down {
-                        tracing::warn!(%addr, error = %e, "tev is not reachable; will retry");
-                        down = true;
-                    }
-                    shown.clear();
-                    break;
                 }
                 Err(e) => {
                     // The next update connects again.
@@ -157,11 +147,11 @@ fn copy_layers(from: &Resolved, to: &mut Resolved) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::ShardedFrame;
     use crate::{testing, Limits};
     use splatd_proto::{Batch, Record};
     use std::io::Read;
     use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering::SeqCst};
+    use std::sync::Arc;
 
     /// A tev stand-in on loopback: accepts connections and reads what each sends, counting
     /// both, until `done` is set.
@@ -230,6 +220,32 @@ mod tests {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         panic!("{what}: not within 10 s");
+    }
+
+    /// With no tev listening, the feed tries to connect every round and does nothing else: no
+    /// render is counted, reserved or run, nothing is resolved.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn without_tev_nothing_is_rendered() {
+        // An address nothing listens on: connections to it are refused.
+        let addr = {
+            let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+            listener.local_addr().unwrap().to_string()
+        };
+        let app = testing::with_frame(AppState::new(Limits::default(), None, None), "f", 8, 8);
+        let frame = app.store.get("f").unwrap();
+        let (stop, stopped) = tokio::sync::watch::channel(false);
+        let feed = tokio::spawn(run(app.clone(), addr, Duration::from_millis(5), stopped));
+        // Some 40 rounds, the frame changing between them.
+        for seq in 0..40 {
+            post(&frame, seq);
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        stop.send(true).unwrap();
+        feed.await.unwrap();
+        assert_eq!(app.renders.rendered(), 0, "renders");
+        let kept = app.renders.kept();
+        assert_eq!(kept.whole() + kept.patched(), 0, "resolves");
+        assert_eq!(app.renders.budget().used(), 0, "working memory reserved");
     }
 
     /// While workers keep changing a frame whose render pace is not over, the feed skips the
