@@ -24,14 +24,24 @@
 //! * `kappa`: instead, [`KAPPA_READERS`] clients each fetching `image.exr` back to back with a
 //!   `kappa` of its own that changes every request, so that no two requests can share a
 //!   resolve (as a lighting TD sweeping `kappa` would): every request a whole resolve, held to
-//!   the frame's render pace like any other.
+//!   the frame's render pace like any other;
+//!
+//! then, on a second server (a frame's renders of every kind share its render pace, so a tev
+//! phase after the others would find the frame held to their pace), `alone, tev`:
+//!
+//! * `alone`: the writers alone;
+//! * `tev`: plus a tev viewer: the server runs with `--tev` pointed at a stand-in in this
+//!   process that listens only during this phase and reads what it is sent (the server's feed
+//!   pushes the changed frame about once a second, as its updates' pace allows); outside the
+//!   phase the feed's connections are refused, which costs it nothing.
 //!
 //! It prints ingest samples/s and batch post latency (p50, p99, p99.9, max) per phase, the
 //! server's CPU seconds per second of each phase (`/proc/PID/stat`), the renders and resolves
 //! the server counted in `watch` (`splatd_renders_total` and `splatd_resolves_total` in the
-//! dashboard's first and last scrape of each round), the ratios beside their
-//! goals (ingest with watchers / without >= 0.9; post p99 with the image loop / without <= 1.5;
-//! ingest with the `kappa` readers / without, which has no goal of its own), and the server CPU
+//! dashboard's first and last scrape of each round), the bytes tev was sent, the ratios beside
+//! their goals (ingest with watchers / without >= 0.9; post p99 with the image loop / without
+//! <= 1.5; ingest with the `kappa` readers and with tev / without, which have no goal of their
+//! own), and the server CPU
 //! time of one `/metrics` scrape and of one round of `GET /v1/frames/{id}` over 20 frames, on a
 //! second server holding 64 unchanged 512x512 frames, with the renders they caused (the
 //! server's `splatd_renders_total` before and after; goal: none).
@@ -97,11 +107,16 @@ const P99_GOAL: f64 = 1.5;
 /// `splatd_renders_total` before and after).
 const SCRAPE_GOAL_RENDERS: u64 = 0;
 
-const PHASES: [&str; 4] = ["none", "watch", "loop", "kappa"];
+const PHASES: [&str; 6] = ["none", "watch", "loop", "kappa", "alone", "tev"];
 const NONE: usize = 0;
 const WATCH: usize = 1;
 const LOOP: usize = 2;
 const KAPPA: usize = 3;
+const ALONE: usize = 4;
+const TEV: usize = 5;
+/// The phases on the first server, and on the second, which runs with `--tev`.
+const WATCHERS: [usize; 4] = [NONE, WATCH, LOOP, KAPPA];
+const TEV_PHASES: [usize; 2] = [ALONE, TEV];
 /// Clients fetching `image.exr` with `kappa`s of their own in the `kappa` phase.
 const KAPPA_READERS: usize = 4;
 /// Between phases: nothing is counted.
@@ -123,6 +138,8 @@ struct PhaseStats {
     /// Renders and resolves the server counted between the dashboard's first and last
     /// `/metrics` of each stint of the phase, and the seconds between those scrapes.
     server_renders: (f64, f64, f64),
+    /// Bytes the tev stand-in read.
+    tev_bytes: u64,
 }
 
 struct Shared {
@@ -230,13 +247,17 @@ fn percentile(sorted: &[f64], p: f64) -> f64 {
     sorted[i]
 }
 
-fn start_server(render_share: Option<f64>) -> Result<ServerProcess> {
+/// A `splatd serve` with `--render-share` if given, and with `--tev` if given.
+fn start_server(render_share: Option<f64>, tev: Option<&str>) -> Result<ServerProcess> {
     let binary = sibling_binary().map_err(anyhow::Error::msg)?;
     let share = render_share.map(|s| s.to_string());
-    let args: Vec<&str> = match &share {
-        Some(s) => vec!["--render-share", s],
-        None => Vec::new(),
-    };
+    let mut args: Vec<&str> = Vec::new();
+    if let Some(s) = &share {
+        args.extend(["--render-share", s]);
+    }
+    if let Some(addr) = tev {
+        args.extend(["--tev", addr]);
+    }
     ServerProcess::launch(&Options {
         log_level: "warn",
         ..Options::new(binary, &args)
@@ -499,7 +520,50 @@ async fn kappa_reader(shared: Arc<Shared>, reader: usize) -> Result<()> {
     Ok(())
 }
 
-async fn phases(args: &Args, shared: &Arc<Shared>, pid: u32, tick: f64) -> Result<()> {
+/// In `tev`: a tev viewer at `addr` that reads and counts what it is sent; it listens only
+/// during the phase and closes its connections when the phase ends.
+async fn tev_viewer(shared: Arc<Shared>, addr: String) -> Result<()> {
+    while !shared.stop.load(Ordering::SeqCst) {
+        if shared.phase() != TEV {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            continue;
+        }
+        let listener = tokio::net::TcpListener::bind(&addr)
+            .await
+            .with_context(|| format!("the tev stand-in binding {addr}"))?;
+        while shared.phase() == TEV {
+            let accepted = tokio::time::timeout(Duration::from_millis(20), listener.accept());
+            if let Ok(accepted) = accepted.await {
+                let (stream, _) = accepted?;
+                tokio::spawn(tev_connection(shared.clone(), stream));
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Reads a connection to the tev stand-in until the server closes it or the phase ends.
+async fn tev_connection(shared: Arc<Shared>, mut stream: tokio::net::TcpStream) {
+    use tokio::io::AsyncReadExt;
+    let mut buf = vec![0u8; 1 << 20];
+    while shared.phase() == TEV {
+        let read = tokio::time::timeout(Duration::from_millis(20), stream.read(&mut buf));
+        match read.await {
+            Ok(Ok(0) | Err(_)) => return,
+            Ok(Ok(n)) => shared.stats.lock().unwrap()[TEV].tev_bytes += n as u64,
+            Err(_) => {}
+        }
+    }
+}
+
+/// Runs `which` phases in turn, `--rounds` times, after a warm-up.
+async fn phases(
+    args: &Args,
+    shared: &Arc<Shared>,
+    pid: u32,
+    tick: f64,
+    which: &[usize],
+) -> Result<()> {
     let settle = || async {
         shared.phase.store(SETTLE, Ordering::SeqCst);
         let t = Instant::now();
@@ -512,7 +576,7 @@ async fn phases(args: &Args, shared: &Arc<Shared>, pid: u32, tick: f64) -> Resul
     settle().await;
     tokio::time::sleep(Duration::from_secs_f64(args.seconds.min(3.0))).await;
     for round in 0..args.rounds {
-        for phase in 0..PHASES.len() {
+        for &phase in which {
             settle().await;
             let cpu0 = cpu_seconds(pid, tick)?;
             let t0 = Instant::now();
@@ -568,7 +632,7 @@ async fn wait_idle(pid: u32, tick: f64) -> Result<f64> {
 
 /// The scrape-cost lines: a fresh server with `scrape_frames` unchanged frames.
 async fn scrape_cost(args: &Args, tick: f64) -> Result<Vec<String>> {
-    let server = start_server(args.render_share)?;
+    let server = start_server(args.render_share, None)?;
     let pid = server.pid();
     let client = Client::new(&server.url)?;
     let http = reqwest::Client::new();
@@ -703,10 +767,42 @@ fn main() -> Result<()> {
         return Ok(());
     }
     let pool = Arc::new(make_pool(&args)?);
-    let server = start_server(args.render_share)?;
+    let stats = PHASES.iter().map(|_| PhaseStats::default()).collect();
+    let (stats, busy) = runtime.block_on(watch_server(&args, &pool, tick, None, stats))?;
+    // The tev stand-in's address: a port taken and given back, on which nothing listens
+    // outside the `tev` phase.
+    let tev = std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .to_string();
+    let (mut stats, more_busy) =
+        runtime.block_on(watch_server(&args, &pool, tick, Some(tev), stats))?;
+    let goals = report(&mut stats, busy + more_busy, &args)?;
+    let scrape = runtime.block_on(scrape_cost(&args, tick))?;
+    println!("\ngoals ({} at the end):", uptime());
+    for line in goals.iter().chain(&scrape) {
+        println!("  {line}");
+    }
+    Ok(())
+}
+
+/// Starts a server (with `--tev` at `tev` if given, then running the phases [`TEV_PHASES`],
+/// else [`WATCHERS`]), creates the frame, and runs the writers and watchers through the
+/// phases; returns `stats` with the figures added, and the watcher requests answered busy.
+async fn watch_server(
+    args: &Args,
+    pool: &Arc<Pool>,
+    tick: f64,
+    tev: Option<String>,
+    stats: Vec<PhaseStats>,
+) -> Result<(Vec<PhaseStats>, usize)> {
+    let server = start_server(args.render_share, tev.as_deref())?;
+    let which: &[usize] = if tev.is_some() {
+        &TEV_PHASES
+    } else {
+        &WATCHERS
+    };
     let pid = server.pid();
     let url = server.url.clone();
-    let stats = PHASES.iter().map(|_| PhaseStats::default()).collect();
     let shared = Arc::new(Shared {
         phase: AtomicUsize::new(SETTLE),
         stop: AtomicBool::new(false),
@@ -716,6 +812,7 @@ fn main() -> Result<()> {
         http: reqwest::Client::new(),
         url: url.clone(),
     });
+    let names: Vec<&str> = which.iter().map(|&p| PHASES[p]).collect();
     println!(
         "{}x{} frame, {} writers posting batches of {} records; phases of {} s, {} rounds of \
          {}; server log {}",
@@ -725,49 +822,47 @@ fn main() -> Result<()> {
         args.batch,
         args.seconds,
         args.rounds,
-        PHASES.join("/"),
+        names.join("/"),
         server
             .log_path()
             .map_or("-".into(), |p| p.display().to_string())
     );
-    let goals = runtime.block_on(async {
-        Client::new(&url)?
-            .create_frame(&CreateFrame::new(FRAME, args.width, args.height))
-            .await?;
-        let mut tasks = Vec::new();
-        for w in 0..args.writers {
-            tasks.push(tokio::spawn(writer(
-                shared.clone(),
-                pool.clone(),
-                w as u64 + 1,
-            )));
-        }
-        tasks.push(tokio::spawn(dashboard(shared.clone())));
-        tasks.push(tokio::spawn(live_page(shared.clone())));
-        tasks.push(tokio::spawn(images(shared.clone())));
-        for reader in 0..KAPPA_READERS {
-            tasks.push(tokio::spawn(kappa_reader(shared.clone(), reader)));
-        }
-        let result = phases(&args, &shared, pid, tick).await;
-        shared.stop.store(true, Ordering::SeqCst);
-        for t in tasks {
-            t.await??;
-        }
-        result?;
-        report(&shared)
-    })?;
-    drop(server);
-    let scrape = runtime.block_on(scrape_cost(&args, tick))?;
-    println!("\ngoals ({} at the end):", uptime());
-    for line in goals.iter().chain(&scrape) {
-        println!("  {line}");
+    Client::new(&url)?
+        .create_frame(&CreateFrame::new(FRAME, args.width, args.height))
+        .await?;
+    let mut tasks = Vec::new();
+    for w in 0..args.writers {
+        tasks.push(tokio::spawn(writer(
+            shared.clone(),
+            pool.clone(),
+            w as u64 + 1,
+        )));
     }
-    Ok(())
+    match tev {
+        Some(tev) => tasks.push(tokio::spawn(tev_viewer(shared.clone(), tev))),
+        None => {
+            tasks.push(tokio::spawn(dashboard(shared.clone())));
+            tasks.push(tokio::spawn(live_page(shared.clone())));
+            tasks.push(tokio::spawn(images(shared.clone())));
+            for reader in 0..KAPPA_READERS {
+                tasks.push(tokio::spawn(kappa_reader(shared.clone(), reader)));
+            }
+        }
+    }
+    let result = phases(args, &shared, pid, tick, which).await;
+    shared.stop.store(true, Ordering::SeqCst);
+    for t in tasks {
+        t.await??;
+    }
+    result?;
+    drop(server);
+    let busy = shared.busy.load(Ordering::SeqCst);
+    let stats = std::mem::take(&mut *shared.stats.lock().unwrap());
+    Ok((stats, busy))
 }
 
 /// Prints the per-phase figures; the goal lines.
-fn report(shared: &Shared) -> Result<Vec<String>> {
-    let mut stats = shared.stats.lock().unwrap();
+fn report(stats: &mut [PhaseStats], busy: usize, args: &Args) -> Result<Vec<String>> {
     let mut rate = [0.0; PHASES.len()];
     let mut p99 = [0.0; PHASES.len()];
     println!();
@@ -814,6 +909,15 @@ fn report(shared: &Shared) -> Result<Vec<String>> {
                 s.skipped_refreshes
             );
         }
+        if s.tev_bytes > 0 {
+            // An update sends 9 floats a pixel (3 layers), besides the packets' headers.
+            let update = 36.0 * f64::from(args.width) * f64::from(args.height);
+            println!(
+                "         tev was sent {:.0} MB (about {:.1} updates of the whole frame)",
+                s.tev_bytes as f64 / 1e6,
+                s.tev_bytes as f64 / update
+            );
+        }
         let (renders, resolves, seconds) = s.server_renders;
         if seconds > 0.0 {
             println!(
@@ -822,10 +926,7 @@ fn report(shared: &Shared) -> Result<Vec<String>> {
             );
         }
     }
-    println!(
-        "watcher requests answered 503 busy (shown again later): {}",
-        shared.busy.load(Ordering::SeqCst)
-    );
+    println!("watcher requests answered 503 busy (shown again later): {busy}");
     if stats.iter().any(|s| s.posts == 0) {
         bail!("a phase counted no posts: lengthen --seconds");
     }
@@ -852,6 +953,11 @@ fn report(shared: &Shared) -> Result<Vec<String>> {
             "ingest with {KAPPA_READERS} readers varying kappa / without: ratio {:.2} (no goal; \
              bounded by --render-share, for reference)",
             rate[KAPPA] / rate[NONE]
+        ),
+        format!(
+            "ingest with tev watching / without (the second server's phases): ratio {:.2} (no \
+             goal; for reference)",
+            rate[TEV] / rate[ALONE]
         ),
     ])
 }
