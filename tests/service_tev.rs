@@ -1,11 +1,11 @@
 //! `splatd serve --tev`: a real server pushes a frame to a tev stand-in as samples arrive; the
 //! stand-in decodes tev's protocol independently and the pixels equal the core's resolve.
 
-use std::net::TcpStream;
+use std::net::{TcpListener, TcpStream};
 use std::time::Instant;
 
 use crate::common;
-use crate::common::{parse_metrics, runtime, scrape_metrics, Server};
+use crate::common::{parse_metrics, runtime, scrape_metrics, Server, ServerProcess};
 use crate::tev_decoder;
 use crate::tev_decoder::{assert_planes_equal, read_packet, reassemble, Packet};
 use splatd_estimator::{CascadeLayout, FrameState, ResolveParams, Resolved};
@@ -62,17 +62,24 @@ fn read_until(
     }
 }
 
-#[test]
-fn served_frames_reach_tev_with_the_resolved_pixels() {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+/// A server pushing to a tev stand-in (every 50 ms) that listens here, and a client of it
+/// that created frame `id` of `w` x `h` pixels.
+fn serving_tev(id: &str, w: u32, h: u32) -> (TcpListener, ServerProcess, Client) {
+    let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let tev_addr = listener.local_addr().unwrap().to_string();
     let server = Server::start(&["--tev", &tev_addr, "--tev-interval-ms", "50"]);
-    let rt = runtime();
     let client = Client::new(&server.url).unwrap();
-    let (w, h) = (21, 13);
-    let scene = FireflyScene::new(w, h, 8);
-    rt.block_on(client.create_frame(&CreateFrame::new("tv", w, h)))
+    runtime()
+        .block_on(client.create_frame(&CreateFrame::new(id, w, h)))
         .unwrap();
+    (listener, server, client)
+}
+
+#[test]
+fn served_frames_reach_tev_with_the_resolved_pixels() {
+    let (w, h) = (21, 13);
+    let (listener, _server, client) = serving_tev("tv", w, h);
+    let scene = FireflyScene::new(w, h, 8);
     let mut reference = FrameState::new(w, h, CascadeLayout::with_defaults());
     post_passes(&client, "tv", &scene, 0..6, &mut reference);
     let expected = reference.resolve(&ResolveParams::with_defaults());
@@ -94,15 +101,9 @@ fn served_frames_reach_tev_with_the_resolved_pixels() {
 /// resolve and uncounted: the image then made the only resolve counted, and none was patched.)
 #[test]
 fn tev_updates_patch_the_kept_resolve_that_images_share() {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    let tev_addr = listener.local_addr().unwrap().to_string();
-    let server = Server::start(&["--tev", &tev_addr, "--tev-interval-ms", "50"]);
-    let rt = runtime();
-    let client = Client::new(&server.url).unwrap();
     let (w, h) = (40, 24);
+    let (listener, server, client) = serving_tev("tk", w, h);
     let scene = FireflyScene::new(w, h, 8);
-    rt.block_on(client.create_frame(&CreateFrame::new("tk", w, h)))
-        .unwrap();
     let (mut stream, _) = listener.accept().unwrap();
     stream.set_read_timeout(Some(common::PATIENCE)).unwrap();
     let mut packets = Vec::new();
@@ -114,7 +115,8 @@ fn tev_updates_patch_the_kept_resolve_that_images_share() {
     post_passes(&client, "tk", &scene, 2..6, &mut reference);
     let updates = read_until(&mut stream, &mut packets, "tk", &reference.resolve(&params));
 
-    rt.block_on(client.image("tk", &ImageQuery::default()))
+    runtime()
+        .block_on(client.image("tk", &ImageQuery::default()))
         .unwrap();
     let text = scrape_metrics(&server.url);
     let m = parse_metrics(&text);
