@@ -91,9 +91,15 @@ impl Paces {
         self.share
     }
 
-    fn gate(&self, frame: &ShardedFrame) -> Gate {
-        let frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
-        frames.get(&frame.serial()).copied().unwrap_or_default()
+    /// When the next render of `frame` may start if that is later than now: `None` if the
+    /// frame was never rendered, has not changed since its last render, or its pace is over.
+    fn held_until(&self, frame: &ShardedFrame) -> Option<Instant> {
+        let gate = {
+            let frames = self.frames.lock().unwrap_or_else(|e| e.into_inner());
+            frames.get(&frame.serial()).copied().unwrap_or_default()
+        };
+        gate.next
+            .filter(|&next| frame.version() != gate.version && Instant::now() < next)
     }
 
     /// Waits for `frame`'s pace if the frame changed since its last render and keeps changing:
@@ -111,17 +117,9 @@ impl Paces {
     /// with 16 resolves; reading the moment again, 29-30 with 11-12.
     pub async fn wait(&self, frame: &ShardedFrame) -> Duration {
         let start = Instant::now();
-        loop {
-            let gate = self.gate(frame);
-            let Some(next) = gate.next.filter(|_| frame.version() != gate.version) else {
-                break;
-            };
-            let now = Instant::now();
-            if now >= next {
-                break;
-            }
+        while let Some(next) = self.held_until(frame) {
             let seen = frame.version();
-            tokio::time::sleep((next - now).min(QUIET)).await;
+            tokio::time::sleep(next.saturating_duration_since(Instant::now()).min(QUIET)).await;
             if frame.version() == seen {
                 break;
             }
@@ -133,10 +131,7 @@ impl Paces {
     /// last render, or its pace over. For work that no request waits for (the tev feed), which
     /// skips a frame until then instead of waiting in [`Paces::wait`].
     pub fn due(&self, frame: &ShardedFrame) -> bool {
-        let gate = self.gate(frame);
-        gate.next
-            .filter(|_| frame.version() != gate.version)
-            .is_none_or(|next| Instant::now() >= next)
+        self.held_until(frame).is_none()
     }
 
     /// Files a render of `frame` at `version` that took `took` and ended at `ended`.
