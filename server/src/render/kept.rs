@@ -390,6 +390,11 @@ mod tests {
     use splatd_proto::{Batch, Record};
     use splatd_scenes::synth::FireflyScene;
 
+    /// A frame "f" of `w` x `h` pixels with the default settings.
+    fn new_frame(w: u32, h: u32) -> ShardedFrame {
+        ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap())
+    }
+
     /// Ingests the scene's pass `seq` whole as batch `seq`; the frame's version after it.
     fn ingest_pass(frame: &ShardedFrame, scene: &FireflyScene, seq: u64) -> u64 {
         let records = scene.pass(seq).map(|(x, y, rgb)| Record::new(x, y, rgb));
@@ -423,7 +428,7 @@ mod tests {
     #[test]
     fn a_patched_resolve_is_the_whole_resolve() {
         let (w, h) = (96, 80);
-        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let frame = new_frame(w, h);
         let params = frame.spec().resolve;
         let scene = FireflyScene::new(w, h, 5);
         let all: Vec<Record> = (0..4)
@@ -470,7 +475,7 @@ mod tests {
     fn a_deleted_frames_buffers_serve_the_next_frames_first_resolve() {
         let (w, h) = (48, 40);
         let make = |seed: u64| {
-            let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+            let frame = new_frame(w, h);
             let scene = FireflyScene::new(w, h, seed);
             let records = (0..3)
                 .flat_map(|p| scene.pass(p))
@@ -518,7 +523,7 @@ mod tests {
     /// version the render asks for or later, and patches it otherwise.
     #[test]
     fn a_layer_of_a_version_already_resolved_is_not_resolved_again() {
-        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", 40, 30)).unwrap());
+        let frame = new_frame(40, 30);
         let params = frame.spec().resolve;
         let one = |seq: u64| Batch::new("f", 1, seq, vec![Record::new(3, 4, [2.0; 3])]).unwrap();
         frame.ingest(&one(0)).unwrap();
@@ -553,7 +558,7 @@ mod tests {
     #[test]
     fn the_need_map_goes_with_the_kept_resolve() {
         let (w, h) = (40, 30);
-        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let frame = new_frame(w, h);
         let params = frame.spec().resolve;
         let scene = FireflyScene::new(w, h, 3);
         let kept = KeptResolves::default();
@@ -609,7 +614,7 @@ mod tests {
     #[test]
     fn a_layer_render_makes_the_map_while_figures_are_wanted() {
         let (w, h) = (40, 30);
-        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let frame = new_frame(w, h);
         let params = frame.spec().resolve;
         let scene = FireflyScene::new(w, h, 4);
         let pass = |seq: u64| ingest_pass(&frame, &scene, seq);
@@ -661,7 +666,7 @@ mod tests {
     #[test]
     fn figures_after_a_tile_make_only_the_tiles_near_it_again() {
         let (w, h) = (320, 240);
-        let frame = ShardedFrame::new(FrameSpec::new(CreateFrame::new("f", w, h)).unwrap());
+        let frame = new_frame(w, h);
         let params = frame.spec().resolve;
         let scene = FireflyScene::new(w, h, 9);
         let records = (0..2)
