@@ -124,6 +124,9 @@ const SETTLE: usize = usize::MAX;
 
 const FRAME: &str = "watch";
 
+/// How often an idle watcher, or one waiting for its phase to end, looks again.
+const POLL: Duration = Duration::from_millis(20);
+
 #[derive(Default)]
 struct PhaseStats {
     samples: u64,
@@ -158,6 +161,16 @@ struct Shared {
 impl Shared {
     fn phase(&self) -> usize {
         self.phase.load(Ordering::SeqCst)
+    }
+
+    /// Whether `phase` is running; if it is not, after a moment's sleep ([`POLL`]): the idle
+    /// step of a watcher that runs in one phase.
+    async fn in_phase(&self, phase: usize) -> bool {
+        if self.phase() == phase {
+            return true;
+        }
+        tokio::time::sleep(POLL).await;
+        false
     }
 
     fn record_watcher(&self, phase: usize, what: &'static str, ms: f64) {
@@ -492,7 +505,7 @@ async fn images(shared: Arc<Shared>) -> Result<()> {
                 if phase != WATCH {
                     last_watch = None;
                 }
-                tokio::time::sleep(Duration::from_millis(20)).await;
+                tokio::time::sleep(POLL).await;
             }
         }
     }
@@ -506,15 +519,13 @@ async fn kappa_reader(shared: Arc<Shared>, reader: usize) -> Result<()> {
     let path = format!("/v1/frames/{FRAME}/image.exr");
     let mut request = 0;
     while !shared.stop.load(Ordering::SeqCst) {
-        let phase = shared.phase();
-        if phase != KAPPA {
-            tokio::time::sleep(Duration::from_millis(20)).await;
+        if !shared.in_phase(KAPPA).await {
             continue;
         }
         let kappa = 2.0 + (request * KAPPA_READERS + reader) as f64 / 64.0;
         request += 1;
         shared
-            .get(phase, "kappa image.exr", &format!("{path}?kappa={kappa}"))
+            .get(KAPPA, "kappa image.exr", &format!("{path}?kappa={kappa}"))
             .await?;
     }
     Ok(())
@@ -524,15 +535,14 @@ async fn kappa_reader(shared: Arc<Shared>, reader: usize) -> Result<()> {
 /// during the phase and closes its connections when the phase ends.
 async fn tev_viewer(shared: Arc<Shared>, addr: String) -> Result<()> {
     while !shared.stop.load(Ordering::SeqCst) {
-        if shared.phase() != TEV {
-            tokio::time::sleep(Duration::from_millis(20)).await;
+        if !shared.in_phase(TEV).await {
             continue;
         }
         let listener = tokio::net::TcpListener::bind(&addr)
             .await
             .with_context(|| format!("the tev stand-in binding {addr}"))?;
         while shared.phase() == TEV {
-            let accepted = tokio::time::timeout(Duration::from_millis(20), listener.accept());
+            let accepted = tokio::time::timeout(POLL, listener.accept());
             if let Ok(accepted) = accepted.await {
                 let (stream, _) = accepted?;
                 tokio::spawn(tev_connection(shared.clone(), stream));
@@ -547,7 +557,7 @@ async fn tev_connection(shared: Arc<Shared>, mut stream: tokio::net::TcpStream) 
     use tokio::io::AsyncReadExt;
     let mut buf = vec![0u8; 1 << 20];
     while shared.phase() == TEV {
-        let read = tokio::time::timeout(Duration::from_millis(20), stream.read(&mut buf));
+        let read = tokio::time::timeout(POLL, stream.read(&mut buf));
         match read.await {
             Ok(Ok(0) | Err(_)) => return,
             Ok(Ok(n)) => shared.stats.lock().unwrap()[TEV].tev_bytes += n as u64,
