@@ -1559,11 +1559,29 @@ impl Lines {
         Self { first, line, end }
     }
 
-    /// Lines not yet asked for (by which the AVX2 support step spreads its prefetches).
-    #[cfg(target_arch = "x86_64")]
+    /// Lines not yet asked for (by which the AVX2 support step and the row pass spread their
+    /// prefetches).
     #[inline(always)]
     pub(crate) fn left(&self) -> usize {
         ((self.end - self.line).max(0) as usize).div_ceil(64)
+    }
+
+    /// [`Lines::prefetch`] into the L2 cache only (`T1`), for lines read a while later: into
+    /// L1, they pushed out lines read sooner (see the resolve's row pass, `AHEAD_ROWS`).
+    #[inline(always)]
+    pub(crate) fn prefetch_l2(&mut self, n: usize) {
+        #[cfg(target_arch = "x86_64")]
+        for _ in 0..n {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};
+            if self.line >= self.end {
+                break;
+            }
+            // SAFETY: a prefetch never faults (the address is a line the words touch).
+            unsafe { _mm_prefetch::<_MM_HINT_T1>(self.first.wrapping_offset(self.line)) }
+            self.line += 64;
+        }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = (n, self.first, self.line, self.end);
     }
 
     /// Asks the CPU to start loading the next `n` lines (or those left); a no-op where the
