@@ -1002,11 +1002,19 @@ impl FrameState {
     /// among the additions, the additions run while the lines come in: in 10 alternated runs
     /// of `bench speed` there, the random splat took 22.2-33.7 M samples/s (median 31.8)
     /// against 18.7-24.8 (median 23.9) with the prefetches in a row.
+    ///
+    /// They ask for the lines into the L2 cache only (`T1`): the additions read them from there
+    /// a block later. Into L1 (`T0`, as first written) the random splat took 30.4-32.6 M
+    /// samples/s against 45.4-51.1 (3 alternated runs of `bench speed` on the same VM, whose
+    /// memory baseline was 57-63 M/s in each); into L2, the prefetches in a row were as fast
+    /// (46.5-49.6). The VM has no hardware counters to say why; the likely cause is that a
+    /// prefetch into L1 holds one of the core's few buffers for misses to L1 until its line
+    /// comes from memory.
     #[inline]
     fn add_block(&mut self, shares: &Shares, at: &[usize], ahead: &[usize]) {
         for (i, &at) in at.iter().enumerate() {
             if let Some(&next) = ahead.get(i) {
-                prefetch(&self.cells, next, 8);
+                prefetch_l2(&self.cells, next, 8);
             }
             let lo = shares.lo[i] as usize;
             let cascades = &mut self.cells[at..at + 8];
@@ -1026,7 +1034,7 @@ impl FrameState {
             }
         }
         for &next in ahead.iter().skip(at.len()) {
-            prefetch(&self.cells, next, 8);
+            prefetch_l2(&self.cells, next, 8);
         }
         self.samples += at.len() as u64;
     }
@@ -1528,6 +1536,12 @@ pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
     Lines::of(cells, at, words).prefetch(usize::MAX);
 }
 
+/// [`prefetch`] into the L2 cache only ([`Lines::prefetch_l2`]).
+#[inline(always)]
+pub(crate) fn prefetch_l2(cells: &[u64], at: usize, words: usize) {
+    Lines::of(cells, at, words).prefetch_l2(usize::MAX);
+}
+
 /// The cache lines of some words, to prefetch a few at a time among other work: prefetches of
 /// many lines in a row fill the core's queue of misses, and the core stalls on them with
 /// nothing else to do (see [`FrameState::add_block`]).
@@ -1566,8 +1580,10 @@ impl Lines {
         ((self.end - self.line).max(0) as usize).div_ceil(64)
     }
 
-    /// [`Lines::prefetch`] into the L2 cache only (`T1`), for lines read a while later: into
-    /// L1, they pushed out lines read sooner (see the resolve's row pass, `AHEAD_ROWS`).
+    /// [`Lines::prefetch`] into the L2 cache only (`T1`), for lines read a while later: the
+    /// cells of the next block of random records ([`FrameState::add_block`]) and of the rows a
+    /// resolve reads next (its row pass, `AHEAD_ROWS`), where asking for them into L1 was
+    /// slower.
     #[inline(always)]
     pub(crate) fn prefetch_l2(&mut self, n: usize) {
         #[cfg(target_arch = "x86_64")]
