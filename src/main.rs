@@ -519,7 +519,8 @@ fn resolve(args: ResolveArgs) -> Result<()> {
                     ),
                     Some(_) => {}
                 }
-                let report = state.splat_all(batch.records.iter().map(|r| (r.x, r.y, r.rgb)));
+                let report =
+                    state.splat_records_from(batch.records.iter().map(|r| (r.x, r.y, r.rgb)));
                 if report.rejected() > 0 {
                     bail!(
                         "{}: batch (worker {}, seq {}) has invalid samples: {report:?}",
