@@ -1586,32 +1586,34 @@ impl Lines {
     /// slower.
     #[inline(always)]
     pub(crate) fn prefetch_l2(&mut self, n: usize) {
-        #[cfg(target_arch = "x86_64")]
-        for _ in 0..n {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T1};
-            if self.line >= self.end {
-                break;
-            }
-            // SAFETY: a prefetch never faults (the address is a line the words touch).
-            unsafe { _mm_prefetch::<_MM_HINT_T1>(self.first.wrapping_offset(self.line)) }
-            self.line += 64;
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        let _ = (n, self.first, self.line, self.end);
+        self.ask::<false>(n);
     }
 
     /// Asks the CPU to start loading the next `n` lines (or those left); a no-op where the
     /// instruction is not used (outside x86-64), without even walking the lines.
     #[inline(always)]
     pub(crate) fn prefetch(&mut self, n: usize) {
+        self.ask::<true>(n);
+    }
+
+    /// The next `n` lines into L1 (`T0`) if `L1`, else into L2 only (`T1`).
+    #[inline(always)]
+    fn ask<const L1: bool>(&mut self, n: usize) {
         #[cfg(target_arch = "x86_64")]
         for _ in 0..n {
-            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0, _MM_HINT_T1};
             if self.line >= self.end {
                 break;
             }
+            let line = self.first.wrapping_offset(self.line);
             // SAFETY: a prefetch never faults (the address is a line the words touch).
-            unsafe { _mm_prefetch::<_MM_HINT_T0>(self.first.wrapping_offset(self.line)) }
+            unsafe {
+                if L1 {
+                    _mm_prefetch::<_MM_HINT_T0>(line)
+                } else {
+                    _mm_prefetch::<_MM_HINT_T1>(line)
+                }
+            }
             self.line += 64;
         }
         #[cfg(not(target_arch = "x86_64"))]
