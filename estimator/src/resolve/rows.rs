@@ -346,8 +346,9 @@ impl<'a> Rows<'a> {
                         x0,
                         y,
                     };
-                    // Not past the run: its last row's support reads the row below it, and the
-                    // next run of this column comes after the other columns' (the spread stage).
+                    // Up to the row below the run, which its last row's support reads. A row
+                    // further down is read with this column's next run (the spread stage's),
+                    // after the other columns' runs have pushed it out of L2 again.
                     let next = y + AHEAD_ROWS;
                     let mut ahead = match rows.get(next) {
                         Some(row) if next <= ys.end => Lines::of(row, x0 * len, row_at.count * len),
