@@ -1004,12 +1004,12 @@ impl FrameState {
     /// against 18.7-24.8 (median 23.9) with the prefetches in a row.
     ///
     /// They ask for the lines into the L2 cache only (`T1`): the additions read them from there
-    /// a block later. Into L1 (`T0`, as first written) the random splat took 30.4-32.6 M
-    /// samples/s against 45.4-51.1 (3 alternated runs of `bench speed` on the same VM, whose
-    /// memory baseline was 57-63 M/s in each); into L2, the prefetches in a row were as fast
-    /// (46.5-49.6). The VM has no hardware counters to say why; the likely cause is that a
-    /// prefetch into L1 holds one of the core's few buffers for misses to L1 until its line
-    /// comes from memory.
+    /// a block later. Into L1 (`T0`, as first written) the random splat took 28.6-33.7 M
+    /// samples/s against 44.1-51.1 (6 alternated runs of `bench speed` on the same VM, in two
+    /// sets, whose memory baseline was 56-64 M/s in each); into L2, the prefetches in a row
+    /// were as fast (46.5-49.6, in the second set). The VM has no hardware counters to say
+    /// why; the likely cause is that a prefetch into L1 holds one of the core's few buffers
+    /// for misses to L1 until its line comes from memory.
     #[inline]
     fn add_block(&mut self, shares: &Shares, at: &[usize], ahead: &[usize]) {
         for (i, &at) in at.iter().enumerate() {
