@@ -192,9 +192,9 @@ impl ResolveParams {
 
     /// The fewest samples from which the count term counts a pixel's own samples whatever its
     /// neighbourhood holds: the least `n` with `n >= (kappa(n) + kappa_min) / SPARSE_FULL_SHARE`
-    /// (16 with the defaults). Below it [`support_samples`] may count the pixel as having more
-    /// samples than it has, from the share its neighbours' samples give each band, so the
-    /// resolve judges a band by what the pixels around it agree on, not by the pixel's own
+    /// (16 with the defaults). Below it the count term (`support_samples`) may count the pixel as
+    /// having more samples than it has, from the share its neighbours' samples give each band, so
+    /// the resolve judges a band by what the pixels around it agree on, not by the pixel's own
     /// samples (see [`crate::Convergence::converged`]).
     pub fn own_count_from(&self) -> u64 {
         let own = |n: u64| {
