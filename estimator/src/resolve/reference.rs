@@ -1,7 +1,7 @@
 //! The resolve as it was before the row pass was vectorized (splatd's first `resolve_bands`),
-//! kept unchanged as the reference the fast pass must match bit for bit: one pixel at a time,
-//! every cascade visited in order, support counts pooled through a ring of three rows.
-//! Test-only.
+//! kept unchanged (but for the bands' check, now the resolve's own) as the reference the fast
+//! pass must match bit for bit: one pixel at a time, every cascade visited in order, support
+//! counts pooled through a ring of three rows. Test-only.
 
 use super::reference_spread::{spread, BAND_FLOATS};
 use super::{support_samples, ResolveParams, Resolved, TilingError, Variant, SHADER_E_MIN_FLOOR};
@@ -18,33 +18,9 @@ pub(super) fn resolve_bands(
     params: &ResolveParams,
     threads: usize,
 ) -> Result<Resolved, TilingError> {
-    let first = bands
-        .first()
-        .ok_or_else(|| TilingError("no bands".into()))?;
-    let (width, height) = (first.width(), first.height());
-    let mut rows: Vec<&[u64]> = Vec::with_capacity(height as usize);
-    for band in bands {
-        if (band.width(), band.height()) != (width, height) || band.layout() != first.layout() {
-            return Err(TilingError(format!(
-                "band {:?} has a different size or layout",
-                band.rows()
-            )));
-        }
-        if band.rows().start as usize != rows.len() {
-            return Err(TilingError(format!(
-                "band {:?} does not start at row {}",
-                band.rows(),
-                rows.len()
-            )));
-        }
-        rows.extend(band.rows().map(|y| band.row(y)));
-    }
-    if rows.len() != height as usize {
-        return Err(TilingError(format!(
-            "bands cover {} of {height} rows",
-            rows.len()
-        )));
-    }
+    // The bands' check is the resolve's own (not what this reference stands for).
+    let (width, height, rows) = super::frame_rows(bands)?;
+    let first = bands[0];
     let (w, h) = (width as usize, height as usize);
     let pixels = w * h;
     let mut out = Resolved {
