@@ -1226,16 +1226,7 @@ impl FrameState {
     /// ([`check_pixels`]), the frame ([`FrameState::check_same_geometry`]) and the room
     /// ([`FrameState::check_room_for_pixels`]) first, so that nothing changes unless all fits.
     pub fn add_pixels(&mut self, y0: u32, first: u64, cells: &[u64]) -> u64 {
-        let Some((dst, src)) = self.shared_pixels(y0, first, cells) else {
-            return 0;
-        };
-        let stride = cell_len(self.layout.cascades());
-        let mut added = 0;
-        let dst = self.cells[dst].chunks_exact_mut(stride);
-        for (d, s) in dst.zip(cells[src].chunks_exact(stride)) {
-            added += cell_spp(s);
-            add_cell(d, s);
-        }
+        let added = self.each_shared_pixel(y0, first, cells, add_cell);
         self.samples += added;
         added
     }
@@ -1244,18 +1235,31 @@ impl FrameState {
     /// `first`): the pixels are again what they were before, bit for bit; returns the samples
     /// taken back.
     pub fn sub_pixels(&mut self, y0: u32, first: u64, cells: &[u64]) -> u64 {
+        let taken = self.each_shared_pixel(y0, first, cells, sub_cell);
+        self.samples -= taken;
+        taken
+    }
+
+    /// Applies `op` to each pixel of `cells` that this state holds (see
+    /// [`FrameState::add_pixels`]) and its cell here; returns the samples of those pixels.
+    fn each_shared_pixel(
+        &mut self,
+        y0: u32,
+        first: u64,
+        cells: &[u64],
+        op: impl Fn(&mut [u64], &[u64]),
+    ) -> u64 {
         let Some((dst, src)) = self.shared_pixels(y0, first, cells) else {
             return 0;
         };
         let stride = cell_len(self.layout.cascades());
-        let mut taken = 0;
+        let mut samples = 0;
         let dst = self.cells[dst].chunks_exact_mut(stride);
         for (d, s) in dst.zip(cells[src].chunks_exact(stride)) {
-            taken += cell_spp(s);
-            sub_cell(d, s);
+            samples += cell_spp(s);
+            op(d, s);
         }
-        self.samples -= taken;
-        taken
+        samples
     }
 
     /// The rows this state shares with `other`, as cell ranges of `self` and of `other`.
