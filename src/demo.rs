@@ -1,11 +1,11 @@
 //! The demo: a render farm in one process, talking to a splatd server over real HTTP.
 //!
 //! [`run`] starts an embedded server on a loopback port, creates the frame [`FRAME_ID`], and lets
-//! `workers` render workers path-trace the built-in scene ([`crate::tracer`]) pass after pass,
-//! each streaming its samples through a [`BatchWriter`] exactly as a farm worker would. Pass `p`
-//! is rendered by worker `p % workers`, a band of rows at a time on tokio's blocking pool, and the
-//! next band is rendered while the previous one is being sent. While it runs, the live page
-//! (`http://ADDR/#demo`) shows the frame converge.
+//! `workers` render workers path-trace the built-in scene ([`Tracer`]) pass after pass, each
+//! streaming its samples through a [`BatchWriter`](splatd_proto::BatchWriter) exactly as a farm
+//! worker would. Pass `p` is rendered by worker `p % workers`, a band of rows at a time on
+//! tokio's blocking pool, and the next band is rendered while the previous one is being sent.
+//! While it runs, the live page (`http://ADDR/#demo`) shows the frame converge.
 //!
 //! At the end the frame is fetched twice over HTTP, reweighted (the frame's default) and as the
 //! plain mean (`variant=off`), and written as `reweighted.exr`, `mean.exr` and

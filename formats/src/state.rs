@@ -218,7 +218,7 @@ pub fn write(
     dump.write_with_parts(&[state.cells()], &[aov_words_of_rows(&dump, aovs)], out)
 }
 
-/// The length of what [`write`] writes, without encoding it.
+/// The length of what [`write()`] writes, without encoding it.
 pub fn encoded_len(state: &FrameState, aovs: Aovs<'_>, frame: &str) -> u64 {
     let dump = with_aov_specs(header(state, state.rows(), frame, None), aovs);
     dump.encoded_len_with_parts(&[state.cells()], &[aov_words_of_rows(&dump, aovs)])
@@ -330,7 +330,7 @@ impl Decoded<'_> {
 /// Pixels below which a share of the pixels is not worth a thread of its own.
 const MIN_SHARE_PIXELS: u64 = 1 << 14;
 
-/// `pixels` cut into at most `threads` consecutive shares of at least [`MIN_SHARE_PIXELS`]
+/// `pixels` cut into at most `threads` consecutive shares of at least `MIN_SHARE_PIXELS`
 /// (one share when there are fewer).
 pub fn shares(pixels: u64, threads: usize) -> Vec<std::ops::Range<u64>> {
     let n = (threads as u64).min(pixels / MIN_SHARE_PIXELS).max(1);

@@ -5,7 +5,7 @@
 //! understands one part with dotted channel names (OpenEXR's layer convention), which is not
 //! true of multi-part files. Samples are 32-bit float; `spp.Y` is exact up to 2^24 samples.
 //! Scan lines with ZIP over 16 lines: lossless, compact, read everywhere (deflated at a fast
-//! level on every core, see [`zip`]).
+//! level on every core, see the `zip` module).
 //!
 //! The header says how the image was made ([`Provenance`]): the standard `software` attribute
 //! (`splatd 0.1.0`), then `splatd:` attributes for the estimator and its parameters and the
@@ -324,8 +324,8 @@ impl crate::scratch::Reusable for ExrScratch {
 }
 
 /// One part of `size` pixels holding `channels`, in the layout of the module docs (scan lines,
-/// ZIP over 16 lines, deflated on every core: see [`zip`]). Like [`encode_exr`], call it off the
-/// async threads.
+/// ZIP over 16 lines, deflated on every core: see the `zip` module). Like [`encode_exr`], call it
+/// off the async threads.
 pub fn write_one_part(
     size: (usize, usize),
     attributes: LayerAttributes,
