@@ -1268,6 +1268,29 @@ pub(crate) mod tests {
         assert_eq!(pass.aovs.as_ref().expect("AOVs").as_ptr(), values);
     }
 
+    /// An AOV whose channels sort before the beauty's in the beauty's part: its first channel
+    /// is the one whose writes are counted (the beauty's three are copied apart from the other
+    /// channels, [`Planes::insert_rgb`]), and every value comes back where it was written.
+    #[test]
+    fn an_aov_sorted_before_the_beauty_in_its_part_reads_back_value_for_value() {
+        let (w, h) = (6, 4);
+        let aovs = [AovSpec::new("Albedo", &["R", "G", "B"])];
+        // Each value is pixel * 10 + its channel's place in this list.
+        let names = ["Albedo.B", "Albedo.G", "Albedo.R", "B", "G", "R"];
+        let pass =
+            decode_pass_with_aovs(&exr_with(w, h, &names), None, MAX_PASS_PIXELS, &aovs).unwrap();
+        let aov_values = pass.aovs.as_deref().expect("the AOV's values");
+        for i in 0..w * h {
+            let v = |c: usize| (i * 10 + c) as f32;
+            assert_eq!(pass.rgb[i], [v(5), v(4), v(3)], "pixel {i}'s beauty");
+            assert_eq!(
+                aov_values[3 * i..3 * i + 3],
+                [v(2), v(1), v(0)],
+                "pixel {i}'s albedo"
+            );
+        }
+    }
+
     #[test]
     fn a_block_read_twice_and_a_block_missing_are_refused() {
         let (w, h) = (5, 16);
