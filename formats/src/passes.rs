@@ -886,10 +886,7 @@ impl Planes {
                 }
             }
             if Some(channel) == counted {
-                let writes = &mut self.writes[index.layer];
-                for n in &mut writes[start..start + n] {
-                    *n = n.saturating_add(1);
-                }
+                count_writes(&mut writes[start..start + n]);
             }
         }
         Ok(())
@@ -957,9 +954,7 @@ impl Planes {
                 SampleType::U32 => interleave(out, values, |b| u32::from_ne_bytes(b) as f32),
             }
             if counts {
-                for n in &mut writes[start..start + bw] {
-                    *n = n.saturating_add(1);
-                }
+                count_writes(&mut writes[start..start + bw]);
             }
         }
         true
@@ -988,6 +983,13 @@ impl Planes {
             }
         }
         Ok(())
+    }
+}
+
+/// Counts one more write of each pixel of `writes` (see [`Planes::writes`]).
+fn count_writes(writes: &mut [u8]) {
+    for n in writes {
+        *n = n.saturating_add(1);
     }
 }
 
