@@ -811,11 +811,11 @@ impl FrameState {
     }
 
     /// Accumulates `records` (pixel, RGB) like [`FrameState::splat_all`], with the same state and
-    /// report, a block of 16 records at a time with the arithmetic vectorized and the cells
-    /// of a block fetched while the block before is added (see [`Kernel`]), in any order: scan
-    /// order (a pass, a tile) gains the vector arithmetic, random order that and the
-    /// prefetching. Records are applied in their order, so which sample a full pixel refuses is
-    /// the same too.
+    /// report, a block of 16 records at a time with the arithmetic vectorized (see [`Kernel`])
+    /// and, for records scattered over the frame, the cells of a block fetched while the block
+    /// before is added, in any order: scan order (a pass, a tile) gains the vector arithmetic,
+    /// random order that and the prefetching. Records are applied in their order, so which
+    /// sample a full pixel refuses is the same too.
     pub fn splat_records(&mut self, records: &[(u32, u32, [f32; 3])]) -> SplatReport {
         self.splat_records_with(Kernel::detect(), records)
     }
@@ -935,7 +935,8 @@ impl FrameState {
             return;
         }
         // A block of consecutive pixels (a scan-line run, as workers send tiles and passes) is
-        // pushed as a row's run is; only scattered records spread their prefetches.
+        // pushed as a row's run is, its lines left to the hardware's prefetchers; only
+        // scattered records are prefetched.
         let run = len > 0 && pixel[len - 1].wrapping_sub(pixel[0]) == len - 1;
         if run {
             pipe.push::<false>(self, &block[..len], |i| pixel[i]);
@@ -946,8 +947,7 @@ impl FrameState {
     }
 
     /// Splats `rgb(i)` into pixel `(x0 + i, y)` for `i < n`, a block at a time, through a
-    /// [`Pipeline`] (the cells of the next block are fetched while this one is added); each
-    /// block's samples are checked if `CHECK`, else known to be valid.
+    /// [`Pipeline`]; each block's samples are checked if `CHECK`, else known to be valid.
     fn splat_run<const CHECK: bool>(
         &mut self,
         kernel: Kernel,
@@ -1393,10 +1393,10 @@ impl FrameState {
 }
 
 /// The block splat's two stages: a block's shares are computed (vectorized, [`row::shares`])
-/// and the cascades they go to are prefetched (for scattered records, one beside each addition
-/// of the block before: [`Pipeline::push`]); they are added when the next block has been
-/// through the first stage, so the memory of one block is on its way while the one before is
-/// added.
+/// and, for scattered records, the cascades they go to are prefetched, one beside each
+/// addition of the block before ([`Pipeline::push`]); they are added when the next block has
+/// been through the first stage, so the memory of one block is on its way while the one before
+/// is added. (A run of a row's pixels is fetched by the hardware's prefetchers.)
 /// Blocks are added in the order they were pushed, so the cells end up exactly as if each
 /// sample were splatted one by one.
 struct Pipeline {
@@ -1444,11 +1444,15 @@ impl Pipeline {
     /// pixels `pixel(i)` (indices into this state's cells, each with room for its sample),
     /// then adds the block pushed before. This block's cascades are prefetched one beside each
     /// addition if `SPREAD` (records scattered over the frame: see [`FrameState::add_block`]),
-    /// else all before the additions: a run of a row's pixels, whose lines the hardware's
-    /// prefetchers mostly have on their way already, and there one prefetch per addition made
-    /// whole passes slower (2-core Zen 4 VM, 4 passes of 1080p, 5 alternated runs: 49.9-62.8
-    /// against 61.9-64.8 M samples/s, each the median of 9 rounds), and records in scan order
-    /// too (lower in 5 of 6 alternated runs, by 3-12 %).
+    /// else not at all: a run of a row's pixels walks its lines in order, which the hardware's
+    /// prefetchers follow on their own. Asked for as well, all before the additions (one
+    /// beside each addition had been slower still), the lines cost a prefetch loop per sample
+    /// and gained nothing: in `bench speed` on the 2-core Zen 4 VM (huge pages, 4 alternated
+    /// runs), whole passes took 51.6-65.5 M samples/s with them and 62.6-70.4 without, records
+    /// in scan order 52.0-64.8 and 62.4-70.5; on 4 KiB pages, where the hardware's prefetchers
+    /// stop at each page's end, a 1080p pass's rows were as fast either way (47.5-63.8 against
+    /// 55.6-62.6 M samples/s, 4 alternated runs) and records in scan order faster without
+    /// (57.4-60.1 against 58.2-68.0).
     #[inline]
     fn push<const SPREAD: bool>(
         &mut self,
@@ -1471,9 +1475,6 @@ impl Pipeline {
         row::shares(self.kernel, &self.tables, rgb, &mut b.shares);
         for i in 0..rgb.len() {
             b.at[i] = pixel(i) * stride + 4 * b.shares.lo[i] as usize;
-            if !SPREAD {
-                prefetch(&state.cells, b.at[i], 8);
-            }
         }
         b.len = rgb.len();
         let added = if self.pending {
