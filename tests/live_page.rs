@@ -67,6 +67,10 @@ fn browser() -> Option<(PathBuf, PathBuf)> {
 struct Driver {
     child: Child,
     port: u16,
+    /// The driver's and the browser's `TMPDIR`, removed after them: Chromium leaves the
+    /// directory of its singleton socket (`org.chromium.Chromium.*`) behind in it when its
+    /// session ends, two a run in the machine's `/tmp` before.
+    _tmp: tempfile::TempDir,
 }
 
 /// What chromedriver prints on stdout once it listens (with `--port=0`, on a port it chose).
@@ -76,7 +80,9 @@ impl Driver {
     /// Starts chromedriver on a port of its choosing and waits for the line naming it: ready is
     /// that event, and no other program can take the port in between.
     fn start(path: &Path) -> Driver {
+        let tmp = tempfile::tempdir().expect("temp dir");
         let mut child = Command::new(path)
+            .env("TMPDIR", tmp.path())
             .arg("--port=0")
             .arg("--allowed-ips=127.0.0.1")
             .stdout(Stdio::piped())
@@ -99,7 +105,11 @@ impl Driver {
                 // Keeps draining, so chromedriver never blocks on a full pipe.
             }
         });
-        let mut driver = Driver { child, port: 0 };
+        let mut driver = Driver {
+            child,
+            port: 0,
+            _tmp: tmp,
+        };
         match rx.recv_timeout(PAGE_DEADLINE) {
             Ok(port) => driver.port = port,
             Err(std::sync::mpsc::RecvTimeoutError::Disconnected) => {
