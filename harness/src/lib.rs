@@ -8,7 +8,8 @@
 //! Each server writes its log to a file of its own ([`Log::Own`], the default), never to the
 //! test's stderr: what the test's output is (a terminal, a pipe, a file under `ulimit -f`) then
 //! cannot change what the server does, and when a test fails while it holds the server, the
-//! log's last lines are printed with the failure so that a CI run can be diagnosed.
+//! log's last lines are printed with the failure so that a CI run can be diagnosed. The logs
+//! stay for [`LOGS_KEPT_FOR`] (a week) after they were last written.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -260,17 +261,44 @@ fn wait_bounded(child: &mut Child, limit: Duration) -> Option<i32> {
     None
 }
 
+/// How long the servers' own logs (and what tests keep beside them) stay in `splatd-logs/`.
+pub const LOGS_KEPT_FOR: Duration = Duration::from_secs(7 * 24 * 3600);
+
 /// A fresh log file name for a server of this program: `TMP/splatd-logs/PROGRAM-PID-N.log`.
+/// The first one a process asks for also removes the files there older than [`LOGS_KEPT_FOR`]:
+/// a run of the test suite leaves about a hundred logs, which are worth reading after a failure
+/// but would otherwise pile up on a machine that runs the suite every day.
 fn own_log_path() -> Result<PathBuf, String> {
     static NEXT: AtomicUsize = AtomicUsize::new(0);
+    static PRUNED: std::sync::Once = std::sync::Once::new();
     let dir = std::env::temp_dir().join("splatd-logs");
     std::fs::create_dir_all(&dir).map_err(|e| format!("{}: {e}", dir.display()))?;
+    PRUNED.call_once(|| remove_older(&dir, LOGS_KEPT_FOR));
     let program = std::env::current_exe()
         .ok()
         .and_then(|p| p.file_stem().map(|s| s.to_string_lossy().into_owned()))
         .unwrap_or_else(|| "splatd".into());
     let n = NEXT.fetch_add(1, Ordering::Relaxed);
     Ok(dir.join(format!("{program}-{}-{n}.log", std::process::id())))
+}
+
+/// Removes the files directly in `dir` last modified more than `age` ago. Best effort: another
+/// process may be removing the same files, and what cannot be removed stays.
+fn remove_older(dir: &Path, age: Duration) {
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return;
+    };
+    let now = std::time::SystemTime::now();
+    for entry in entries.flatten() {
+        let old = entry.metadata().is_ok_and(|m| {
+            m.is_file()
+                && m.modified()
+                    .is_ok_and(|t| now.duration_since(t).is_ok_and(|d| d > age))
+        });
+        if old {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
 }
 
 /// The last `lines` lines of the log at `path`, under a heading that names the file.
@@ -289,5 +317,41 @@ pub fn log_tail(path: &Path, lines: usize) -> String {
             )
         }
         Err(e) => format!("(the server's log {} cannot be read: {e})", path.display()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Files older than the age go, newer ones and directories stay.
+    #[test]
+    fn only_files_older_than_the_age_are_removed() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let now = std::time::SystemTime::now();
+        let file = |name: &str, age: Duration| {
+            let path = dir.path().join(name);
+            let f = std::fs::File::create(&path).expect("create");
+            f.set_modified(now - age).expect("set mtime");
+            path
+        };
+        let week = LOGS_KEPT_FOR;
+        let old = file("suite-1-0.log", week + Duration::from_secs(60));
+        let old_png = file("suite-1-0.png", week * 3);
+        let recent = file("suite-2-0.log", week - Duration::from_secs(60));
+        let fresh = file("suite-3-0.log", Duration::ZERO);
+        let sub = dir.path().join("a-directory");
+        std::fs::create_dir(&sub).expect("mkdir");
+
+        remove_older(dir.path(), week);
+
+        assert!(
+            !old.exists() && !old_png.exists(),
+            "older than a week: removed"
+        );
+        assert!(recent.exists() && fresh.exists(), "newer: kept");
+        assert!(sub.is_dir(), "directories are not touched");
+        // A folder that does not exist is no error.
+        remove_older(&dir.path().join("missing"), week);
     }
 }
