@@ -378,8 +378,9 @@ fn touch(cells: &mut [u64], slots: &[usize]) {
 }
 
 fn ratio_line(what: &str, ratio: f64, goal: &str, met: bool) -> String {
+    // Three decimals: with two, a ratio of 0.598 read "ratio 0.60 (goal >= 0.6) MISSED".
     format!(
-        "{what}: ratio {ratio:.2} (goal {goal}) {}",
+        "{what}: ratio {ratio:.3} (goal {goal}) {}",
         if met { "met" } else { "MISSED" }
     )
 }
