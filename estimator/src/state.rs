@@ -812,10 +812,10 @@ impl FrameState {
 
     /// Accumulates `records` (pixel, RGB) like [`FrameState::splat_all`], with the same state and
     /// report, a block of 16 records at a time with the arithmetic vectorized (see [`Kernel`])
-    /// and, for records scattered over the frame, the cells of a block fetched while the block
-    /// before is added, in any order: scan order (a pass, a tile) gains the vector arithmetic,
-    /// random order that and the prefetching. Records are applied in their order, so which
-    /// sample a full pixel refuses is the same too.
+    /// and the cells of a block fetched while the block before is added (for a scan-line run,
+    /// on the CPUs that need it), in any order: scan order (a pass, a tile) gains most from the
+    /// vector arithmetic, random order from the prefetching. Records are applied in their order,
+    /// so which sample a full pixel refuses is the same too.
     pub fn splat_records(&mut self, records: &[(u32, u32, [f32; 3])]) -> SplatReport {
         self.splat_records_with(Kernel::detect(), records)
     }
@@ -935,8 +935,8 @@ impl FrameState {
             return;
         }
         // A block of consecutive pixels (a scan-line run, as workers send tiles and passes) is
-        // pushed as a row's run is, its lines left to the hardware's prefetchers; only
-        // scattered records are prefetched.
+        // pushed as a row's run is, prefetched only where the hardware's prefetchers do not
+        // follow a row on their own ([`prefetch_runs`]); scattered records always are.
         let run = len > 0 && pixel[len - 1].wrapping_sub(pixel[0]) == len - 1;
         if run {
             pipe.push::<false>(self, &block[..len], |i| pixel[i]);
@@ -1393,15 +1393,17 @@ impl FrameState {
 }
 
 /// The block splat's two stages: a block's shares are computed (vectorized, [`row::shares`])
-/// and, for scattered records, the cascades they go to are prefetched, one beside each
-/// addition of the block before ([`Pipeline::push`]); they are added when the next block has
-/// been through the first stage, so the memory of one block is on its way while the one before
-/// is added. (A run of a row's pixels is fetched by the hardware's prefetchers.)
+/// and the cascades they go to are prefetched, one beside each addition of the block before
+/// ([`Pipeline::push`]; for a run of a row's pixels, only where [`prefetch_runs`] says so);
+/// they are added when the next block has been through the first stage, so the memory of one
+/// block is on its way while the one before is added.
 /// Blocks are added in the order they were pushed, so the cells end up exactly as if each
 /// sample were splatted one by one.
 struct Pipeline {
     kernel: Kernel,
     tables: Tables,
+    /// [`prefetch_runs`] on this CPU.
+    prefetch_runs: bool,
     /// Two blocks: `blocks[current]` is in flight (computed, not added) if `pending`.
     blocks: [Block; 2],
     current: usize,
@@ -1425,6 +1427,7 @@ impl Pipeline {
         Pipeline {
             kernel,
             tables: Tables::new(layout),
+            prefetch_runs: prefetch_runs(),
             blocks: [block(), block()],
             current: 0,
             pending: false,
@@ -1443,16 +1446,8 @@ impl Pipeline {
     /// Computes the shares of `rgb` (valid samples, at most [`BLOCK`]) going to the cells of
     /// pixels `pixel(i)` (indices into this state's cells, each with room for its sample),
     /// then adds the block pushed before. This block's cascades are prefetched one beside each
-    /// addition if `SPREAD` (records scattered over the frame: see [`FrameState::add_block`]),
-    /// else not at all: a run of a row's pixels walks its lines in order, which the hardware's
-    /// prefetchers follow on their own. Asked for as well, all before the additions (one
-    /// beside each addition had been slower still), the lines cost a prefetch loop per sample
-    /// and gained nothing: in `bench speed` on the 2-core Zen 4 VM (huge pages, 4 alternated
-    /// runs), whole passes took 51.6-65.5 M samples/s with them and 62.6-70.4 without, records
-    /// in scan order 52.0-64.8 and 62.4-70.5; on 4 KiB pages, where the hardware's prefetchers
-    /// stop at each page's end, a 1080p pass's rows were as fast either way (47.5-63.8 against
-    /// 55.6-62.6 M samples/s, 4 alternated runs) and records in scan order faster without
-    /// (57.4-60.1 against 58.2-68.0).
+    /// addition if `SPREAD` (records scattered over the frame: see [`FrameState::add_block`]);
+    /// a run of a row's pixels (not `SPREAD`) only where [`prefetch_runs`] says so.
     #[inline]
     fn push<const SPREAD: bool>(
         &mut self,
@@ -1482,7 +1477,11 @@ impl Pipeline {
         } else {
             &[]
         };
-        let ahead = if SPREAD { &b.at[..b.len] } else { &[] };
+        let ahead = if SPREAD || self.prefetch_runs {
+            &b.at[..b.len]
+        } else {
+            &[]
+        };
         state.add_block(&before.shares, added, ahead);
         self.current = next;
         self.pending = true;
@@ -1539,6 +1538,42 @@ pub(crate) fn zeroed_in(mut words: Vec<u64>, len: usize) -> Vec<u64> {
 #[inline(always)]
 pub(crate) fn prefetch(cells: &[u64], at: usize, words: usize) {
     Lines::of(cells, at, words).prefetch(usize::MAX);
+}
+
+/// Whether the splat prefetches the cells of a run of a row's pixels (a pass's rows, records
+/// in scan order) as it does those of scattered records ([`Pipeline::push`]): everywhere but on
+/// AMD's CPUs, whose prefetchers follow the run on their own.
+///
+/// A run walks its cells in order, a sample adding to 64 bytes of its pixel's cell (200 bytes
+/// with six cascades) at an offset that depends on its brightness. On the 2-core Zen 4 VM
+/// (`bench speed`, huge pages, 4 alternated runs) the hardware's prefetchers kept up with that
+/// on their own, and prefetching cost a loop per sample for nothing: whole passes took 51.6-65.5
+/// M samples/s with the lines asked for before the additions and 62.6-70.4 without, records in
+/// scan order 52.0-64.8 and 62.4-70.5 (one prefetch beside each addition, as for scattered
+/// records, was slower still: passes 49.9-62.8 against 61.9-64.8). On a 2-core Intel Xeon VM
+/// (2 MiB of L2 per core, 260 MiB of L3), the additions waited on memory instead: a 1080p
+/// pass's rows took 30.6-33.0 M samples/s without and 43.1-47.0 with one prefetch beside each
+/// addition (a harness splatting 4 passes a round, runs of 4 rounds alternating); in `bench
+/// speed` whole passes 33.7 against 44.4, records in scan order 33.5 against 43.6. Asking for
+/// the lines two to four blocks ahead instead of one was no faster there (41.6-46.3).
+#[inline]
+fn prefetch_runs() -> bool {
+    static RUNS: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *RUNS.get_or_init(|| {
+        #[cfg(target_arch = "x86_64")]
+        {
+            // The vendor string of CPUID leaf 0, in EBX, EDX, ECX. (`__cpuid` is a safe
+            // function in newer Rust, an `unsafe fn` in this crate's oldest, 1.85.)
+            // SAFETY: every x86-64 CPU has the `cpuid` instruction and its leaf 0.
+            #[allow(unused_unsafe)]
+            let id = unsafe { std::arch::x86_64::__cpuid(0) };
+            let vendor = [id.ebx, id.edx, id.ecx].map(u32::to_le_bytes).concat();
+            vendor != b"AuthenticAMD"
+        }
+        // Elsewhere a prefetch is no instruction at all.
+        #[cfg(not(target_arch = "x86_64"))]
+        false
+    })
 }
 
 /// [`prefetch`] into the L2 cache only ([`Lines::prefetch_l2`]).
