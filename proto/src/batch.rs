@@ -215,34 +215,31 @@ pub fn records_digest_of(records: impl IntoIterator<Item = Record>) -> u64 {
 
 /// [`records_digest`] of a whole pass of a `width`-pixel-wide frame: one record per pixel of
 /// `rgb`, row-major. The same digest as of those records, made row by row (no division per
-/// pixel to find its coordinates: that took most of a 1080p pass's digest), each run of up to
-/// 1024 pixels of a row written as wire bytes into the digest's buffer in one loop, then hashed.
-/// Pushed a record at a time, with a check for a full buffer after each, a 1080p pass took
-/// 6.9-7.1 ms on one core of the 2-core Zen 4 VM; this takes 3.9 ms, 2.3-2.5 of them hashing
-/// the 41 MB of wire bytes. (The server digests a pass on one thread before it splats it.)
+/// pixel to find its coordinates: that took most of a 1080p pass's digest) and handed to a
+/// [`RecordsDigest`] a run of up to 1024 pixels of a row at a time. Pushed into the digest a
+/// record at a time, each with a check for a full buffer, a 1080p pass took 6.9-7.1 ms on one
+/// core of a 2-core Intel Xeon VM; this way 3.9-4.1 ms, 2.3-2.5 of them hashing the 41 MB of
+/// wire bytes. (The server digests a pass on one thread before it splats it.)
 ///
 /// # Panics
 /// If `width` is 0.
 pub fn pass_digest(width: usize, rgb: &[[f32; 3]]) -> u64 {
-    let mut digest = WireDigest::new();
+    let mut digest = RecordsDigest::new();
+    let mut records = [Record::new(0, 0, [0.0; 3]); PASS_DIGEST_RUN];
     for (y, row) in rgb.chunks(width).enumerate() {
-        let y = (y as u32).to_le_bytes();
-        let mut x = 0u32;
-        for run in row.chunks(WireDigest::CHUNK) {
-            let bytes = &mut digest.buffer[..run.len() * RECORD_SIZE];
-            for (wire, c) in bytes.chunks_exact_mut(RECORD_SIZE).zip(run) {
-                wire[0..4].copy_from_slice(&x.to_le_bytes());
-                wire[4..8].copy_from_slice(&y);
-                for (at, v) in wire[8..].chunks_exact_mut(4).zip(c) {
-                    at.copy_from_slice(&v.to_le_bytes());
-                }
-                x += 1;
+        for (r, run) in row.chunks(PASS_DIGEST_RUN).enumerate() {
+            let x0 = r * PASS_DIGEST_RUN;
+            for (i, (record, &c)) in records.iter_mut().zip(run).enumerate() {
+                *record = Record::new((x0 + i) as u32, y as u32, c);
             }
-            digest.hasher.update(bytes);
+            digest.update(&records[..run.len()]);
         }
     }
-    digest.hasher.digest()
+    digest.finish()
 }
+
+/// Pixels of a row [`pass_digest`] makes into records at once (20 KiB of them, in L1).
+const PASS_DIGEST_RUN: usize = 1024;
 
 /// An xxh3 of records' wire bytes, fed through a small buffer, so the digest is the same on
 /// every platform and costs one pass over the records.
@@ -783,8 +780,8 @@ mod tests {
             (1, 7),
             (7, 1),
             (33, 65),
-            (1024, 2),
-            (1025, 2),
+            (PASS_DIGEST_RUN, 2),
+            (PASS_DIGEST_RUN + 1, 2),
             (1920, 3),
         ] {
             let rgb: Vec<[f32; 3]> = (0..w * h)
