@@ -457,7 +457,7 @@ impl Packed for u64 {
     fn entries(kernel: Kernel, words: &[f32], out: &mut [Self]) -> f32 {
         match kernel {
             #[cfg(target_arch = "x86_64")]
-            Kernel::Avx2 => {
+            Kernel::Avx2 | Kernel::Avx512 => {
                 assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
                 // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
                 unsafe { u64_entries_avx2(words, out) }

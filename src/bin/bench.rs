@@ -504,7 +504,7 @@ fn speed(size: (u32, u32), huge: bool, spp: usize) -> Result<()> {
     // 2. Whole passes, row by row (what the passes route does), on each kernel this CPU has.
     let pass_slots: Vec<usize> = slots(&layout6, w, &scan);
     let t_base = best_of(3, || touch(&mut baseline, &pass_slots));
-    for kernel in [Kernel::Portable, Kernel::Avx2] {
+    for kernel in [Kernel::Portable, Kernel::Avx2, Kernel::Avx512] {
         if !kernel.available() {
             println!("pass kernel {kernel:?}: not available on this CPU");
             continue;

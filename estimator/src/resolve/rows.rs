@@ -31,7 +31,8 @@
 //!   of a zero result, and a weight of `-0` adds and removes exactly what `+0` does.
 //!
 //! On x86-64 CPUs with AVX2 the same code is compiled a second time with AVX2 enabled and chosen
-//! at run time ([`Kernel`]), as the row splat does.
+//! at run time ([`Kernel`]), as the row splat does ([`Kernel::Avx512`] runs it too: compiled
+//! with AVX-512 as well, the resolve was no faster).
 
 // The group loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
@@ -297,7 +298,7 @@ impl<'a> Rows<'a> {
         let (x0, tail) = (s * STRIP, &mut self.tail);
         match kernel {
             #[cfg(target_arch = "x86_64")]
-            Kernel::Avx2 => {
+            Kernel::Avx2 | Kernel::Avx512 => {
                 assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
                 // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
                 unsafe { support_avx2(k, rows[y], w, x0, own, pooled, tail) }
@@ -356,7 +357,7 @@ impl<'a> Rows<'a> {
                     };
                     match self.kernel {
                         #[cfg(target_arch = "x86_64")]
-                        Kernel::Avx2 => {
+                        Kernel::Avx2 | Kernel::Avx512 => {
                             assert!(self.kernel.available(), "AVX2 kernel on a CPU without AVX2");
                             // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
                             unsafe { row_avx2(self.c, &row_at, part, &mut ahead) }

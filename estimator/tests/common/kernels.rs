@@ -6,18 +6,29 @@ use super::Kernel;
 
 /// Every kernel this CPU runs. Which ones is said once per test binary on standard error, past
 /// the test harness's capture, and loudly when the AVX2 kernel is left out, so that a run on a
-/// CPU without AVX2 cannot pass for one that checked it. Fails when the CPU has AVX2 (by
-/// `is_x86_feature_detected!`) but the kernel says it is unavailable, and on CI (`CI=true`) on
-/// an x86-64 CPU without AVX2: there it must be checked.
+/// CPU without AVX2 cannot pass for one that checked it. Fails when a kernel's availability
+/// disagrees with the CPU's features (by `is_x86_feature_detected!`), and on CI (`CI=true`) on
+/// an x86-64 CPU without AVX2: there it must be checked. A CPU without AVX-512 (many have none)
+/// leaves the AVX-512 kernel out, and says so.
 pub fn kernels() -> Vec<Kernel> {
     #[cfg(target_arch = "x86_64")]
-    let cpu_avx2 = std::arch::is_x86_feature_detected!("avx2");
+    let (cpu_avx2, cpu_avx512) = {
+        use std::arch::is_x86_feature_detected as has;
+        let avx2 = has!("avx2");
+        let avx512 = has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx512bw");
+        (avx2, avx2 && avx512)
+    };
     #[cfg(not(target_arch = "x86_64"))]
-    let cpu_avx2 = false;
+    let (cpu_avx2, cpu_avx512) = (false, false);
     assert_eq!(
         Kernel::Avx2.available(),
         cpu_avx2,
         "the AVX2 kernel's availability disagrees with the CPU's AVX2"
+    );
+    assert_eq!(
+        Kernel::Avx512.available(),
+        cpu_avx512,
+        "the AVX-512 kernel's availability disagrees with the CPU's AVX-512"
     );
     let on_ci = std::env::var("CI").is_ok_and(|v| v == "true");
     assert!(
@@ -27,18 +38,19 @@ pub fn kernels() -> Vec<Kernel> {
     static SAID: std::sync::Once = std::sync::Once::new();
     SAID.call_once(|| {
         use std::io::Write;
-        let line = if cpu_avx2 {
-            "kernels checked: portable, avx2\n"
+        let line = if cpu_avx512 {
+            "kernels checked: portable, avx2, avx512\n"
+        } else if cpu_avx2 {
+            "kernels checked: portable, avx2 (the avx512 kernel was not: this CPU has no AVX-512)\n"
         } else if cfg!(target_arch = "x86_64") {
             "\n!!!!!!!!!! kernels checked: portable only: THE AVX2 KERNEL WAS NOT CHECKED (this CPU has no AVX2)\n\n"
         } else {
-            "kernels checked: portable only (the AVX2 kernel is x86-64's)\n"
+            "kernels checked: portable only (the AVX2 and AVX-512 kernels are x86-64's)\n"
         };
         let _ = std::io::stderr().write_all(line.as_bytes());
     });
-    if cpu_avx2 {
-        vec![Kernel::Portable, Kernel::Avx2]
-    } else {
-        vec![Kernel::Portable]
-    }
+    [Kernel::Portable, Kernel::Avx2, Kernel::Avx512]
+        .into_iter()
+        .filter(|k| k.available())
+        .collect()
 }

@@ -388,13 +388,14 @@ impl Lanes {
         }
     }
 
-    /// [`Lanes::groups`] as compiled for this CPU: with AVX2 where it has it (the baseline's
-    /// SSE2 has no unsigned comparison or minimum of 32-bit lanes, and emulating them made the
-    /// check 7 % of the server's CPU under `loadgen`'s record ingest).
+    /// [`Lanes::groups`] as compiled for this CPU: with AVX2 where it has it, under the AVX-512
+    /// kernel too (the baseline's SSE2 has no unsigned comparison or minimum of 32-bit lanes,
+    /// and emulating them made the check 7 % of the server's CPU under `loadgen`'s record
+    /// ingest).
     fn groups_with(&mut self, kernel: Kernel, groups: &[[u32; CHECK_WORDS]]) {
         match kernel {
             #[cfg(target_arch = "x86_64")]
-            Kernel::Avx2 => {
+            Kernel::Avx2 | Kernel::Avx512 => {
                 assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
                 // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
                 unsafe { self.groups_avx2(groups) }
