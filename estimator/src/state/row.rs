@@ -26,8 +26,10 @@ const K_MAX: usize = MAX_CASCADES as usize;
 /// `2^52`: adding it to a non-negative `f64` below `2^52` rounds that value to an integer.
 const TWO_52: f64 = 4_503_599_627_370_496.0;
 
-/// Which compilation of the block arithmetic to run.
+/// Which compilation of the block arithmetic to run. More may come with new CPUs: a match on
+/// it outside this crate needs an arm for the others.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[non_exhaustive]
 pub enum Kernel {
     /// The code as compiled for the target's baseline (SSE2 on x86-64); runs everywhere.
     Portable,
@@ -36,9 +38,10 @@ pub enum Kernel {
     /// The splat's block arithmetic compiled with AVX-512 (F, DQ, VL and BW) as well (x86-64
     /// only; only where the CPU has them and AVX2). The other loops compiled per kernel (the
     /// resolve's, the server's record check) run their AVX2 compilation under it: AVX-512 made
-    /// them no faster. Measured with 1080p passes on one thread of an Intel Xeon (Emerald
-    /// Rapids) VM, alternated runs: rows 45-48 M samples/s with AVX2 and 49-52 with AVX-512,
-    /// records in random order 27-31 and 31-33; the same build on a Zen 4 VM gained about 5 %.
+    /// them no faster. Measured on one thread of an Intel Xeon (Emerald Rapids) VM, alternated
+    /// runs of a harness splatting 1080p passes: rows 40-48 M samples/s with AVX2 and 46-52
+    /// with AVX-512 (`bench speed`: 46.1 and 49.9), records in random order 25-31 and 31-33.
+    /// On a Zen 4 VM an AVX-512 build of the splat was about 5 % faster.
     Avx512,
 }
 
