@@ -649,7 +649,7 @@ fn snapshots_are_the_same_whether_direct_writes_are_taken_or_refused() {
         let before = export(&server, "f");
         let snapshot = std::fs::metadata(data.join("frames/f/snapshot.bin")).unwrap();
         assert!(
-            snapshot.len() > 2 * (4 << 20) && snapshot.len() % 4096 != 0,
+            snapshot.len() > 2 * (4 << 20) && !snapshot.len().is_multiple_of(4096),
             "a snapshot of several buffers ending inside a block: {} bytes",
             snapshot.len()
         );

@@ -216,12 +216,12 @@ impl Grid {
 
     #[inline(always)]
     fn column_starts_tile(self, x: usize) -> bool {
-        (x + self.ox) % GIVE_BACK_TILE == 0
+        (x + self.ox).is_multiple_of(GIVE_BACK_TILE)
     }
 
     #[inline(always)]
     fn row_starts_tile(self, y: usize) -> bool {
-        (y + self.oy) % GIVE_BACK_TILE == 0
+        (y + self.oy).is_multiple_of(GIVE_BACK_TILE)
     }
 }
 

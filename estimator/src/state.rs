@@ -1579,7 +1579,7 @@ fn prefetch_runs() -> bool {
         #[cfg(target_arch = "x86_64")]
         {
             // The vendor string of CPUID leaf 0, in EBX, EDX, ECX. (`__cpuid` is a safe
-            // function in newer Rust, an `unsafe fn` in this crate's oldest, 1.85.)
+            // function in newer Rust, an `unsafe fn` in older ones.)
             // SAFETY: every x86-64 CPU has the `cpuid` instruction and its leaf 0.
             #[allow(unused_unsafe)]
             let id = unsafe { std::arch::x86_64::__cpuid(0) };

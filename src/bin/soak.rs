@@ -157,7 +157,7 @@ fn records(seed: u64, worker: u64, seq: u64, n: usize) -> Vec<Record> {
         .map(|_| {
             let x = (rng.next_u64() % SIZE as u64) as u32;
             let y = (rng.next_u64() % SIZE as u64) as u32;
-            let v = if rng.next_u64() % 64 == 0 {
+            let v = if rng.next_u64().is_multiple_of(64) {
                 2e4 * rng.next_f64() as f32
             } else {
                 rng.next_f64() as f32
@@ -493,8 +493,8 @@ async fn main() -> Result<()> {
                 let wait = rng.next_u64() % (2 * args.kill_every_ms + 1);
                 std::thread::sleep(Duration::from_millis(wait));
                 let life = Life {
-                    full_disk: rng.next_u64() % 4 == 0,
-                    closed_log: rng.next_u64() % 4 == 0,
+                    full_disk: rng.next_u64().is_multiple_of(4),
+                    closed_log: rng.next_u64().is_multiple_of(4),
                 };
                 target.kill_and_restart(life)?;
                 figures.kills.fetch_add(1, Ordering::Relaxed);

@@ -73,7 +73,7 @@ fn random_cell(rng: &mut SplitMix64, k: usize, cell: &mut [u64]) {
         };
         left -= count;
         cell[4 * j + 3] = count;
-        let empty = rng.next_u64() % 3 == 0;
+        let empty = rng.next_u64().is_multiple_of(3);
         for c in 0..3 {
             if empty {
                 continue;

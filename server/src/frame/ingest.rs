@@ -663,7 +663,7 @@ mod tests {
     fn records(rng: &mut SplitMix64, n: usize, (w, h): (u32, u32), max: f32) -> Vec<Record> {
         let values = [0.0, -0.0, 0.5, max, f32::MAX, -1.0, f32::NAN, f32::INFINITY];
         let pick = |rng: &mut SplitMix64| {
-            if rng.next_u64() % 8 == 0 {
+            if rng.next_u64().is_multiple_of(8) {
                 values[(rng.next_u64() % values.len() as u64) as usize]
             } else {
                 rng.next_f64() as f32
@@ -693,7 +693,7 @@ mod tests {
         for n in (0..=9).chain([64, 65, 1000]) {
             for _ in 0..200 {
                 let mut records = records(&mut rng, n, (13, 70), layout.max_component() as f32);
-                if rng.next_u64() % 2 == 0 {
+                if rng.next_u64().is_multiple_of(2) {
                     // Half the batches good, so that boxes are compared too.
                     records.retain(|r| r.x < 13 && r.y < 70 && layout.check_sample(r.rgb).is_ok());
                 }

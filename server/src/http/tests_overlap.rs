@@ -24,7 +24,7 @@ fn batch(seq: u64, seed: u64) -> Batch {
         .map(|_| {
             let x = (rng.next_u64() % W as u64) as u32;
             let y = (rng.next_u64() % H as u64) as u32;
-            let v = if rng.next_u64() % 16 == 0 {
+            let v = if rng.next_u64().is_multiple_of(16) {
                 5000.0
             } else {
                 0.5

@@ -116,7 +116,7 @@ fn rects(rng: &mut SplitMix64, w: u32, h: u32) -> Vec<Rect> {
         out.push(r);
     }
     if let Some(&first) = out.first() {
-        if rng.next_u64() % 2 == 0 {
+        if rng.next_u64().is_multiple_of(2) {
             // One overlapping another.
             out.push(Rect::new(
                 first.x0 + 1,
