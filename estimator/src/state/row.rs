@@ -36,7 +36,8 @@ pub enum Kernel {
     /// The same code compiled with AVX2 (x86-64 only; only where the CPU has it).
     Avx2,
     /// The splat's block arithmetic compiled with AVX-512 (F, DQ, VL and BW) as well (x86-64
-    /// only; only where the CPU has them and AVX2). The other loops compiled per kernel (the
+    /// only; only where the CPU has them and AVX2, and is of a generation whose clock 512-bit
+    /// code does not lower much: see [`Kernel::detect`]). The other loops compiled per kernel (the
     /// resolve's, the server's record check) run their AVX2 compilation under it: AVX-512 made
     /// them no faster. Measured on one thread of an Intel Xeon (Emerald Rapids) VM, alternated
     /// runs of a harness splatting 1080p passes: rows 40-48 M samples/s with AVX2 and 46-52
@@ -47,12 +48,22 @@ pub enum Kernel {
 
 impl Kernel {
     /// The fastest kernel this CPU runs.
+    ///
+    /// [`Kernel::Avx512`] only on CPUs with AVX-512 VBMI2 as well, which the kernel does not
+    /// use: it marks the generations (Intel's from Ice Lake on, AMD's from Zen 4 on) where
+    /// 512-bit code lowers the core's clock little or not at all. On the Xeons before them
+    /// (Skylake-SP, Cascade Lake, Cooper Lake) it lowers it for every thread of the core for a
+    /// while, which could cost a head's resolves and requests more than the splat gains
+    /// (simdjson, for that reason, runs its AVX-512 code only from Ice Lake and Zen 4 on, with
+    /// the same marker; LLVM prefers 256-bit vectors on those Xeons). They run
+    /// [`Kernel::Avx2`].
     pub fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
         {
             use std::arch::is_x86_feature_detected as has;
             if has!("avx2") {
-                if has!("avx512f") && has!("avx512dq") && has!("avx512vl") && has!("avx512bw") {
+                let avx512 = has!("avx512f") && has!("avx512dq") && has!("avx512vl");
+                if avx512 && has!("avx512bw") && has!("avx512vbmi2") {
                     return Kernel::Avx512;
                 }
                 return Kernel::Avx2;
