@@ -57,19 +57,25 @@ impl Kernel {
     /// (simdjson, for that reason, runs its AVX-512 code only from Ice Lake and Zen 4 on, with
     /// the same marker; LLVM prefers 256-bit vectors on those Xeons). They run
     /// [`Kernel::Avx2`].
+    ///
+    /// Worked out once per process: [`Kernel::available`] asks for it before every block of
+    /// samples and every strip of a resolve, and the AVX-512 kernel takes six feature tests.
     pub fn detect() -> Self {
-        #[cfg(target_arch = "x86_64")]
-        {
-            use std::arch::is_x86_feature_detected as has;
-            if has!("avx2") {
-                let avx512 = has!("avx512f") && has!("avx512dq") && has!("avx512vl");
-                if avx512 && has!("avx512bw") && has!("avx512vbmi2") {
-                    return Kernel::Avx512;
+        static DETECTED: std::sync::OnceLock<Kernel> = std::sync::OnceLock::new();
+        *DETECTED.get_or_init(|| {
+            #[cfg(target_arch = "x86_64")]
+            {
+                use std::arch::is_x86_feature_detected as has;
+                if has!("avx2") {
+                    let avx512 = has!("avx512f") && has!("avx512dq") && has!("avx512vl");
+                    if avx512 && has!("avx512bw") && has!("avx512vbmi2") {
+                        return Kernel::Avx512;
+                    }
+                    return Kernel::Avx2;
                 }
-                return Kernel::Avx2;
             }
-        }
-        Kernel::Portable
+            Kernel::Portable
+        })
     }
 
     /// Whether this CPU can run the kernel.
