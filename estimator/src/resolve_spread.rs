@@ -813,6 +813,7 @@ const _: () = assert!(2 * SPREAD_RADII[SPREAD_RADII.len() - 1] < GIVE_BACK_TILE 
 /// ring of the rows that the sources of one row add to, and the running column sums of the
 /// rows given back.
 struct GiveBack {
+    kernel: Kernel,
     w: usize,
     h: usize,
     grid: Grid,
@@ -831,7 +832,14 @@ struct GiveBack {
 }
 
 impl GiveBack {
-    fn new(w: usize, h: usize, grid: Grid, rows: std::ops::Range<usize>, m: usize) -> Self {
+    fn new(
+        kernel: Kernel,
+        w: usize,
+        h: usize,
+        grid: Grid,
+        rows: std::ops::Range<usize>,
+        m: usize,
+    ) -> Self {
         let slots = (2 * m + 2).next_power_of_two();
         let mut segments = Vec::new();
         let mut s = 0;
@@ -841,6 +849,7 @@ impl GiveBack {
             s = e;
         }
         Self {
+            kernel,
             w,
             h,
             grid,
@@ -914,6 +923,15 @@ impl GiveBack {
     /// prefix sums, along the row and down each column, both restarted at every tile boundary.
     /// Adding an exact 0 changes nothing, so a row that got nothing, below a tile boundary or
     /// below rows that got nothing, is skipped.
+    ///
+    /// In two passes: the running sums along the row, in place in its row of the difference
+    /// array (one chain of additions a tile), then every value on its own ([`give_values`]: the
+    /// column sums and the pixels, a loop of vector instructions). A pixel's channels are each
+    /// given back whether or not the others get anything, as the plain computation does (adding
+    /// `+0` to a value that is never `-0` changes no bit). One scalar loop over both, as first
+    /// written, took 5 % of a default resolve's samples; measured with `bench speed`'s 1080p
+    /// 8-cascade state, one thread, 4 alternated runs (best of 30 each): the default resolve
+    /// 76.7-79.4 ns a pixel against 78.6-82.7.
     fn give(&mut self, y: usize, f: &mut [[f32; 3]], r: &mut [[f32; 3]]) {
         let slot = y & self.mask;
         if self.grid.row_starts_tile(y) && !self.col_zero {
@@ -926,30 +944,68 @@ impl GiveBack {
         }
         self.col_zero = false;
         let d = &mut self.diff[slot * self.w..][..self.w];
-        for &(s, e) in &self.segments {
-            let mut run = [0.0f64; 3];
-            let cells = f[s..e].iter_mut().zip(&mut r[s..e]);
-            for (((f, r), col), d) in cells.zip(&mut self.col[s..e]).zip(&d[s..e]) {
-                let mut given = [0.0f64; 3];
-                for c in 0..3 {
-                    run[c] += d[c];
-                    col[c] += run[c];
-                    // Rounding of the running sums may leave a hair below 0 where nothing was
-                    // given; nothing is ever taken.
-                    given[c] = col[c].max(0.0);
-                }
-                if given != [0.0; 3] {
+        if self.touched[slot] {
+            // Along the row, in place: each tile's running sums (a row that got nothing keeps
+            // its zeros).
+            for &(s, e) in &self.segments {
+                let mut run = [0.0f64; 3];
+                for d in &mut d[s..e] {
                     for c in 0..3 {
-                        f[c] = (f[c] as f64 + given[c]) as f32;
-                        r[c] = (r[c] as f64 - given[c]) as f32;
+                        run[c] += d[c];
                     }
+                    *d = run;
                 }
             }
-        }
-        if self.touched[slot] {
-            d.fill([0.0; 3]);
             self.touched[slot] = false;
         }
+        give_values(
+            self.kernel,
+            self.col.as_flattened_mut(),
+            d.as_flattened_mut(),
+            f.as_flattened_mut(),
+            r.as_flattened_mut(),
+        );
+    }
+}
+
+/// The second pass of [`GiveBack::give`]: down the columns and into the pixels, every value on
+/// its own (the channels of a row's pixels as one slice); `row`, the row's running sums, is
+/// left zeroed for the rows after.
+#[inline(always)]
+fn give_values_any(col: &mut [f64], row: &mut [f64], f: &mut [f32], r: &mut [f32]) {
+    let n = col.len();
+    let (row, f, r) = (&mut row[..n], &mut f[..n], &mut r[..n]);
+    for i in 0..n {
+        col[i] += row[i];
+        row[i] = 0.0;
+        // Rounding of the running sums may leave a hair below 0 where nothing was given;
+        // nothing is ever taken.
+        let given = if col[i] > 0.0 { col[i] } else { 0.0 };
+        f[i] = (f[i] as f64 + given) as f32;
+        r[i] = (r[i] as f64 - given) as f32;
+    }
+}
+
+/// [`give_values_any`] compiled for AVX2: 4 values a vector instruction.
+///
+/// # Safety
+/// The CPU must have AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn give_values_avx2(col: &mut [f64], row: &mut [f64], f: &mut [f32], r: &mut [f32]) {
+    give_values_any(col, row, f, r)
+}
+
+/// [`give_values_any`] in `kernel`'s instructions.
+fn give_values(kernel: Kernel, col: &mut [f64], row: &mut [f64], f: &mut [f32], r: &mut [f32]) {
+    match kernel {
+        #[cfg(target_arch = "x86_64")]
+        Kernel::Avx2 | Kernel::Avx512 => {
+            assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
+            // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
+            unsafe { give_values_avx2(col, row, f, r) }
+        }
+        _ => give_values_any(col, row, f, r),
     }
 }
 
@@ -994,7 +1050,7 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
     let mut paper = Rows::new(kernel, consts, w);
     let mut sats: Vec<SatRing<T>> = (0..k).map(|_| SatRing::new(w, m)).collect();
     let mut windows = RowWindows::new(w, h, m);
-    let mut give_back = GiveBack::new(w, h, grid, ys, m);
+    let mut give_back = GiveBack::new(kernel, w, h, grid, ys, m);
     let (mut next_source, mut next_give) = (q0, ya);
     let mut y = q0;
     while y < q1 {
