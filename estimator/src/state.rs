@@ -25,6 +25,8 @@
 //!   `hi * 2^64 + lo`: `lo` is the cascade's ordinary word, `hi` a 21-bit field of the cell's high
 //!   word (r in bits 0..21, g in 21..42, b in 42..63).
 //! * Counts: at most `2^32 * 2^26 = 2^58` per pixel.
+//! * A cascade without count holds no energy: every share a sample gives a cascade carries at
+//!   least `2^26 / 32 = 2^21` units of count.
 //!
 //! Within these bounds no sum can overflow, so every addition is exact (overflow is
 //! debug-asserted); [`FrameState::from_cells`] checks that imported cells respect them per pixel.
@@ -323,6 +325,15 @@ pub fn top_sum(cell: &[u64], c: usize) -> u128 {
     ((hi as u128) << 64) | cell[4 * (k - 1) + c] as u128
 }
 
+/// Channel `c` of cascade `j` of one cell (exactly [`cell_len`]`(K)` words) in fixed-point units.
+fn top_or_low(cell: &[u64], j: usize, c: usize) -> u128 {
+    if j + 1 == cell.len() / 4 {
+        top_sum(cell, c)
+    } else {
+        cell[4 * j + c] as u128
+    }
+}
+
 /// Channel `c` of cascade `j` of one cell (exactly [`cell_len`]`(K)` words) in fixed-point units,
 /// as an `f64` (for the top cascade, its 85-bit sum to `f64` precision).
 #[inline]
@@ -433,6 +444,12 @@ fn check_cell(cell: &[u64]) -> Result<(), String> {
         return Err("its high word has bits beyond the three 21-bit fields".into());
     }
     for j in 0..k {
+        // Every share a sample gives a cascade carries at least 1/32 of a sample's count, so a
+        // cascade without count never got a share, and holds no energy (the resolve does not
+        // read the sums of a cascade without count in a whole strip of pixels).
+        if cell[4 * j + 3] == 0 && (0..3).any(|c| top_or_low(cell, j, c) != 0) {
+            return Err(format!("cascade {j} holds energy but no samples"));
+        }
         for c in 0..3 {
             let (units, max) = if j + 1 == k {
                 (top_sum(cell, c), n as u128 * TOP_SHARE_MAX as u128)
@@ -2157,7 +2174,12 @@ mod tests {
             f(&mut cells[stride..]);
             FrameState::from_cells(2, 1, 0..1, layout.clone(), cells).unwrap_err()
         };
+        // A cascade without samples in that pixel, given energy.
+        let empty = (0..k - 1)
+            .find(|&j| state.cells()[stride + 4 * j + 3] == 0)
+            .expect("a cascade the sample left empty");
         for err in [
+            bad(&|c| c[4 * empty + 1] = 7),
             bad(&|c| c[3] += 1),
             bad(&|c| c[4 * k] = 1 << 63),
             bad(&|c| c[0] = u64::MAX),

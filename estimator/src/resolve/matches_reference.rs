@@ -61,7 +61,8 @@ fn samples(rng: &mut SplitMix64) -> u64 {
 }
 
 /// A valid cell (the state's bounds hold) of `k` cascades: `n` samples' counts spread over the
-/// cascades, each sum anywhere up to what `n` samples can add, cascades often empty.
+/// cascades, each sum of a cascade with count anywhere up to what `n` samples can add, cascades
+/// often empty.
 fn random_cell(rng: &mut SplitMix64, k: usize, cell: &mut [u64]) {
     let n = samples(rng);
     let mut left = n * COUNT_ONE;
@@ -73,7 +74,8 @@ fn random_cell(rng: &mut SplitMix64, k: usize, cell: &mut [u64]) {
         };
         left -= count;
         cell[4 * j + 3] = count;
-        let empty = rng.next_u64().is_multiple_of(3);
+        // A cascade without count holds no energy (`FrameState::from_cells` checks it).
+        let empty = rng.next_u64().is_multiple_of(3) || count == 0;
         for c in 0..3 {
             if empty {
                 continue;
@@ -232,9 +234,13 @@ fn a_frame_of_extreme_pixels_resolves_to_the_reference_bits() {
     let mut cells = vec![0u64; (w * h) as usize * len];
     for (i, cell) in cells.chunks_exact_mut(len).enumerate() {
         let n = [0, 1, 1 << 20, (1 << 20) + 1, 3 << 20, MAX_PIXEL_SAMPLES][i % 6];
-        cell[3] = n * COUNT_ONE;
         if n == 0 {
             continue;
+        }
+        // Every cascade has some count (a cascade without holds no energy), most in cascade 0.
+        cell[3] = n * COUNT_ONE - (k as u64 - 1);
+        for j in 1..k {
+            cell[4 * j + 3] = 1;
         }
         match i % 3 {
             // Every sum at its bound.
