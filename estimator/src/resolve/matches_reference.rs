@@ -337,11 +337,12 @@ fn sources_of_several_parts_and_columns_give_back_the_reference_bits() {
 
 /// The spread stage resolves a block of rows at a time, every column of strips in turn, and a
 /// column's next block starts from the support rows its last block left in the ring: a frame
-/// of two columns and three blocks.
+/// of three columns and three blocks.
 #[test]
 fn blocks_of_rows_over_several_columns_give_back_the_reference_bits() {
     let layout = CascadeLayout::new(8.0, 6, 1.0, REC709_LUMINANCE).unwrap();
-    let state = splatted_state(13, 1061, 37, &layout);
+    let rows = 2 * crate::resolve_spread::BLOCK_ROWS as u32 + 5;
+    let state = splatted_state(13, 1061, rows, &layout);
     for p in spread_params() {
         let expected = bits(&reference::resolve_bands(&[&state], &p, 1).expect("frame"));
         let mut out = Resolved::default();
