@@ -248,6 +248,8 @@ struct Support {
     occupied: Vec<u32>,
 }
 
+const _: () = assert!(K_MAX <= 32, "a strip's cascades are the bits of a u32");
+
 /// Working memory of one thread of a resolve: a ring of three rows' support, indexed by row,
 /// and room for the cells of a strip at the frame's right edge.
 ///
