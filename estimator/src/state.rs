@@ -325,8 +325,9 @@ pub fn top_sum(cell: &[u64], c: usize) -> u128 {
     ((hi as u128) << 64) | cell[4 * (k - 1) + c] as u128
 }
 
-/// Channel `c` of cascade `j` of one cell (exactly [`cell_len`]`(K)` words) in fixed-point units.
-fn top_or_low(cell: &[u64], j: usize, c: usize) -> u128 {
+/// Channel `c` of cascade `j` of one cell (exactly [`cell_len`]`(K)` words) in fixed-point units,
+/// exactly (the top cascade's 85-bit sum with its field of the high word).
+fn cascade_sum(cell: &[u64], j: usize, c: usize) -> u128 {
     if j + 1 == cell.len() / 4 {
         top_sum(cell, c)
     } else {
@@ -447,15 +448,16 @@ fn check_cell(cell: &[u64]) -> Result<(), String> {
         // Every share a sample gives a cascade carries at least 1/32 of a sample's count, so a
         // cascade without count never got a share, and holds no energy (the resolve does not
         // read the sums of a cascade without count in a whole strip of pixels).
-        if cell[4 * j + 3] == 0 && (0..3).any(|c| top_or_low(cell, j, c) != 0) {
+        if cell[4 * j + 3] == 0 && (0..3).any(|c| cascade_sum(cell, j, c) != 0) {
             return Err(format!("cascade {j} holds energy but no samples"));
         }
+        let max = if j + 1 == k {
+            n as u128 * TOP_SHARE_MAX as u128
+        } else {
+            n as u128 * LOW_SHARE_MAX as u128
+        };
         for c in 0..3 {
-            let (units, max) = if j + 1 == k {
-                (top_sum(cell, c), n as u128 * TOP_SHARE_MAX as u128)
-            } else {
-                (cell[4 * j + c] as u128, n as u128 * LOW_SHARE_MAX as u128)
-            };
+            let units = cascade_sum(cell, j, c);
             if units > max {
                 return Err(format!(
                     "cascade {j} channel {c} holds {units} units, more than {n} samples can add"
