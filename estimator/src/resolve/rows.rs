@@ -411,9 +411,10 @@ fn pixel_support(k: usize, cell: &[u64], out: &mut [f64], stride: usize) {
 }
 
 /// One row's support counts in the strip at `x0` (see [`Support`]), and the cascades with a
-/// count in any of its pixels (bit `j`); `tail` holds a copy of the cells of a group at the frame's right edge (room for [`LANES`] cells; a buffer kept
-/// from strip to strip: zeroing one per strip was 3 % of a resolve's instructions). `AVX2`:
-/// only in the AVX2 kernel, where a group's counts go to vectors without a trip through memory.
+/// count in any of its pixels (bit `j`); `tail` holds a copy of the cells of a group at the
+/// frame's right edge (room for [`LANES`] cells; a buffer kept from strip to strip: zeroing one
+/// per strip was 3 % of a resolve's instructions). `AVX2`: only in the AVX2 kernel, where a
+/// group's counts go to vectors without a trip through memory.
 #[inline(always)]
 fn support<const AVX2: bool>(
     k: usize,
@@ -917,10 +918,10 @@ mod avx2 {
     /// One group's support counts, as [`support`](super::support)'s group loop computes them
     /// with the same operations in the same order: planes `0 .. k` of `n_j` and plane `k` of
     /// `N`, pixels `at .. at + LANES` of `own`; returns the cascades with a count in any of the
-    /// group's pixels (bit `j`). Each cascade's count words of 4 pixels go
-    /// straight into a vector: the portable loop's copy of them into an array, read back as
-    /// vectors, waited for its stores (a vector load of values stored one by one cannot take
-    /// them from the store queue), a tenth of the support step.
+    /// group's pixels (bit `j`). Each cascade's count words of 4 pixels go straight into a
+    /// vector: the portable loop's copy of them into an array, read back as vectors, waited for
+    /// its stores (a vector load of values stored one by one cannot take them from the store
+    /// queue), a tenth of the support step.
     #[inline(always)]
     pub(super) unsafe fn support_group(
         group: &[u64],
