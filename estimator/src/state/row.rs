@@ -35,14 +35,16 @@ pub enum Kernel {
     Portable,
     /// The same code compiled with AVX2 (x86-64 only; only where the CPU has it).
     Avx2,
-    /// The splat's block arithmetic compiled with AVX-512 (F, DQ, VL and BW) as well (x86-64
-    /// only; only where the CPU has them and AVX2, and is of a generation whose clock 512-bit
-    /// code does not lower much: see [`Kernel::detect`]). The other loops compiled per kernel (the
-    /// resolve's, the server's record check) run their AVX2 compilation under it: AVX-512 made
-    /// them no faster. Measured on one thread of an Intel Xeon (Emerald Rapids) VM, alternated
-    /// runs of a harness splatting 1080p passes: rows 40-48 M samples/s with AVX2 and 46-52
-    /// with AVX-512 (`bench speed`: 46.1 and 49.9), records in random order 25-31 and 31-33.
-    /// On a Zen 4 VM an AVX-512 build of the splat was about 5 % faster.
+    /// The splat's block arithmetic, and the resolve's row pass and support step, compiled with
+    /// AVX-512 (F, DQ, VL and BW) as well (x86-64 only; only where the CPU has them and AVX2,
+    /// and is of a generation whose clock 512-bit code does not lower much: see
+    /// [`Kernel::detect`]). The other loops compiled per kernel (the resolve's spread stage, the
+    /// server's record check) run their AVX2 compilation under it: AVX-512 made them no faster.
+    /// The splat, measured on one thread of an Intel Xeon (Emerald Rapids) VM, alternated runs
+    /// of a harness splatting 1080p passes: rows 40-48 M samples/s with AVX2 and 46-52 with
+    /// AVX-512 (`bench speed`: 46.1 and 49.9), records in random order 25-31 and 31-33; on a
+    /// Zen 4 VM an AVX-512 build of the splat was about 5 % faster. The resolve's figures are in
+    /// the docs of its row pass (`resolve/rows.rs`).
     Avx512,
 }
 
