@@ -32,8 +32,10 @@
 //!   `2 max_radius` of its give-back tile ([`Grid`]), so a part of the frame can be resolved
 //!   again on its own (`resolve_region_into`; the derivation is in `resolve/region.rs`).
 
+use std::mem::MaybeUninit;
+
 use super::layout::{ParamError, COUNT_ONE};
-use super::resolve::rows::{Consts, Layers, Part, Rows};
+use super::resolve::rows::{pixels_written, Consts, Layers, Part, Rows};
 use super::resolve::{ResolveParams, Resolved};
 use super::state::Kernel;
 
@@ -311,9 +313,9 @@ pub(crate) fn resolve_spread(
     params: &ResolveParams,
     threads: usize,
     grid: Grid,
-    out: &mut Resolved,
+    (w, h): (usize, usize),
+    out: Layers<'_>,
 ) {
-    let (w, h) = (out.width as usize, out.height as usize);
     // Each thread's rows: a run of whole tile rows.
     let mut starts = vec![0];
     while let Some(&y) = starts.last().filter(|&&y| y < h) {
@@ -332,7 +334,7 @@ pub(crate) fn resolve_spread(
         params,
     };
     std::thread::scope(|scope| {
-        let mut rest = Layers::of(out);
+        let mut rest = out;
         let mut strips = Vec::new();
         for c in cuts.windows(2).filter(|c| c[0] < c[1]) {
             let (strip, after) = rest.split_at((c[1] - c[0]) * w);
@@ -1055,8 +1057,8 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
     let mut sources = Sources::default();
     // Paper rows beyond `ya..yb` go to these, and are not kept.
     let spare = BLOCK_ROWS.min(q1 - q0) * w;
-    let mut spare_layers = [(); 3].map(|_| vec![[0.0f32; 3]; spare]);
-    let mut spare_spp = vec![0u64; spare];
+    let mut spare_layers = [(); 3].map(|_| vec![MaybeUninit::<[f32; 3]>::uninit(); spare]);
+    let mut spare_spp = vec![MaybeUninit::<u64>::uninit(); spare];
     let mut paper = Rows::new(kernel, consts, w);
     let mut sats: Vec<SatRing<T>> = (0..k).map(|_| SatRing::new(w, m)).collect();
     let mut windows = RowWindows::new(w, h, m);
@@ -1107,7 +1109,15 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
         loop {
             while next_give < yb && (next_give + m < next_source || next_source >= s1) {
                 let at = (next_give - ya) * w;
-                let (f, r) = (&mut out.reweighted[at..][..w], &mut out.removed[at..][..w]);
+                // SAFETY: the paper stage has resolved the row (`next_give < end`, as every
+                // source that reaches it has been taken), which writes each of its pixels.
+                let (f, r) = unsafe {
+                    (
+                        pixels_written(&mut out.reweighted[at..][..w]),
+                        pixels_written(&mut out.removed[at..][..w]),
+                    )
+                };
+                debug_assert!(next_give < end, "a row given back before it is resolved");
                 give_back.give(next_give, f, r);
                 next_give += 1;
             }

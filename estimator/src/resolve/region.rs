@@ -302,12 +302,8 @@ fn region(
             .map(|row| &row[cx0 * len..cx1 * len])
             .collect();
         let (cw, ch) = (cx1 - cx0, (c.y1 - c.y0) as usize);
+        // The resolve sizes the crop's buffers, in the memory they have where it is enough.
         (crop.width, crop.height) = (cw as u32, ch as u32);
-        // Every pixel is written by the resolve: the buffers keep their memory.
-        crop.reweighted.resize(cw * ch, [0.0; 3]);
-        crop.mean.resize(cw * ch, [0.0; 3]);
-        crop.removed.resize(cw * ch, [0.0; 3]);
-        crop.spp.resize(cw * ch, 0);
         resolve_rows(
             kernel,
             layout,

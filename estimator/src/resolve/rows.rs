@@ -44,6 +44,8 @@
 // The group loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
 
+use std::mem::MaybeUninit;
+
 use super::{support_samples, ResolveParams, Variant, KAPPA_TABLE, SHADER_E_MIN_FLOOR};
 use crate::layout::{CascadeLayout, COUNT_ONE, FRAC_BITS, MAX_CASCADES};
 use crate::resolve_spread::{support_word, Source};
@@ -174,22 +176,48 @@ impl Consts {
     }
 }
 
-/// Some rows of a resolve's layers.
+/// Some rows of a resolve's layers, as memory the resolve writes before it reads any of it:
+/// every pixel is written by the row pass, and the spread stage reads a row back only after
+/// that. Their earlier contents are never read, so new layers need not be zeroed first.
 pub(crate) struct Layers<'o> {
-    pub(crate) reweighted: &'o mut [[f32; 3]],
-    pub(crate) mean: &'o mut [[f32; 3]],
-    pub(crate) removed: &'o mut [[f32; 3]],
-    pub(crate) spp: &'o mut [u64],
+    pub(crate) reweighted: &'o mut [MaybeUninit<[f32; 3]>],
+    pub(crate) mean: &'o mut [MaybeUninit<[f32; 3]>],
+    pub(crate) removed: &'o mut [MaybeUninit<[f32; 3]>],
+    pub(crate) spp: &'o mut [MaybeUninit<u64>],
 }
 
 impl<'o> Layers<'o> {
-    /// A resolve's layers.
-    pub(crate) fn of(out: &'o mut super::Resolved) -> Self {
+    /// Room for `pixels` new pixels in each of `out`'s layers: in the memory they have where it
+    /// is enough, else in new memory (not zeroed). Their lengths are 0 until
+    /// [`Layers::written`].
+    pub(crate) fn room(out: &'o mut super::Resolved, pixels: usize) -> Self {
+        fn room<T>(layer: &mut Vec<T>, pixels: usize) -> &mut [MaybeUninit<T>] {
+            layer.clear();
+            if layer.capacity() < pixels {
+                // Not `reserve`, which would copy the old contents over.
+                *layer = Vec::with_capacity(pixels);
+            }
+            &mut layer.spare_capacity_mut()[..pixels]
+        }
         Layers {
-            reweighted: &mut out.reweighted,
-            mean: &mut out.mean,
-            removed: &mut out.removed,
-            spp: &mut out.spp,
+            reweighted: room(&mut out.reweighted, pixels),
+            mean: room(&mut out.mean, pixels),
+            removed: room(&mut out.removed, pixels),
+            spp: room(&mut out.spp, pixels),
+        }
+    }
+
+    /// Gives `out`'s layers the length `pixels` once a resolve has written their room.
+    ///
+    /// # Safety
+    /// Every pixel of the room of [`Layers::room`]`(out, pixels)` must have been written.
+    pub(crate) unsafe fn written(out: &mut super::Resolved, pixels: usize) {
+        // SAFETY: the room holds `pixels` values (capacity), all written (the caller).
+        unsafe {
+            out.reweighted.set_len(pixels);
+            out.mean.set_len(pixels);
+            out.removed.set_len(pixels);
+            out.spp.set_len(pixels);
         }
     }
 
@@ -223,6 +251,15 @@ impl<'o> Layers<'o> {
             spp: self.spp,
         }
     }
+}
+
+/// Pixels of a layer that the row pass has written, as values.
+///
+/// # Safety
+/// Every pixel of `pixels` must have been written.
+pub(crate) unsafe fn pixels_written<T>(pixels: &mut [MaybeUninit<T>]) -> &mut [T] {
+    // SAFETY: `MaybeUninit<T>` has `T`'s layout, and the caller says every value is written.
+    unsafe { &mut *(pixels as *mut [MaybeUninit<T>] as *mut [T]) }
 }
 
 /// The rows `y0..` of the output that one [`Rows`] fills.
@@ -919,10 +956,10 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
         for x in x0..at.count {
             if n[x] == 0.0 {
                 // No samples: nothing to show (the outputs may hold an earlier resolve).
-                part.out.reweighted[i + x] = [0.0; 3];
-                part.out.mean[i + x] = [0.0; 3];
-                part.out.removed[i + x] = [0.0; 3];
-                part.out.spp[i + x] = 0;
+                part.out.reweighted[i + x].write([0.0; 3]);
+                part.out.mean[i + x].write([0.0; 3]);
+                part.out.removed[i + x].write([0.0; 3]);
+                part.out.spp[i + x].write(0);
                 continue;
             }
             let inv = inv_n[x];
@@ -933,10 +970,10 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                     (v[2][x] * inv) as f32,
                 ]
             };
-            part.out.reweighted[i + x] = px(&f);
-            part.out.mean[i + x] = px(&total);
-            part.out.removed[i + x] = px(&removed);
-            part.out.spp[i + x] = n[x] as u64;
+            part.out.reweighted[i + x].write(px(&f));
+            part.out.mean[i + x].write(px(&total));
+            part.out.removed[i + x].write(px(&removed));
+            part.out.spp[i + x].write(n[x] as u64);
         }
     }
 }
@@ -1067,7 +1104,7 @@ mod avx2 {
             "groups of 4 pixels in a strip"
         );
         let out = &mut part.out;
-        let mut outs: [&mut [[f32; 3]]; 3] = [
+        let mut outs: [&mut [MaybeUninit<[f32; 3]>]; 3] = [
             &mut out.reweighted[i..i + count],
             &mut out.mean[i..i + count],
             &mut out.removed[i..i + count],
