@@ -342,26 +342,33 @@ impl<'a> Rows<'a> {
 
     /// Fills strip `s` of ring slot `y % 3` with row `y`'s support.
     fn load_strip(&mut self, y: usize, s: usize, rows: &[&[u64]]) {
-        let (kernel, k, w) = (self.kernel, self.c.k, self.width);
-        let slot = &mut self.ring[y % 3];
-        let own = &mut slot.own[s * (k + 1) * OWN..][..(k + 1) * OWN];
-        let pooled = &mut slot.pooled[s * (k + 1) * STRIP..][..(k + 1) * STRIP];
-        let (x0, tail) = (s * STRIP, &mut self.tail);
-        slot.occupied[s] = match kernel {
+        let kernel = self.kernel;
+        match kernel {
             #[cfg(target_arch = "x86_64")]
             Kernel::Avx2 => {
                 assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
                 // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
-                unsafe { support_avx2(k, rows[y], w, x0, own, pooled, tail) }
+                unsafe { support_avx2(self, y, s, rows[y]) }
             }
             #[cfg(target_arch = "x86_64")]
             Kernel::Avx512 => {
                 assert!(kernel.available(), "AVX-512 kernel on a CPU without it");
                 // SAFETY: the CPU has what the kernel needs, checked just above (cached).
-                unsafe { support_avx512(k, rows[y], w, x0, own, pooled, tail) }
+                unsafe { support_avx512(self, y, s, rows[y]) }
             }
-            _ => support::<false>(k, rows[y], w, x0, own, pooled, tail),
-        };
+            _ => self.support_strip::<false>(y, s, rows[y]),
+        }
+    }
+
+    /// [`Rows::load_strip`] from row `y`'s `cells` ([`support`]).
+    #[inline(always)]
+    fn support_strip<const AVX2: bool>(&mut self, y: usize, s: usize, cells: &[u64]) {
+        let (k, w) = (self.c.k, self.width);
+        let slot = &mut self.ring[y % 3];
+        let own = &mut slot.own[s * (k + 1) * OWN..][..(k + 1) * OWN];
+        let pooled = &mut slot.pooled[s * (k + 1) * STRIP..][..(k + 1) * STRIP];
+        let (x0, tail) = (s * STRIP, &mut self.tail);
+        slot.occupied[s] = support::<AVX2>(k, cells, w, x0, own, pooled, tail);
     }
 
     /// Resolves the rows `ys` of the frame `rows` (every row of the frame, top to bottom) into
@@ -433,35 +440,6 @@ impl<'a> Rows<'a> {
             }
         }
     }
-}
-
-/// [`support`] compiled for [`Kernel::Avx512`] (see the module docs).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,avx512f,avx512dq,avx512vl,avx512bw")]
-unsafe fn support_avx512(
-    k: usize,
-    cells: &[u64],
-    w: usize,
-    x0: usize,
-    own: &mut [f64],
-    pooled: &mut [f64],
-    tail: &mut [u64],
-) -> u32 {
-    support::<true>(k, cells, w, x0, own, pooled, tail)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn support_avx2(
-    k: usize,
-    cells: &[u64],
-    w: usize,
-    x0: usize,
-    own: &mut [f64],
-    pooled: &mut [f64],
-    tail: &mut [u64],
-) -> u32 {
-    support::<true>(k, cells, w, x0, own, pooled, tail)
 }
 
 /// One pixel's `n_j` and `N` (at `K`), `stride` apart in `out`: the same arithmetic as the
@@ -633,18 +611,30 @@ struct RowAt<'r> {
     y: usize,
 }
 
-/// [`row`] compiled for [`Kernel::Avx512`] (see the module docs).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2,avx512f,avx512dq,avx512vl,avx512bw")]
-unsafe fn row_avx512(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>, ahead: &mut Lines) {
-    row_any::<true>(c, at, part, ahead)
+/// [`Rows::support_strip`] and [`row_any`] compiled with `$features` enabled (the code as it is,
+/// the compiler's choice of instructions): the kernels of the module docs.
+macro_rules! compiled_with {
+    ($features:literal, $support:ident, $row:ident) => {
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        unsafe fn $support(rows: &mut Rows<'_>, y: usize, s: usize, cells: &[u64]) {
+            rows.support_strip::<true>(y, s, cells)
+        }
+
+        #[cfg(target_arch = "x86_64")]
+        #[target_feature(enable = $features)]
+        unsafe fn $row(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>, ahead: &mut Lines) {
+            row_any::<true>(c, at, part, ahead)
+        }
+    };
 }
 
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx2")]
-unsafe fn row_avx2(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>, ahead: &mut Lines) {
-    row_any::<true>(c, at, part, ahead)
-}
+compiled_with!("avx2", support_avx2, row_avx2);
+compiled_with!(
+    "avx2,avx512f,avx512dq,avx512vl,avx512bw",
+    support_avx512,
+    row_avx512
+);
 
 #[inline(always)]
 fn row_any<const AVX2: bool>(c: &Consts, at: &RowAt<'_>, part: &mut Part<'_>, ahead: &mut Lines) {
