@@ -38,8 +38,10 @@
 //! operations on the same values, so the same bits. Measured with `bench speed`'s 1080p
 //! 8-cascade state on one thread of an Intel Xeon (Emerald Rapids) VM, alternated runs, best of
 //! 30 each: the default resolve 64.9-68.1 ns a pixel against 69.8-70.9 with AVX2 (6 runs),
-//! `paper` 40.3-41.6 against 42.1-43.1. (When the resolve was slower elsewhere, AVX-512 made no
-//! difference; the spread stage's loops still made none, and are run in their AVX2 form.)
+//! `paper` 40.3-41.6 against 42.1-43.1. (When the resolve spent its time elsewhere, AVX-512 made
+//! no difference. It still makes none to the spread stage, `resolve_spread.rs`: its two loops
+//! compiled per kernel run their AVX2 form, and its streaming loop, compiled with AVX2 or
+//! AVX-512, was no faster than in the target's baseline.)
 
 // The group loops index several arrays by lane, as the vector code they become does.
 #![allow(clippy::needless_range_loop)]
