@@ -37,7 +37,7 @@
 //! a strip then take 8 `f64`s an instruction, and the `if`s in them become masks. The same
 //! operations on the same values, so the same bits. Measured with `bench speed`'s 1080p
 //! 8-cascade state on one thread of an Intel Xeon (Emerald Rapids) VM, alternated runs, best of
-//! 30 each: the default resolve 64.9-68.1 ns a pixel against 69.8-70.9 with AVX2 (6 runs),
+//! 30 each: the default resolve 65.0-68.6 ns a pixel against 69.8-70.9 with AVX2 (5 runs),
 //! `paper` 40.3-41.6 against 42.1-43.1. (When the resolve spent its time elsewhere, AVX-512 made
 //! no difference. It still makes none to the spread stage, `resolve_spread.rs`: its two loops
 //! compiled per kernel run their AVX2 form, and its streaming loop, compiled with AVX2 or
