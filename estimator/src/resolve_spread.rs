@@ -1109,6 +1109,7 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
         loop {
             while next_give < yb && (next_give + m < next_source || next_source >= s1) {
                 let at = (next_give - ya) * w;
+                debug_assert!(next_give < end, "a row given back before it is resolved");
                 // SAFETY: the paper stage has resolved the row (`next_give < end`, as every
                 // source that reaches it has been taken), which writes each of its pixels.
                 let (f, r) = unsafe {
@@ -1117,7 +1118,6 @@ fn stream<T: Packed>(frame: &Frame, ys: std::ops::Range<usize>, out: &mut Layers
                         pixels_written(&mut out.removed[at..][..w]),
                     )
                 };
-                debug_assert!(next_give < end, "a row given back before it is resolved");
                 give_back.give(next_give, f, r);
                 next_give += 1;
             }

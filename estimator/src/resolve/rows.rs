@@ -422,16 +422,16 @@ impl<'a> Rows<'a> {
                         Some(row) if next <= ys.end => Lines::of(row, x0 * len, row_at.count * len),
                         _ => Lines::of(&[], 0, 0),
                     };
-                    match self.kernel {
+                    let kernel = self.kernel;
+                    match kernel {
                         #[cfg(target_arch = "x86_64")]
                         Kernel::Avx2 => {
-                            assert!(self.kernel.available(), "AVX2 kernel on a CPU without AVX2");
+                            assert!(kernel.available(), "AVX2 kernel on a CPU without AVX2");
                             // SAFETY: the CPU has AVX2, checked just above (a cached feature test).
                             unsafe { row_avx2(self.c, &row_at, part, &mut ahead) }
                         }
                         #[cfg(target_arch = "x86_64")]
                         Kernel::Avx512 => {
-                            let kernel = self.kernel;
                             assert!(kernel.available(), "AVX-512 kernel on a CPU without it");
                             // SAFETY: the CPU has what the kernel needs, checked just above.
                             unsafe { row_avx512(self.c, &row_at, part, &mut ahead) }
@@ -464,8 +464,8 @@ fn pixel_support(k: usize, cell: &[u64], out: &mut [f64], stride: usize) {
 /// One row's support counts in the strip at `x0` (see [`Support`]), and the cascades with a
 /// count in any of its pixels (bit `j`); `tail` holds a copy of the cells of a group at the
 /// frame's right edge (room for [`LANES`] cells; a buffer kept from strip to strip: zeroing one
-/// per strip was 3 % of a resolve's instructions). `AVX2`: only in the AVX2 kernel, where a
-/// group's counts go to vectors without a trip through memory.
+/// per strip was 3 % of a resolve's instructions). `AVX2`: only in the AVX2 and AVX-512 kernels,
+/// where a group's counts go to vectors without a trip through memory.
 #[inline(always)]
 fn support<const AVX2: bool>(
     k: usize,
@@ -493,7 +493,7 @@ fn support<const AVX2: bool>(
         if AVX2 {
             #[cfg(target_arch = "x86_64")]
             {
-                // SAFETY: only compiled into the AVX2 kernel (see `support_avx2`).
+                // SAFETY: only compiled with AVX2 enabled (`compiled_with!`).
                 occupied |= unsafe { avx2::support_group(group, len, k, own, at, &mut ahead) };
                 continue;
             }
@@ -752,7 +752,7 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
                 if AVX2 {
                     #[cfg(target_arch = "x86_64")]
                     for x in (0..STRIP).step_by(4) {
-                        // SAFETY: only compiled into the AVX2 kernel (see `row_avx2`).
+                        // SAFETY: only compiled with AVX2 enabled (`compiled_with!`).
                         unsafe { avx2::sums4(cells, x, len, j, k, small, u, &mut b) }
                         ahead.prefetch_l2(per);
                     }
@@ -934,14 +934,14 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
         // The lines of `ahead` not asked for yet (all of them in a strip without samples).
         ahead.prefetch_l2(usize::MAX);
         let i = at.first;
-        // Four pixels at a time in the AVX2 kernel; the rest (and the portable kernel's) one by
-        // one, the same values.
+        // Four pixels at a time in the AVX2 and AVX-512 kernels; the rest (and the portable
+        // kernel's) one by one, the same values.
         let mut x0 = 0;
         if AVX2 {
             #[cfg(target_arch = "x86_64")]
             {
                 x0 = at.count / 4 * 4;
-                // SAFETY: only compiled into the AVX2 kernel (see `row_avx2`).
+                // SAFETY: only compiled with AVX2 enabled (`compiled_with!`).
                 unsafe { avx2::store_pixels(&[&f, &total, &removed], &inv_n, n, x0, part, i) }
             }
         }
@@ -974,7 +974,7 @@ fn row<const V: u8, const BANDS: bool, const AVX2: bool>(
 /// `[r, g, b, count]` is 4 words, one 256-bit load, and 4 pixels' loads transposed give each
 /// channel of 4 pixels in one vector, converted to `f64` in a few vector instructions (the
 /// portable loop reads and converts word by word). These functions are only inlined into the
-/// AVX2 kernel.
+/// AVX2 and AVX-512 kernels.
 #[cfg(target_arch = "x86_64")]
 mod avx2 {
     use std::arch::x86_64::*;
